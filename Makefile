@@ -1,0 +1,35 @@
+# Two set-up commands (README): `make demo` and `make test`. Each creates or reuses .venv,
+# installs torch==2.13.0 only when no torch is importable (a plain `torch` requirement would pull
+# a multi-GB CUDA build), installs the package with its dev extras once, then runs.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.tracegs-installed
+
+.PHONY: setup demo test test-all lint bench clean
+
+$(BIN)/python:
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+
+$(STAMP): $(BIN)/python pyproject.toml
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: setup
+	$(BIN)/tracegs-demo
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+test-all: setup
+	$(BIN)/python -m pytest -q -m "not gpu"
+
+lint: setup
+	$(BIN)/ruff check tracegs tests benchmarks
+
+clean:
+	rm -rf $(VENV) outputs multirun

@@ -1,0 +1,1 @@
+"""Typed Hydra config schema and cross-field validation."""

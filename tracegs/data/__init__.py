@@ -1,0 +1,1 @@
+"""Scenes (COLMAP, synthetic), splits, paired-clip preparation, cache and the PairedClipDataModule."""

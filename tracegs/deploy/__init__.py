@@ -1,0 +1,1 @@
+"""Deployment: restore-refine loop and the DeploymentRefinement callback."""

@@ -1,0 +1,1 @@
+"""Evaluation: metrics and reports (tables, plots, videos)."""

@@ -1,0 +1,1 @@
+"""Reference-guided video restorer: transformer, LoRA adapters, codecs, encoders, schedules, sampler."""

@@ -1,0 +1,1 @@
+"""Gaussian splatting engine: scene model, cameras, rasterizer backends, 3DGS optimiser, trajectories, PLY io."""

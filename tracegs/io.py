@@ -1,0 +1,49 @@
+"""Atomic file writes shared by every stage: nothing half-written survives an interrupted run."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import save_file
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success rename it over ``path``.
+
+    The temporary file lives in the same directory so that ``os.replace`` is an atomic rename
+    on POSIX. On any exception the temporary file is removed and ``path`` is left untouched.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def save_safetensors_atomic(
+    tensors: dict[str, torch.Tensor], path: str | os.PathLike, metadata: dict[str, str] | None = None
+) -> None:
+    """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires)."""
+    payload = {name: t.detach().to("cpu").contiguous() for name, t in tensors.items()}
+    with atomic_write(path) as tmp:
+        save_file(payload, str(tmp), metadata=metadata)
+
+
+def write_json_atomic(data: Any, path: str | os.PathLike) -> None:
+    """Write JSON (indented, keys in insertion order) atomically."""
+    with atomic_write(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")

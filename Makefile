@@ -23,7 +23,9 @@ demo: setup
 	$(BIN)/tracegs-demo
 
 test: setup
-	$(BIN)/python -m pytest -q
+	@$(BIN)/python -m pytest -q; status=$$?; \
+	if [ $$status -eq 5 ]; then echo "make test: pytest collected no tests - the set-up is broken" >&2; fi; \
+	exit $$status
 
 test-all: setup
 	$(BIN)/python -m pytest -q -m "not gpu"

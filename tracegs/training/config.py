@@ -1,0 +1,92 @@
+"""Hyperparameters of the three training stages (defaults = embedded CPU scale).
+
+Paper-scale values (supplement A.4): AdamW lr 1e-5, batch 2 per GPU, lambda_align 1, lambda_ret 0.15,
+N = 10 rollout steps resampled from the M = 50 deployment schedule, Stage 1 500 iterations, Stage 2 2000
+iterations with 100 linear warm-up iterations. The baseline restorer (variant A) is GSFixer's pretrained
+restorer at paper scale, so ``BaselineStage`` is only trained at the embedded scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+STAGE_NAMES = ("baseline", "stage1", "stage2")
+MEMORY_MODES = ("stepwise", "retain")
+
+
+@dataclass
+class OptimizerConfig:
+    """AdamW with linear warm-up (supplement A.4: the first 100 Stage-2 iterations warm up)."""
+
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    eps: float = 1e-8
+    warmup_steps: int = 0
+    # Max global L2 norm of the trainable gradients; None disables clipping.
+    grad_clip: float | None = 1.0
+
+
+@dataclass
+class StageConfig:
+    """Which stage runs and its loop-level settings.
+
+    ``rollout_steps`` is Stage 2's N (grid resampled each iteration from the M-step deployment schedule
+    set by the backbone's schedule config). ``memory_mode`` chooses how Stage 2 back-propagates the N
+    local losses: ``retain`` keeps all N student graphs until one backward (the paper's description),
+    ``stepwise`` back-propagates each local loss divided by N right away (same gradients because the
+    transitions are detached, memory independent of N).
+    """
+
+    name: str = "stage2"
+    max_steps: int = 150
+    batch_size: int = 4
+    rollout_steps: int = 5
+    memory_mode: str = "stepwise"
+    seed: int = 0
+    # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
+    adapter_name: str = "aligned"
+    # Stage 1: directory of variant A's base weights (``baseline`` output); None = the backbone as built.
+    base_weights: str | None = None
+    # Stage 2: Stage-1 adapter safetensors to clone; required for stage2.
+    init_adapter: str | None = None
+    # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
+    checkpoint_every_n_steps: int = 50
+    # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
+    resume_from: str | None = "last"
+
+    def __post_init__(self) -> None:
+        if self.name not in STAGE_NAMES:
+            raise ValueError(f"stage.name must be one of {STAGE_NAMES}, got {self.name!r}")
+        if self.memory_mode not in MEMORY_MODES:
+            raise ValueError(f"stage.memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}")
+        if self.rollout_steps < 1:
+            raise ValueError(f"stage.rollout_steps must be >= 1, got {self.rollout_steps}")
+
+
+@dataclass
+class TeacherConfig:
+    """Stage-2 teacher conditioning (Table 3): dense views (None = all) and whether they are privileged.
+
+    ``privileged=False`` (variant B) conditions the teacher on the student's own sparse rendering.
+    """
+
+    views: int | None = None
+    privileged: bool = True
+
+
+@dataclass
+class PolicyConfig:
+    """Where Stage 2 queries the teacher: student-visited states (on-policy) or forward-noised ones (E)."""
+
+    on_policy: bool = True
+
+
+@dataclass
+class LossConfig:
+    """Loss weights: Stage 1 L_warm (supplement Eq. supp-stage1), Stage 2 Eq. 9."""
+
+    lambda_align: float = 1.0
+    lambda_ret: float = 0.15
+    # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
+    retrieval_eps: float = 1e-6

@@ -1,0 +1,128 @@
+"""Image-quality metrics of the evaluation protocol (supplement B, "Metric computation").
+
+PSNR and SSIM come from torchmetrics at data range 1 (images in [0, 1]); SSIM uses torchmetrics'
+default 11x11 Gaussian window with sigma 1.5. LPIPS uses torchmetrics' VGG variant, which needs
+torchvision and the ImageNet VGG16 weights in the torch hub cache; without them LPIPS is reported as
+unavailable with the reason, never as a made-up number.
+
+Averaging follows the paper: each metric is averaged over a scene's test views first, then the
+unweighted mean is taken over scenes. Reference (captured) frames are not test views and must not be
+passed in.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
+
+METRIC_NAMES = ("psnr", "ssim", "lpips")
+VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
+
+# Both LPIPS conventions in use. The official 3DGS evaluation feeds [0, 1] images straight into an
+# LPIPS network that expects [-1, 1] (its lpipsPyTorch does no rescaling); in torchmetrics that is
+# normalize=False with unscaled [0, 1] inputs. The LPIPS authors' convention maps [0, 1] to [-1, 1]
+# first (torchmetrics normalize=True). The two give different numbers, so every table names its own.
+LPIPS_CONVENTIONS = {
+    "3dgs": "LPIPS-VGG (torchmetrics, normalize=False on unscaled [0,1] images, as the official 3DGS metrics.py)",
+    "standard": "LPIPS-VGG (torchmetrics, normalize=True: [0,1] images mapped to [-1,1])",
+}
+
+
+@dataclass(frozen=True)
+class LpipsAvailability:
+    """Whether LPIPS-VGG can be computed here, and if not, why."""
+
+    available: bool
+    reason: str = ""
+
+
+def vgg16_weights_path() -> Path:
+    """Where torchvision looks for the VGG16 ImageNet weights (``$TORCH_HOME/hub/checkpoints``)."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_WEIGHTS_FILE
+
+
+def lpips_availability() -> LpipsAvailability:
+    """Check the two prerequisites of LPIPS-VGG without downloading anything."""
+    if importlib.util.find_spec("torchvision") is None:
+        return LpipsAvailability(False, "torchvision is not installed (extra 'tracegs[lpips]')")
+    weights = vgg16_weights_path()
+    if not weights.is_file():
+        return LpipsAvailability(False, f"VGG16 ImageNet weights not found at {weights}")
+    return LpipsAvailability(True)
+
+
+def _as_batch(image: Tensor, name: str) -> Tensor:
+    if image.dim() == 3:
+        image = image.unsqueeze(0)
+    if image.dim() != 4 or image.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [3,H,W] or [B,3,H,W], got {tuple(image.shape)}")
+    return image.float()
+
+
+class ImageMetrics:
+    """Runtime evaluator of PSNR / SSIM / LPIPS between renders and ground truth, both in [0, 1]."""
+
+    def __init__(self, lpips: bool = True, lpips_convention: str = "3dgs", device: str | torch.device = "cpu"):
+        if lpips_convention not in LPIPS_CONVENTIONS:
+            raise ValueError(f"lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}, got {lpips_convention!r}")
+        self.lpips_convention = lpips_convention
+        self.lpips_status = lpips_availability() if lpips else LpipsAvailability(False, "disabled by config")
+        self._lpips = None
+        if self.lpips_status.available:
+            from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+            self._lpips = LearnedPerceptualImagePatchSimilarity(
+                net_type="vgg", normalize=lpips_convention == "standard"
+            ).to(device)
+            self._lpips.eval()
+
+    @property
+    def lpips_label(self) -> str:
+        """The LPIPS column caption for tables: the convention, or ``n/a`` with the reason."""
+        if self.lpips_status.available:
+            return LPIPS_CONVENTIONS[self.lpips_convention]
+        return f"LPIPS n/a: {self.lpips_status.reason}"
+
+    @torch.no_grad()
+    def per_view(self, pred: Tensor, target: Tensor) -> list[dict[str, float | None]]:
+        """Metrics of each image in the batch (``[3,H,W]`` or ``[B,3,H,W]``), one dict per view."""
+        pred, target = _as_batch(pred, "pred"), _as_batch(target, "target")
+        if pred.shape != target.shape:
+            raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+        pred = pred.clamp(0.0, 1.0)
+        target = target.clamp(0.0, 1.0)
+        results = []
+        for p, t in zip(pred.split(1), target.split(1)):
+            psnr = peak_signal_noise_ratio(p, t, data_range=1.0).item()
+            ssim = structural_similarity_index_measure(p, t, data_range=1.0).item()
+            lpips = None
+            if self._lpips is not None:
+                p_dev, t_dev = p.to(self._lpips.device), t.to(self._lpips.device)
+                lpips = self._lpips(p_dev, t_dev).item()
+                self._lpips.reset()
+            results.append({"psnr": psnr, "ssim": ssim, "lpips": lpips})
+        return results
+
+
+def mean_metrics(rows: Sequence[Mapping[str, float | None]]) -> dict[str, float | None]:
+    """Unweighted mean of each metric over ``rows``; ``None`` when any row lacks that metric.
+
+    Used twice, as the protocol prescribes: over a scene's test views, then over the scene means.
+    """
+    if not rows:
+        raise ValueError("cannot average metrics over an empty list of views/scenes")
+    means: dict[str, float | None] = {}
+    for name in METRIC_NAMES:
+        values = [row.get(name) for row in rows]
+        if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in values):
+            means[name] = None
+        else:
+            means[name] = float(sum(values) / len(values))
+    return means

@@ -1,0 +1,288 @@
+"""Reports of the evaluation: Tables 1/2 and 3, qualitative grids, videos and the Fig. 6 plot.
+
+The results layout shared with ``deploy/evaluate.py`` is
+``{method: {views: {"psnr": float, "ssim": float, "lpips": float | None}}}`` with methods such as
+``3dgs``/``baseline``/``tracegs`` and view counts as strings (``"3"``, ``"6"``, ``"9"``), plus an
+optional ``"meta"`` entry (LPIPS convention, scenes, variant) that every table repeats.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+from torch import Tensor
+
+from tracegs.eval.metrics import METRIC_NAMES
+from tracegs.io import atomic_write, write_json_atomic
+
+METHOD_LABELS = {"3dgs": "3DGS", "baseline": "Baseline (A)", "tracegs": "TRACE-GS"}
+METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
+METRIC_DECIMALS = {"psnr": 2, "ssim": 3, "lpips": 3}
+DEFAULT_METHODS = ("3dgs", "baseline", "tracegs")
+DEFAULT_VIEWS = ("3", "6", "9")
+META_KEY = "meta"
+
+
+def _fmt(value: float | None, metric: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    return f"{value:.{METRIC_DECIMALS[metric]}f}"
+
+
+def _footnote(results: Mapping) -> str:
+    meta = results.get(META_KEY, {})
+    lines = [f"LPIPS: {meta.get('lpips', 'not recorded')}."]
+    scenes = meta.get("scenes")
+    if scenes:
+        lines.append(
+            f"Each metric is averaged over a scene's test views (reference frames excluded), then over "
+            f"{len(scenes)} scene(s): {', '.join(scenes)}."
+        )
+    return "\n".join(lines)
+
+
+def methods_in(results: Mapping) -> list[str]:
+    """Method keys of a results dict in report order (known methods first)."""
+    present = [m for m in results if isinstance(results[m], Mapping) and m != META_KEY]
+    return [m for m in DEFAULT_METHODS if m in present] + [m for m in present if m not in DEFAULT_METHODS]
+
+
+def results_table_markdown(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> str:
+    """Tables 1/2 layout: one row per method, columns PSNR/SSIM/LPIPS x view counts."""
+    header = ["Method"] + [f"{METRIC_LABELS[m]} {v}" for m in METRIC_NAMES for v in views]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for method in methods_in(results):
+        cells = [METHOD_LABELS.get(method, method)]
+        for metric in METRIC_NAMES:
+            cells += [_fmt(results[method].get(v, {}).get(metric), metric) for v in views]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\n" + _footnote(results) + "\n"
+
+
+def write_results_tables(results: Mapping, out_dir: str | Path, stem: str = "table",
+                         views: Sequence[str] = DEFAULT_VIEWS) -> dict[str, Path]:
+    """Write ``<stem>.md``, ``<stem>.csv`` (long format, one row per method x views) and ``<stem>.json``."""
+    out_dir = Path(out_dir)
+    paths = {ext: out_dir / f"{stem}.{ext}" for ext in ("md", "csv", "json")}
+    with atomic_write(paths["md"]) as tmp:
+        tmp.write_text(results_table_markdown(results, views))
+    lpips_note = results.get(META_KEY, {}).get("lpips", "not recorded")
+    with atomic_write(paths["csv"]) as tmp, tmp.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["method", "views", *METRIC_NAMES, "lpips_convention"])
+        for method in methods_in(results):
+            for v in views:
+                row = results[method].get(v, {})
+                writer.writerow([method, v, *[_csv_value(row.get(m)) for m in METRIC_NAMES], lpips_note])
+    write_json_atomic(dict(results), paths["json"])
+    return paths
+
+
+def _csv_value(value: float | None) -> str:
+    return "" if value is None else repr(float(value))
+
+
+# ---------------------------------------------------------------- Table 3 (ablation sweep)
+
+
+def load_results(path: str | Path) -> dict:
+    """Read a ``results.json`` written by ``deploy.evaluate`` (clear error naming the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"results file not found: {path}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON: {err}") from err
+
+
+def discover_variant_results(sweep_dir: str | Path) -> dict[str, Path]:
+    """Find every ``results.json`` under a sweep directory and key it by its recorded ``meta.variant``."""
+    found: dict[str, Path] = {}
+    for path in sorted(Path(sweep_dir).rglob("results.json")):
+        variant = load_results(path).get(META_KEY, {}).get("variant")
+        if variant is None:
+            continue
+        if variant in found:
+            raise ValueError(f"variant {variant!r} appears twice: {found[variant]} and {path}")
+        found[variant] = path
+    if not found:
+        raise FileNotFoundError(f"no results.json with meta.variant under {sweep_dir}")
+    return found
+
+
+def ablation_rows(variant_results: Mapping[str, Mapping], method: str = "tracegs") -> dict[str, dict]:
+    """Per variant: each metric averaged over the view counts evaluated (Table 3 averages 3/6/9).
+
+    Variant A is the frozen baseline restorer, evaluated as method ``baseline``; any variant whose
+    results lack ``method`` falls back to its only restorer method.
+    """
+    rows = {}
+    for variant, results in variant_results.items():
+        chosen = method if method in results else None
+        if chosen is None:
+            candidates = [m for m in methods_in(results) if m != "3dgs"]
+            if len(candidates) != 1:
+                raise ValueError(f"variant {variant!r}: cannot tell which method to report among {candidates}")
+            chosen = candidates[0]
+        per_view = list(results[chosen].values())
+        rows[variant] = {
+            metric: (None if any(r.get(metric) is None for r in per_view)
+                     else float(np.mean([r[metric] for r in per_view])))
+            for metric in METRIC_NAMES
+        }
+        rows[variant]["views"] = ",".join(results[chosen].keys())
+    return rows
+
+
+def write_ablation_table(variant_files: Mapping[str, str | Path], out_dir: str | Path,
+                         stem: str = "table3") -> dict[str, Path]:
+    """Table 3 from an ablation sweep's per-variant result files, as markdown and CSV."""
+    loaded = {variant: load_results(path) for variant, path in variant_files.items()}
+    rows = ablation_rows(loaded)
+    lpips_notes = {r.get(META_KEY, {}).get("lpips", "not recorded") for r in loaded.values()}
+    out_dir = Path(out_dir)
+    md = ["| Variant | views averaged | " + " | ".join(METRIC_LABELS[m] for m in METRIC_NAMES) + " |",
+          "|---|---|" + "---|" * len(METRIC_NAMES)]
+    for variant, row in rows.items():
+        md.append(f"| {variant} | {row['views']} | " + " | ".join(_fmt(row[m], m) for m in METRIC_NAMES) + " |")
+    md.append("")
+    md.append("LPIPS: " + "; ".join(sorted(lpips_notes)) + ".")
+    paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv"}
+    with atomic_write(paths["md"]) as tmp:
+        tmp.write_text("\n".join(md) + "\n")
+    with atomic_write(paths["csv"]) as tmp, tmp.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["variant", "views_averaged", *METRIC_NAMES])
+        for variant, row in rows.items():
+            writer.writerow([variant, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
+    return paths
+
+
+# ---------------------------------------------------------------- images and video
+
+
+def to_uint8(image: Tensor) -> np.ndarray:
+    """[3,H,W] float in [0,1] -> HxWx3 uint8 (clamped and rounded, never a raw cast)."""
+    if image.dim() != 3 or image.shape[0] != 3:
+        raise ValueError(f"expected an image of shape [3,H,W], got {tuple(image.shape)}")
+    return (image.detach().float().clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+
+
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    return image.repeat(factor, axis=0).repeat(factor, axis=1) if factor > 1 else image
+
+
+def _label_strip(labels: Sequence[str], cell_width: int, height: int = 28) -> np.ndarray:
+    """A white strip with one centred caption per column, drawn with matplotlib's Agg canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    dpi = 100
+    fig = Figure(figsize=(cell_width * len(labels) / dpi, height / dpi), dpi=dpi)
+    canvas = FigureCanvasAgg(fig)
+    for i, label in enumerate(labels):
+        fig.text((i + 0.5) / len(labels), 0.5, label, ha="center", va="center", fontsize=10)
+    canvas.draw()
+    strip = np.asarray(canvas.buffer_rgba())[..., :3]
+    return np.ascontiguousarray(strip[:height, : cell_width * len(labels)])
+
+
+def _row(images: Sequence[Tensor], factor: int) -> np.ndarray:
+    return np.concatenate([_upscale(to_uint8(img), factor) for img in images], axis=1)
+
+
+def _upscale_factor(height: int, min_height: int) -> int:
+    return max(1, math.ceil(min_height / height))
+
+
+def save_qualitative_grid(columns: Mapping[str, Sequence[Tensor]], path: str | Path,
+                          min_cell_height: int = 144) -> Path:
+    """PNG grid: one column per entry of ``columns`` (e.g. 3DGS / baseline / TRACE-GS / GT), one row per
+    test view, captions on top. Small renders are upscaled (nearest) so the grid stays readable."""
+    labels = list(columns)
+    counts = {len(v) for v in columns.values()}
+    if len(counts) != 1 or 0 in counts:
+        raise ValueError(f"every grid column needs the same non-zero number of views, got {sorted(counts)}")
+    first = next(iter(columns.values()))[0]
+    factor = _upscale_factor(first.shape[-2], min_cell_height)
+    rows = [_row([columns[label][i] for label in labels], factor) for i in range(counts.pop())]
+    grid = np.concatenate([_label_strip(labels, first.shape[-1] * factor), *rows], axis=0)
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        iio.imwrite(tmp, grid, extension=".png")
+    return path
+
+
+def video_extension() -> str:
+    """``.mp4`` when imageio's ffmpeg plugin (``imageio-ffmpeg``) is installed, else ``.gif``."""
+    return ".mp4" if importlib.util.find_spec("imageio_ffmpeg") is not None else ".gif"
+
+
+def save_comparison_video(frames: Mapping[str, Tensor], path_stem: str | Path, fps: int = 8,
+                          min_cell_height: int = 144) -> Path:
+    """Side-by-side video of each method along a test trajectory; ``frames[label]`` is ``[F,3,H,W]``.
+
+    Writes ``<path_stem>.mp4`` (ffmpeg) or ``<path_stem>.gif`` and returns the path written.
+    """
+    labels = list(frames)
+    lengths = {int(v.shape[0]) for v in frames.values()}
+    if len(lengths) != 1 or 0 in lengths:
+        raise ValueError(f"every method needs the same non-zero number of frames, got {sorted(lengths)}")
+    first = next(iter(frames.values()))
+    factor = _upscale_factor(first.shape[-2], min_cell_height)
+    strip = _label_strip(labels, first.shape[-1] * factor)
+    stack = np.stack([
+        np.concatenate([strip, _row([frames[label][i] for label in labels], factor)], axis=0)
+        for i in range(lengths.pop())
+    ])
+    # H.264 (yuv420p) needs even frame sizes.
+    stack = stack[:, : stack.shape[1] // 2 * 2, : stack.shape[2] // 2 * 2]
+    ext = video_extension()
+    path = Path(path_stem).with_suffix(ext)
+    with atomic_write(path) as tmp:
+        if ext == ".mp4":
+            # The temporary name ends in .tmp, so name the container for ffmpeg explicitly.
+            iio.imwrite(tmp, stack, extension=ext, plugin="FFMPEG", fps=fps, codec="libx264",
+                        macro_block_size=1, output_params=["-f", "mp4"])
+        else:
+            iio.imwrite(tmp, stack, extension=ext, duration=1000.0 / fps, loop=0)
+    return path
+
+
+# ---------------------------------------------------------------- Fig. 6
+
+
+def plot_per_step_quality(curves: Mapping[str, Sequence[float]], path: str | Path,
+                          ylabel: str = "PSNR (dB) of predicted clean frames",
+                          title: str = "Per-step restoration quality along the reverse trajectory") -> Path:
+    """Fig. 6: one line per variant (e.g. on-policy F vs off-policy E), x = denoising step 1..M."""
+    # A bare Figure renders through Agg without touching pyplot's global backend state.
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    if not curves:
+        raise ValueError("no curves to plot")
+    fig = Figure(figsize=(5.5, 3.5), dpi=120)
+    ax = fig.add_subplot()
+    for label, values in curves.items():
+        ax.plot(range(1, len(values) + 1), list(values), marker="o", markersize=3, label=label)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("denoising step (reverse trajectory)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path

@@ -1,0 +1,103 @@
+"""`render`: one signature for both rasterizer backends (pure PyTorch, and gsplat on CUDA)."""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from tracegs.splat.cameras import Camera
+from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
+from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
+from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
+from tracegs.splat.sh import sh_to_rgb
+
+BACKENDS = ("auto", "torch", "dense", "gsplat")
+
+
+@dataclass
+class RenderOutput:
+    """`image` [3,H,W], `alpha` [1,H,W], `depth` [1,H,W] (expected depth normalised by alpha, 0 where empty),
+    `info`: what gsplat's densification strategies read (`means2d` [1,N,2] with retained grad, `radii` [1,N,2],
+    `width`, `height`, `n_cameras`, `gaussian_ids`)."""
+
+    image: Tensor
+    alpha: Tensor
+    depth: Tensor
+    info: dict = field(default_factory=dict)
+
+
+def gsplat_available() -> bool:
+    return importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+    if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
+        raise ValueError("render backend 'gsplat' needs the gsplat package and the model on a CUDA device")
+    return backend
+
+
+def render(model: GaussianModel, camera: Camera, background: Tensor | None = None, sh_degree: int | None = None,
+           backend: str = "auto") -> RenderOutput:
+    """Render `model` from `camera` (main paper: R = Render(G, P)).
+
+    backend: "torch" (tile-culled pure PyTorch, any device), "dense" (every Gaussian at every pixel; slow
+    reference), "gsplat" (CUDA), "auto" (gsplat for CUDA tensors when importable, else torch).
+    """
+    degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"sh_degree must lie in [0, {MAX_SH_DEGREE}], got {sh_degree}")
+    means = model.means
+    camera = camera.to(device=means.device, dtype=means.dtype)
+    if background is None:
+        background = means.new_zeros(3)
+    background = background.to(means)
+    if resolve_backend(backend, means.device) == "gsplat":
+        return _render_gsplat(model, camera, background, degree)
+    return _render_torch(model, camera, background, degree, dense=backend == "dense")
+
+
+def _render_torch(model: GaussianModel, camera: Camera, background: Tensor, degree: int, dense: bool) -> RenderOutput:
+    width, height = camera.width, camera.height
+    opacities = model.opacities
+    projected = project_gaussians(model.means, model.quats, model.log_scales, opacities, camera)
+    means2d = projected.means2d[None]  # [1,N,2]: the tensor whose gradient densification accumulates
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    visible = visible_mask(projected, opacities, width, height)
+    index = visible.nonzero().squeeze(1)
+    index = index[torch.argsort(projected.depths.detach()[index], stable=True)]
+
+    colours = sh_to_rgb(degree, model.sh[index], model.means[index] - camera.center)
+    features = torch.cat([colours, projected.depths[index, None]], dim=-1)
+    splat = (means2d[0][index], projected.conics[index], opacities[index], features)
+    if dense:
+        out, transmittance = rasterize_dense(*splat, width, height)
+    else:
+        out, transmittance = rasterize_tiles(*splat, projected.extents[index], width, height)
+
+    image = out[..., :3] + transmittance[..., None] * background
+    alpha = 1.0 - transmittance
+    depth = out[..., 3] / alpha.clamp_min(1e-10)
+    info = {"means2d": means2d, "radii": radii_from_extents(projected.extents, visible)[None], "width": width,
+            "height": height, "n_cameras": 1, "gaussian_ids": None, "visible": visible}
+    return RenderOutput(image.permute(2, 0, 1), alpha[None], depth[None], info)
+
+
+def _render_gsplat(model: GaussianModel, camera: Camera, background: Tensor, degree: int) -> RenderOutput:
+    from gsplat import rasterization
+
+    colours, alphas, meta = rasterization(
+        means=model.means, quats=model.quats, scales=model.scales, opacities=model.opacities, colors=model.sh,
+        viewmats=camera.world_to_camera[None], Ks=camera.K[None], width=camera.width, height=camera.height,
+        sh_degree=degree, backgrounds=background[None], render_mode="RGB+ED", packed=False,
+    )
+    meta["n_cameras"] = 1
+    return RenderOutput(colours[0, ..., :3].permute(2, 0, 1), alphas[0].permute(2, 0, 1),
+                        colours[0, ..., 3:].permute(2, 0, 1), meta)

@@ -1,0 +1,151 @@
+"""Train/test splits and nested sparse/dense view sets (paper Sec. 4.1 "Training Data").
+
+TRACE-GS pairs a sparse view set V_s (K = 3, 6, 9) with a denser V_d (12, 18, all training views) and
+requires V_s to be a subset of V_d. Mip-NeRF 360 / ReconFusion publish ``train_test_split_{n}.json``
+(``train_ids`` / ``test_ids`` index the images sorted by name); they are honoured when present.
+Otherwise the test views are every 8th image and each view set is evenly spaced over the rest, grown
+greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+
+class SplitError(ValueError):
+    """A split cannot be built from the given scene and view counts."""
+
+
+def view_set_key(count: int | None) -> str:
+    """Name of a view set: ``"3"``, ``"12"``, ... or ``"all"`` for ``None`` (every training view)."""
+    return "all" if count is None else str(int(count))
+
+
+@dataclass(frozen=True)
+class SceneSplit:
+    """Image indices of one scene: held-out test views, all training views and the nested view sets."""
+
+    test: list[int]
+    train: list[int]
+    view_sets: dict[str, list[int]]
+
+    def views(self, count: int | None) -> list[int]:
+        key = view_set_key(count)
+        if key not in self.view_sets:
+            raise KeyError(f"view set {key!r} was not built (have {sorted(self.view_sets)})")
+        return self.view_sets[key]
+
+    def to_dict(self) -> dict:
+        return {"test": self.test, "train": self.train, "view_sets": self.view_sets}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> SceneSplit:
+        return cls(test=list(data["test"]), train=list(data["train"]), view_sets=dict(data["view_sets"]))
+
+
+def every_nth_test(num_images: int, test_every: int) -> list[int]:
+    """The LLFF / Mip-NeRF 360 convention: images 0, n, 2n, ... are held out."""
+    if test_every <= 1:
+        raise SplitError(f"test_every must be >= 2, got {test_every}")
+    return list(range(0, num_images, test_every))
+
+
+def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> list[int]:
+    """Extend ``keep`` to ``count`` indices drawn from ``candidates``, as evenly spaced as nesting allows.
+
+    The ideal positions are ``count`` evenly spaced points over ``candidates``; each already kept index
+    claims the nearest free ideal position, and the unclaimed positions are filled with the nearest
+    unused candidate. Written by hand because no library does nested even spacing.
+    """
+    n = len(candidates)
+    if count > n:
+        raise SplitError(f"asked for {count} training views but the scene has only {n}")
+    if count == n:
+        return sorted(candidates)
+    ideal = [i * (n - 1) / max(count - 1, 1) for i in range(count)] if count > 1 else [(n - 1) / 2]
+    position = {c: i for i, c in enumerate(candidates)}
+    free = list(range(count))
+    for index in keep:
+        nearest = min(free, key=lambda f: abs(ideal[f] - position[index]))
+        free.remove(nearest)
+    chosen = set(keep)
+    for f in free:
+        unused = [i for i in range(n) if candidates[i] not in chosen]
+        best = min(unused, key=lambda i: abs(i - ideal[f]))
+        chosen.add(candidates[best])
+    return sorted(chosen)
+
+
+def read_split_json(path: Path, num_images: int) -> tuple[list[int], list[int]]:
+    """``(train_ids, test_ids)`` from a ReconFusion split file, validated against the image count."""
+    try:
+        data = json.loads(path.read_text())
+        train, test = [int(i) for i in data["train_ids"]], [int(i) for i in data["test_ids"]]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise SplitError(f"{path}: not a valid split file ({error})") from error
+    bad = [i for i in train + test if not 0 <= i < num_images]
+    if bad:
+        raise SplitError(f"{path}: indices {bad[:5]} out of range for {num_images} images")
+    return sorted(train), sorted(test)
+
+
+def make_split(
+    num_images: int,
+    view_counts: Sequence[int | None],
+    test_every: int = 8,
+    split_dir: Path | None = None,
+    test_indices: Sequence[int] | None = None,
+) -> SceneSplit:
+    """Build the test split and the nested view sets of one scene.
+
+    ``split_dir`` is searched for ``train_test_split_{n}.json``; a file found for a count is used
+    verbatim for that view set (and its ``test_ids`` for the test split). ``test_indices`` overrides
+    the every-``test_every`` rule (e.g. NeRFBusters' separate evaluation capture).
+    """
+    counts = sorted({c for c in view_counts if c is not None})
+    json_sets: dict[int, tuple[Path, list[int]]] = {}
+    json_test: list[int] | None = None
+    if split_dir is not None:
+        for count in counts:
+            path = Path(split_dir) / f"train_test_split_{count}.json"
+            if path.is_file():
+                train_ids, test_ids = read_split_json(path, num_images)
+                if len(train_ids) != count:
+                    raise SplitError(f"{path}: lists {len(train_ids)} train_ids, expected {count}")
+                if json_test is not None and test_ids != json_test:
+                    raise SplitError(f"{path}: test_ids differ from the other split files")
+                json_test = test_ids
+                json_sets[count] = (path, train_ids)
+    if json_test is not None:
+        test = json_test
+    elif test_indices is not None:
+        test = sorted(int(i) for i in test_indices)
+    else:
+        test = every_nth_test(num_images, test_every)
+    held_out = set(test)
+    train = [i for i in range(num_images) if i not in held_out]
+    view_sets: dict[str, list[int]] = {}
+    previous: list[int] = []
+    previous_name = "the empty set"
+    for count in counts:
+        if count > len(train):
+            raise SplitError(f"asked for {count} training views but the scene has only {len(train)}")
+        if count in json_sets:
+            path, chosen = json_sets[count]
+            if not set(previous) <= set(chosen):
+                raise SplitError(f"{path}: not a superset of {previous_name}; view sets must be nested")
+            overlap = set(chosen) & held_out
+            if overlap:
+                raise SplitError(f"{path}: train_ids {sorted(overlap)[:5]} are test views")
+            previous_name = path.name
+        else:
+            chosen = grow_evenly(train, previous, count)
+            previous_name = f"the {count}-view set"
+        view_sets[view_set_key(count)] = chosen
+        previous = chosen
+    if any(c is None for c in view_counts):
+        view_sets["all"] = list(train)
+    return SceneSplit(test=test, train=train, view_sets=view_sets)

@@ -1,0 +1,168 @@
+"""Named LoRA adapters on one frozen restorer (supplement A.3, Eq. supp-lora, Eq. supp-adapter-clone).
+
+peft does the LoRA work (injection through diffusers' ``PeftAdapterMixin``, state dicts). What we add is the
+bookkeeping of which adapters are trainable: peft's ``set_adapter(name)`` turns ``requires_grad`` on for
+``name`` and off for every other adapter (DESIGN.md section 6), which would silently unfreeze a frozen
+teacher or freeze the student. ``activate`` switches the active adapter and then restores the recorded flags.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import warnings
+from pathlib import Path
+
+import torch
+from peft import LoraConfig as PeftLoraConfig
+from peft import get_peft_model_state_dict, set_peft_model_state_dict
+from safetensors import safe_open
+
+from tracegs.io import save_safetensors_atomic
+
+from .config import LoraConfig
+
+# diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
+METADATA_KEY = "lora_adapter_metadata"
+
+
+class AdapterFileError(ValueError):
+    """An adapter file does not match the model (missing / unexpected LoRA tensors or bad metadata)."""
+
+
+def target_pattern(cfg: LoraConfig) -> str:
+    """Regex (peft full-match) for ``to_q/to_k/to_v/to_out.0`` of both attentions in every block."""
+    modules = "|".join(re.escape(m) for m in cfg.attention_modules)
+    targets = "|".join(re.escape(t) for t in cfg.target_modules)
+    return rf".*\.({modules})\.({targets})"
+
+
+def peft_config(cfg: LoraConfig) -> PeftLoraConfig:
+    """rank r, alpha, dropout; peft's default init puts B = 0 so a new adapter leaves the model unchanged."""
+    return PeftLoraConfig(
+        r=cfg.rank,
+        lora_alpha=cfg.alpha,
+        lora_dropout=cfg.dropout,
+        target_modules=target_pattern(cfg),
+        init_lora_weights=True,
+    )
+
+
+def _inject(model: torch.nn.Module, config: PeftLoraConfig, name: str) -> None:
+    with warnings.catch_warnings():
+        # peft warns on every adapter after the first; several named adapters are the point here.
+        warnings.filterwarnings("ignore", message="Already found a `peft_config`")
+        model.add_adapter(config, adapter_name=name)
+
+
+def _trainable_flags(model: torch.nn.Module) -> dict[str, bool]:
+    if not hasattr(model, "_adapter_trainable"):
+        model._adapter_trainable = {}
+    return model._adapter_trainable
+
+
+def _lora_parameters(model: torch.nn.Module, name: str) -> list[tuple[str, torch.nn.Parameter]]:
+    marker = re.compile(rf"\.lora_(A|B)\.{re.escape(name)}\.")
+    return [(n, p) for n, p in model.named_parameters() if marker.search(n)]
+
+
+def adapter_names(model: torch.nn.Module) -> list[str]:
+    return list(getattr(model, "peft_config", {}) or {})
+
+
+def _require(model: torch.nn.Module, name: str) -> None:
+    if name not in adapter_names(model):
+        raise KeyError(f"adapter {name!r} not on the model (have {adapter_names(model)})")
+
+
+def activate(model: torch.nn.Module, name: str) -> None:
+    """Make ``name`` the adapter used by the next forward, keeping every adapter's trainability as recorded."""
+    _require(model, name)
+    model.set_adapter(name)
+    for adapter, trainable in _trainable_flags(model).items():
+        for _, param in _lora_parameters(model, adapter):
+            param.requires_grad_(trainable)
+
+
+def active_adapter(model: torch.nn.Module) -> str | None:
+    names = getattr(model, "active_adapters", None)
+    active = names() if callable(names) else names
+    return active[0] if active else None
+
+
+def add_adapter(model: torch.nn.Module, name: str, cfg: LoraConfig, trainable: bool = True) -> None:
+    """Attach a fresh adapter (B = 0) and freeze every non-LoRA weight (the base theta is always frozen).
+
+    The previously active adapter stays active; the model's first adapter becomes active.
+    """
+    previous = active_adapter(model) if adapter_names(model) else None
+    _inject(model, peft_config(cfg), name)
+    for param_name, param in model.named_parameters():
+        if ".lora_" not in param_name:
+            param.requires_grad_(False)
+    _trainable_flags(model)[name] = trainable
+    activate(model, previous or name)
+
+
+def adapter_parameters(model: torch.nn.Module, name: str) -> list[torch.nn.Parameter]:
+    """The LoRA factors of one adapter (what the optimiser of that role should own)."""
+    _require(model, name)
+    return [p for _, p in _lora_parameters(model, name)]
+
+
+def set_trainable(model: torch.nn.Module, name: str, trainable: bool) -> None:
+    _require(model, name)
+    _trainable_flags(model)[name] = trainable
+    for param in adapter_parameters(model, name):
+        param.requires_grad_(trainable)
+
+
+def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -> None:
+    """phi_dst <- Clone(phi_src) (Eq. supp-adapter-clone): same config, deep-copied tensors, no shared storage."""
+    _require(model, src)
+    _inject(model, copy.deepcopy(model.peft_config[src]), dst)
+    source = dict(_lora_parameters(model, src))
+    with torch.no_grad():
+        for param_name, param in _lora_parameters(model, dst):
+            param.copy_(source[param_name.replace(f".{dst}.", f".{src}.")])
+    _trainable_flags(model)[dst] = trainable
+    activate(model, src)
+
+
+def save_adapter(model: torch.nn.Module, name: str, path: str | Path) -> None:
+    """Safetensors in diffusers' ``save_lora_adapter`` layout (peft keys, adapter config in the metadata)."""
+    _require(model, name)
+    config = model.peft_config[name].to_dict()
+    config = {k: (sorted(v) if isinstance(v, set) else v) for k, v in config.items()}
+    tensors = get_peft_model_state_dict(model, adapter_name=name)
+    save_safetensors_atomic(
+        tensors, path, metadata={"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True)}
+    )
+
+
+def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable: bool) -> None:
+    """Load an adapter file as ``name`` (created from the file's config if absent); exact key match required."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"adapter file {path} does not exist")
+    with safe_open(str(path), framework="pt") as handle:
+        metadata = handle.metadata() or {}
+        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
+    if name not in adapter_names(model):
+        if METADATA_KEY not in metadata:
+            raise AdapterFileError(f"{path}: no '{METADATA_KEY}' metadata to rebuild adapter {name!r}")
+        stored = json.loads(metadata[METADATA_KEY])
+        fields = PeftLoraConfig.__dataclass_fields__
+        config = PeftLoraConfig(**{k: v for k, v in stored.items() if k in fields and fields[k].init})
+        previous = active_adapter(model) if adapter_names(model) else None
+        _inject(model, config, name)
+        if previous is not None:
+            model.set_adapter(previous)
+    expected = set(get_peft_model_state_dict(model, adapter_name=name))
+    missing, unexpected = sorted(expected - set(tensors)), sorted(set(tensors) - expected)
+    if missing or unexpected:
+        raise AdapterFileError(f"{path}: missing LoRA tensors {missing[:8]}, unexpected {unexpected[:8]}")
+    set_peft_model_state_dict(model, tensors, adapter_name=name)
+    _trainable_flags(model)[name] = trainable
+    activate(model, active_adapter(model) or name)

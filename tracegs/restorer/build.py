@@ -1,0 +1,135 @@
+"""Assemble a restorer backbone from ``BackboneConfig`` (either scale) and load pretrained transformers."""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+
+import torch
+
+from .codec import Codec, build_codec
+from .config import BackboneConfig, TransformerConfig
+from .encoders import TextEncoder, build_reference_encoder, build_text_encoder
+from .loading import require_local_dir
+from .schedules import NoiseSchedule, build_schedule
+from .transformer import ReferenceGuidedTransformer
+
+
+class CheckpointMismatchError(ValueError):
+    """A pretrained transformer directory does not hold exactly the weights the model needs."""
+
+
+def transformer_kwargs(cfg: TransformerConfig) -> dict:
+    """diffusers config keys of ``ReferenceGuidedTransformer`` for a ``TransformerConfig``."""
+    return dict(
+        num_layers=cfg.num_layers,
+        num_attention_heads=cfg.num_attention_heads,
+        attention_head_dim=cfg.attention_head_dim,
+        in_channels=2 * cfg.latent_channels,
+        out_channels=cfg.latent_channels,
+        text_embed_dim=cfg.text_embed_dim,
+        max_text_seq_length=cfg.max_text_seq_length,
+        time_embed_dim=cfg.time_embed_dim,
+        patch_size=cfg.patch_size,
+        sample_frames=cfg.sample_frames,
+        sample_height=cfg.sample_height,
+        sample_width=cfg.sample_width,
+        temporal_compression_ratio=cfg.temporal_compression_ratio,
+        use_rotary_positional_embeddings=cfg.use_rotary_positional_embeddings,
+        use_learned_positional_embeddings=cfg.use_learned_positional_embeddings,
+        attention_bias=cfg.attention_bias,
+        ref_2d_dim=cfg.ref_2d_dim,
+        ref_3d_dim=cfg.ref_3d_dim,
+        timestep_scale=cfg.timestep_scale,
+    )
+
+
+def create_transformer(
+    cfg: TransformerConfig, device: torch.device | str = "cpu"
+) -> ReferenceGuidedTransformer:
+    """Randomly initialised model; ``device="meta"`` builds the paper-scale model without memory."""
+    with torch.device(device):
+        return ReferenceGuidedTransformer(**transformer_kwargs(cfg))
+
+
+def load_transformer(
+    cfg: TransformerConfig, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+) -> ReferenceGuidedTransformer:
+    """Load ``cfg.pretrained_path`` (diffusers layout). The directory's config must agree with ``cfg`` and its
+    weights must cover the model exactly; otherwise the error lists the differing fields / keys."""
+    path = require_local_dir(cfg.pretrained_path, "transformer.pretrained_path")
+    stored = ReferenceGuidedTransformer.load_config(path)
+    defaults = inspect.signature(ReferenceGuidedTransformer.__init__).parameters
+    wanted = transformer_kwargs(cfg)
+    effective = {k: stored.get(k, defaults[k].default) for k in wanted}
+    differing = {k: (effective[k], v) for k, v in wanted.items() if effective[k] != v}
+    if differing:
+        raise CheckpointMismatchError(
+            f"{path}/config.json disagrees with the transformer config (stored, wanted): {differing}"
+        )
+    model, info = ReferenceGuidedTransformer.from_pretrained(
+        path, torch_dtype=dtype, output_loading_info=True
+    )
+    missing, unexpected = sorted(info.get("missing_keys", [])), sorted(info.get("unexpected_keys", []))
+    if missing or unexpected or info.get("mismatched_keys"):
+        raise CheckpointMismatchError(
+            f"{path}: missing keys {missing}, unexpected keys {unexpected}, mismatched {info.get('mismatched_keys')}"
+        )
+    return model.to(device)
+
+
+@dataclass
+class Backbone:
+    """Runtime bundle of the frozen restorer: v_theta plus its frozen codec / encoders and the schedule."""
+
+    transformer: ReferenceGuidedTransformer
+    codec: Codec
+    reference_encoder: object
+    text_encoder: TextEncoder
+    schedule: NoiseSchedule
+    cfg: BackboneConfig
+
+
+def _check_compatible(cfg: BackboneConfig, codec: Codec, reference_encoder: object) -> None:
+    t = cfg.transformer
+    problems = []
+    if codec.latent_channels != t.latent_channels:
+        problems.append(
+            f"codec latent channels {codec.latent_channels} != transformer.latent_channels {t.latent_channels}"
+        )
+    if cfg.text_encoder.dim != t.text_embed_dim:
+        problems.append(
+            f"text_encoder.dim {cfg.text_encoder.dim} != transformer.text_embed_dim {t.text_embed_dim}"
+        )
+    if cfg.text_encoder.max_length != t.max_text_seq_length:
+        problems.append(
+            f"text_encoder.max_length {cfg.text_encoder.max_length} != transformer.max_text_seq_length {t.max_text_seq_length}"
+        )
+    for attr, field in (("dim_2d", "ref_2d_dim"), ("dim_3d", "ref_3d_dim")):
+        have = getattr(reference_encoder, attr, None)
+        if have is not None and have != getattr(t, field):
+            problems.append(
+                f"reference encoder gives {have} features but transformer.{field}={getattr(t, field)}"
+            )
+    if problems:
+        raise ValueError(f"backbone '{cfg.name}' is inconsistent: " + "; ".join(problems))
+
+
+def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu") -> Backbone:
+    """Frozen backbone theta (no adapters yet: see ``adapters.add_adapter`` / ``load_adapter``)."""
+    codec = build_codec(cfg.codec, device)
+    reference_encoder = build_reference_encoder(cfg.reference_encoder, device)
+    _check_compatible(cfg, codec, reference_encoder)
+    if cfg.transformer.pretrained_path:
+        transformer = load_transformer(cfg.transformer, device)
+    else:
+        transformer = create_transformer(cfg.transformer, device)
+    transformer.requires_grad_(False).eval()
+    return Backbone(
+        transformer=transformer,
+        codec=codec,
+        reference_encoder=reference_encoder,
+        text_encoder=build_text_encoder(cfg.text_encoder, device),
+        schedule=build_schedule(cfg.schedule),
+        cfg=cfg,
+    )

@@ -1,0 +1,170 @@
+"""Hyperparameters of the restorer (supplement A.1-A.3). Defaults are the embedded CPU scale.
+
+Plain dataclasses only (no torch import) so the Hydra schema can compose them cheaply.
+``paper_backbone_config()`` returns the CogVideoX-5B-I2V + GSFixer values of the paper.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+# Supplement A.2, "Text tokens": appended to every BLIP-2 caption before T5 encoding.
+QUALITY_SUFFIX = (
+    ". The video is of high quality, and the view is very clear. High quality, masterpiece, best quality, "
+    "highres, ultra-detailed, fantastic."
+)
+
+
+@dataclass
+class TransformerConfig:
+    """Reference-guided CogVideoX DiT (supplement A.1). Field names follow diffusers' config keys."""
+
+    num_layers: int = 2
+    num_attention_heads: int = 6
+    attention_head_dim: int = 32
+    # Per-token output is patch^2 x latent_channels = 96 = width / 2: a wider output than ~half the width
+    # leaves the velocity head rank-limited and noise cannot be removed.
+    latent_channels: int = (
+        24  # the patch embedding sees 2x this: noisy + condition latent (Eq. supp-render-cond)
+    )
+    text_embed_dim: int = 64
+    max_text_seq_length: int = 8
+    time_embed_dim: int = 128
+    patch_size: int = 2
+    # Latent grid the positional embeddings are precomputed for (other sizes are recomputed per call).
+    sample_frames: int = 9  # pixel frames, diffusers convention: latent frames = (F - 1) / ratio + 1
+    sample_height: int = 12
+    sample_width: int = 18
+    temporal_compression_ratio: int = 1
+    use_rotary_positional_embeddings: bool = False
+    use_learned_positional_embeddings: bool = False
+    attention_bias: bool = True
+    ref_2d_dim: int = 192  # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
+    ref_3d_dim: int = 200  # width of Enc_VGGT tokens (embedded: 8x8x3 cross-view difference + 8 position)
+    # The model embeds ``timestep * timestep_scale``: rectified-flow t in [0, 1] -> 0..1000 like CogVideoX's
+    # integer DDPM steps (scale 1). Callers always pass the schedule's native t.
+    timestep_scale: float = 1000.0
+    pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
+
+
+@dataclass
+class LoraConfig:
+    """LoRA on both attentions of every block (supplement Table of insertion points, Eq. supp-lora)."""
+
+    rank: int = 8
+    alpha: int = 8
+    dropout: float = 0.0
+    target_modules: list[str] = field(default_factory=lambda: ["to_q", "to_k", "to_v", "to_out.0"])
+    attention_modules: list[str] = field(default_factory=lambda: ["attn1", "ref_attn"])
+
+
+@dataclass
+class CodecConfig:
+    """``embedded``: fixed orthonormal block transform; ``cogvideox``: AutoencoderKLCogVideoX (local dir)."""
+
+    kind: str = "embedded"
+    block_size: int = 4
+    latent_channels: int = 24  # 40.4 dB mean round trip on scikit-image photos at 48x72 (16 -> 35.0 dB)
+    pretrained_path: str | None = None
+    # Decode the VAE in tiles to bound memory at 480x720 (diffusers' enable_tiling).
+    tiling: bool = True
+
+
+@dataclass
+class ReferenceEncoderConfig:
+    """``embedded``: pixel-patch tokens; ``dinov2_vggt``: DINOv2 (transformers) + VGGT (its own package)."""
+
+    kind: str = "embedded"
+    patch_size: int = 8
+    dino_path: str | None = None
+    vggt_path: str | None = None
+    image_size: int = 518  # both DINOv2 and VGGT see the views at this square size (patch 14 -> 37x37 tokens)
+    image_mean: list[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])
+    image_std: list[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])
+
+
+@dataclass
+class TextEncoderConfig:
+    """``embedded``: deterministic hashed-token embeddings; ``t5``: T5 encoder (local dir)."""
+
+    kind: str = "embedded"
+    dim: int = 64
+    max_length: int = 8
+    pretrained_path: str | None = None
+    quality_suffix: str = QUALITY_SUFFIX
+    seed: int = 0
+
+
+@dataclass
+class ScheduleConfig:
+    """``rectified_flow`` (tiny backbone) or ``vpred_ddim`` (CogVideoX v-prediction DDPM + DDIM)."""
+
+    kind: str = "rectified_flow"
+    num_train_timesteps: int = 1000
+    deploy_steps: int = 20  # M
+    # CogVideoX-5B scheduler values (used by vpred_ddim only).
+    beta_start: float = 0.00085
+    beta_end: float = 0.012
+    beta_schedule: str = "scaled_linear"
+    snr_shift_scale: float = 1.0
+    rescale_betas_zero_snr: bool = True
+
+
+@dataclass
+class SamplerConfig:
+    guidance_scale: float = 1.0
+    seed: int = 0
+    autocast_bf16: bool = True  # only takes effect on CUDA
+
+
+@dataclass
+class BackboneConfig:
+    name: str = "tiny"
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    lora: LoraConfig = field(default_factory=LoraConfig)
+    codec: CodecConfig = field(default_factory=CodecConfig)
+    reference_encoder: ReferenceEncoderConfig = field(default_factory=ReferenceEncoderConfig)
+    text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+
+
+def paper_backbone_config(
+    transformer_path: str | None = None,
+    vae_path: str | None = None,
+    dino_path: str | None = None,
+    vggt_path: str | None = None,
+    t5_path: str | None = None,
+) -> BackboneConfig:
+    """CogVideoX-5B-I2V + reference cross-attention (supplement A.1-A.3): 42 blocks, 48x64 heads, LoRA r=32."""
+    return BackboneConfig(
+        name="cogvideox_5b",
+        transformer=TransformerConfig(
+            num_layers=42,
+            num_attention_heads=48,
+            attention_head_dim=64,
+            latent_channels=16,
+            text_embed_dim=4096,
+            max_text_seq_length=226,
+            time_embed_dim=512,
+            patch_size=2,
+            sample_frames=49,
+            sample_height=60,
+            sample_width=90,
+            temporal_compression_ratio=4,
+            use_rotary_positional_embeddings=True,
+            use_learned_positional_embeddings=True,
+            ref_2d_dim=1024,  # DINOv2 ViT-L/14
+            ref_3d_dim=2048,  # VGGT aggregator (frame + global attention tokens concatenated)
+            timestep_scale=1.0,
+            pretrained_path=transformer_path,
+        ),
+        lora=LoraConfig(rank=32, alpha=32),
+        codec=CodecConfig(kind="cogvideox", latent_channels=16, pretrained_path=vae_path),
+        reference_encoder=ReferenceEncoderConfig(
+            kind="dinov2_vggt", dino_path=dino_path, vggt_path=vggt_path
+        ),
+        text_encoder=TextEncoderConfig(kind="t5", dim=4096, max_length=226, pretrained_path=t5_path),
+        schedule=ScheduleConfig(kind="vpred_ddim", deploy_steps=50),
+        sampler=SamplerConfig(guidance_scale=6.0),
+    )

@@ -1,0 +1,236 @@
+"""Frozen conditioning encoders (supplement A.2): reference tokens and text tokens.
+
+Reference encoders return ``(ref_2d (B, R, D2), ref_3d (B, R, D3))`` for the two reference views, tokens of
+both views concatenated along R (Eq. supp-ref-tokens); the transformer projects and adds them (Proj_2D +
+Proj_3D, Eq. supp-ref-fusion). Text encoders embed ``caption + quality suffix`` and supply the all-zero
+embedding used for caption dropout and the unconditional branch of classifier-free guidance.
+"""
+
+from __future__ import annotations
+
+import re
+import zlib
+
+import torch
+import torch.nn.functional as F
+
+from .config import ReferenceEncoderConfig, TextEncoderConfig
+from .loading import require_local_dir
+
+VGGT_INSTALL_HINT = (
+    "VGGT is not on PyPI: install it with `pip install git+https://github.com/facebookresearch/vggt` "
+    "(or set reference_encoder.kind=embedded)"
+)
+
+
+def _check_reference_images(ref_images: torch.Tensor) -> None:
+    if ref_images.dim() != 5 or ref_images.shape[1] != 2 or ref_images.shape[2] != 3:
+        raise ValueError(f"reference images must be (B, 2, 3, H, W) in [0, 1], got {tuple(ref_images.shape)}")
+
+
+class EmbeddedReferenceEncoder:
+    """Weight-free reference tokens for the CPU default, one token per ``p x p`` pixel patch of each view.
+
+    - 2D tokens (stand-in for DINOv2, per view): the patch's centred pixels, so the restorer can copy
+      observed appearance.
+    - 3D tokens (stand-in for VGGT, joint over the pair): the patch minus the co-located patch of the other
+      reference view (a crude parallax / disocclusion cue) plus a sin-cos code of the patch position.
+    """
+
+    position_features = 8
+
+    def __init__(self, cfg: ReferenceEncoderConfig):
+        self.cfg = cfg
+        self.dim_2d = 3 * cfg.patch_size**2
+        self.dim_3d = self.dim_2d + self.position_features
+
+    def to(self, device: torch.device | str) -> EmbeddedReferenceEncoder:
+        return self
+
+    @torch.no_grad()
+    def __call__(self, ref_images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        _check_reference_images(ref_images)
+        b, v, _, h, w = ref_images.shape
+        p = self.cfg.patch_size
+        if h % p or w % p:
+            raise ValueError(
+                f"reference image size {h}x{w} must be divisible by reference_encoder.patch_size={p}"
+            )
+        x = ref_images.float() * 2.0 - 1.0
+        patches = (
+            x.reshape(b, v, 3, h // p, p, w // p, p).permute(0, 1, 3, 5, 2, 4, 6).reshape(b, v, -1, 3 * p * p)
+        )
+        other = patches.flip(1)  # view 1 <-> view 2
+        ys, xs = torch.meshgrid(
+            torch.linspace(-1.0, 1.0, h // p), torch.linspace(-1.0, 1.0, w // p), indexing="ij"
+        )
+        angles = torch.stack([ys, xs], dim=-1).reshape(-1, 2, 1) * torch.tensor([1.0, 2.0]) * torch.pi / 2
+        position = torch.cat([angles.sin(), angles.cos()], dim=-1).reshape(1, 1, -1, self.position_features)
+        ref_2d = patches.reshape(b, -1, self.dim_2d)
+        ref_3d = torch.cat([patches - other, position.to(x).expand(b, v, -1, -1)], dim=-1).reshape(
+            b, -1, self.dim_3d
+        )
+        return ref_2d, ref_3d
+
+
+class Dinov2Encoder:
+    """DINOv2 through transformers from a local directory; per-view patch tokens (CLS dropped)."""
+
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+        from transformers import Dinov2Model
+
+        path = require_local_dir(cfg.dino_path, "reference_encoder.dino_path")
+        self.model = Dinov2Model.from_pretrained(path).to(device).eval().requires_grad_(False)
+        self.cfg = cfg
+        self.dim = int(self.model.config.hidden_size)
+
+    def to(self, device: torch.device | str) -> Dinov2Encoder:
+        self.model.to(device)
+        return self
+
+    @torch.no_grad()
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        """images (N, 3, H, W) in [0, 1] -> (N, tokens, D2)."""
+        size = self.cfg.image_size
+        x = F.interpolate(
+            images.float(), size=(size, size), mode="bilinear", align_corners=False, antialias=True
+        )
+        mean = torch.tensor(self.cfg.image_mean, device=x.device).view(1, 3, 1, 1)
+        std = torch.tensor(self.cfg.image_std, device=x.device).view(1, 3, 1, 1)
+        out = self.model(pixel_values=((x - mean) / std).to(self.model.dtype)).last_hidden_state
+        return out[:, 1:].float()
+
+
+class VggtEncoder:
+    """VGGT aggregator tokens of the reference pair, processed jointly (needs the ``vggt`` package)."""
+
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+        try:
+            from vggt.models.vggt import VGGT
+        except ImportError as err:
+            raise ImportError(VGGT_INSTALL_HINT) from err
+        path = require_local_dir(cfg.vggt_path, "reference_encoder.vggt_path")
+        self.model = VGGT.from_pretrained(str(path)).to(device).eval().requires_grad_(False)
+        self.cfg = cfg
+
+    def to(self, device: torch.device | str) -> VggtEncoder:
+        self.model.to(device)
+        return self
+
+    @torch.no_grad()
+    def __call__(self, ref_images: torch.Tensor) -> torch.Tensor:
+        """ref_images (B, 2, 3, H, W) in [0, 1] -> (B, 2, tokens, D3) from the last aggregator layer."""
+        b, v = ref_images.shape[:2]
+        size = self.cfg.image_size
+        x = F.interpolate(
+            ref_images.flatten(0, 1).float(), size=(size, size), mode="bilinear", align_corners=False
+        )
+        tokens, patch_start = self.model.aggregator(x.view(b, v, 3, size, size))
+        return tokens[-1][:, :, patch_start:].float()
+
+
+class PretrainedReferenceEncoder:
+    """DINOv2 per view + VGGT on the pair, on the same patch grid so the token sets can be added."""
+
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+        self.vggt = VggtEncoder(cfg, device)  # first: fail fast with the install hint
+        self.dino = Dinov2Encoder(cfg, device)
+
+    def to(self, device: torch.device | str) -> PretrainedReferenceEncoder:
+        self.vggt.to(device)
+        self.dino.to(device)
+        return self
+
+    @torch.no_grad()
+    def __call__(self, ref_images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        _check_reference_images(ref_images)
+        b, v = ref_images.shape[:2]
+        ref_2d = self.dino(ref_images.flatten(0, 1)).view(b, v, -1, self.dino.dim)
+        ref_3d = self.vggt(ref_images)
+        if ref_2d.shape[2] != ref_3d.shape[2]:
+            raise ValueError(f"DINOv2 gives {ref_2d.shape[2]} tokens per view but VGGT {ref_3d.shape[2]}")
+        return ref_2d.flatten(1, 2), ref_3d.flatten(1, 2)
+
+
+def build_reference_encoder(cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+    if cfg.kind == "embedded":
+        return EmbeddedReferenceEncoder(cfg)
+    if cfg.kind == "dinov2_vggt":
+        return PretrainedReferenceEncoder(cfg, device)
+    raise ValueError(f"reference_encoder.kind must be 'embedded' or 'dinov2_vggt', got {cfg.kind!r}")
+
+
+class TextEncoder:
+    """Shared prompt construction and null embedding; subclasses map prompts to (B, L, D) tokens."""
+
+    def __init__(self, cfg: TextEncoderConfig):
+        self.cfg = cfg
+
+    def prompt(self, caption: str) -> str:
+        """Supplement A.2: the caption followed by the fixed quality suffix."""
+        return caption.strip().rstrip(".") + self.cfg.quality_suffix
+
+    def null(self, batch: int, device: torch.device | str = "cpu") -> torch.Tensor:
+        """All-zero embedding (caption dropout / unconditional CFG branch), not the encoding of ''."""
+        return torch.zeros(batch, self.cfg.max_length, self.cfg.dim, device=device)
+
+    def to(self, device: torch.device | str) -> TextEncoder:
+        return self
+
+    def encode(self, captions: list[str]) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class EmbeddedTextEncoder(TextEncoder):
+    """Deterministic hashed-word embeddings: each lower-cased word gets a fixed Gaussian vector seeded by
+    CRC32(word) and ``cfg.seed`` (no vocabulary, no weights), truncated / zero-padded to ``max_length``."""
+
+    @torch.no_grad()
+    def encode(self, captions: list[str]) -> torch.Tensor:
+        out = torch.zeros(len(captions), self.cfg.max_length, self.cfg.dim)
+        for row, caption in enumerate(captions):
+            words = re.findall(r"[a-z0-9]+", self.prompt(caption).lower())[: self.cfg.max_length]
+            for col, word in enumerate(words):
+                generator = torch.Generator().manual_seed(zlib.crc32(word.encode()) + (self.cfg.seed << 32))
+                out[row, col] = torch.randn(self.cfg.dim, generator=generator)
+        return out
+
+
+class T5TextEncoder(TextEncoder):
+    """T5 encoder + tokenizer from a local directory, padded to ``max_length`` like CogVideoX's pipelines."""
+
+    def __init__(self, cfg: TextEncoderConfig, device: torch.device | str = "cpu"):
+        from transformers import AutoTokenizer, T5EncoderModel
+
+        super().__init__(cfg)
+        path = require_local_dir(cfg.pretrained_path, "text_encoder.pretrained_path")
+        self.tokenizer = AutoTokenizer.from_pretrained(path)
+        self.model = T5EncoderModel.from_pretrained(path).to(device).eval().requires_grad_(False)
+        if self.model.config.d_model != cfg.dim:
+            raise ValueError(
+                f"text_encoder.dim={cfg.dim} but the T5 at {path} has d_model={self.model.config.d_model}"
+            )
+
+    def to(self, device: torch.device | str) -> T5TextEncoder:
+        self.model.to(device)
+        return self
+
+    @torch.no_grad()
+    def encode(self, captions: list[str]) -> torch.Tensor:
+        ids = self.tokenizer(
+            [self.prompt(c) for c in captions],
+            padding="max_length",
+            max_length=self.cfg.max_length,
+            truncation=True,
+            add_special_tokens=True,
+            return_tensors="pt",
+        ).input_ids.to(self.model.device)
+        return self.model(ids).last_hidden_state.float()
+
+
+def build_text_encoder(cfg: TextEncoderConfig, device: torch.device | str = "cpu") -> TextEncoder:
+    if cfg.kind == "embedded":
+        return EmbeddedTextEncoder(cfg)
+    if cfg.kind == "t5":
+        return T5TextEncoder(cfg, device)
+    raise ValueError(f"text_encoder.kind must be 'embedded' or 't5', got {cfg.kind!r}")

@@ -1,0 +1,306 @@
+"""Reference-guided CogVideoX DiT (supplement A.1-A.2), extending diffusers' ``CogVideoXTransformer3DModel``.
+
+What is added to CogVideoX, and nothing else:
+- the patch embedding sees ``Concat_ch[xi, Enc_VAE(R_b)]`` (supplement Eq. supp-render-cond), i.e.
+  ``in_channels = 2 x out_channels`` as in CogVideoX-I2V;
+- reference tokens ``T_ref = Proj_2D(ref_2d) + Proj_3D(ref_3d)`` (Eq. supp-ref-fusion / supp-ref-tokens);
+- in every block, a reference cross-attention between the joint self-attention and the feed-forward network,
+  queries from video tokens, keys/values from ``T_ref``;
+- optional read-out of the final block's retrieval response F (main paper Eq. 7, Eq. supp-retrieval-readout).
+Time embedding, patch/positional embeddings, AdaLN, output head and unpatchify are diffusers' own code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from diffusers import CogVideoXTransformer3DModel
+from diffusers.configuration_utils import register_to_config
+from diffusers.models.attention_processor import Attention
+from diffusers.models.transformers.cogvideox_transformer_3d import CogVideoXBlock
+from torch import nn
+
+
+@dataclass
+class RestorerOutput:
+    velocity: torch.Tensor  # (B, f, C, h, w)
+    retrieval: torch.Tensor | None  # (B, n_vid, d): final block's F before to_out.0, or None
+
+
+class ReferenceAttnProcessor:
+    """Multi-head cross-attention video tokens -> reference tokens that can hand out its pre-projection output.
+
+    A processor of our own because the retrieval response F (softmax(Q K^T / sqrt(d_h)) V, heads concatenated,
+    *before* ``to_out.0``) is not exposed by diffusers' stock processors.
+    """
+
+    def __call__(
+        self,
+        attn: Attention,
+        hidden_states: torch.Tensor,
+        encoder_hidden_states: torch.Tensor,
+        attention_mask: torch.Tensor | None = None,
+        retrieval_sink: dict[str, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        batch, tokens, _ = hidden_states.shape
+        query = attn.to_q(hidden_states)
+        key = attn.to_k(encoder_hidden_states)
+        value = attn.to_v(encoder_hidden_states)
+        head_dim = query.shape[-1] // attn.heads
+
+        def heads(x: torch.Tensor) -> torch.Tensor:
+            return x.view(batch, -1, attn.heads, head_dim).transpose(1, 2)
+
+        response = F.scaled_dot_product_attention(
+            heads(query), heads(key), heads(value), attn_mask=attention_mask
+        )
+        response = response.transpose(1, 2).reshape(batch, tokens, attn.heads * head_dim)
+        if retrieval_sink is not None:
+            retrieval_sink["retrieval"] = response
+        return attn.to_out[1](attn.to_out[0](response))
+
+
+class ReferenceGuidedBlock(CogVideoXBlock):
+    """CogVideoX block with a reference cross-attention between self-attention and feed-forward (supp. A.1 ii).
+
+    ``forward`` restates the parent's few lines because diffusers offers no hook between the two sublayers.
+    Reference tokens travel in ``attention_kwargs['reference_tokens']`` so the parent model's forward (block
+    loop, gradient checkpointing) is reused unchanged.
+    """
+
+    def __init__(
+        self, dim: int, num_attention_heads: int, attention_head_dim: int, time_embed_dim: int, **kwargs
+    ):
+        super().__init__(dim, num_attention_heads, attention_head_dim, time_embed_dim, **kwargs)
+        norm_eps = kwargs.get("norm_eps", 1e-5)
+        elementwise_affine = kwargs.get("norm_elementwise_affine", True)
+        self.norm_ref = nn.LayerNorm(dim, norm_eps, elementwise_affine)
+        self.ref_attn = Attention(
+            query_dim=dim,
+            cross_attention_dim=dim,  # T_ref is already projected to the hidden width (square LoRA factors)
+            dim_head=attention_head_dim,
+            heads=num_attention_heads,
+            bias=kwargs.get("attention_bias", False),
+            out_bias=kwargs.get("attention_out_bias", True),
+            processor=ReferenceAttnProcessor(),
+        )
+
+    def forward(
+        self,
+        hidden_states: torch.Tensor,
+        encoder_hidden_states: torch.Tensor,
+        temb: torch.Tensor,
+        image_rotary_emb: tuple[torch.Tensor, torch.Tensor] | None = None,
+        attention_kwargs: dict[str, Any] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        attention_kwargs = dict(attention_kwargs or {})
+        reference_tokens = attention_kwargs.pop("reference_tokens")
+        retrieval_sink = attention_kwargs.pop("retrieval_sink", None)
+        text_length = encoder_hidden_states.size(1)
+
+        # (i) joint 3D self-attention over video + text tokens, AdaLN-modulated (as in CogVideoXBlock)
+        norm_hidden, norm_text, gate_msa, text_gate_msa = self.norm1(
+            hidden_states, encoder_hidden_states, temb
+        )
+        attn_hidden, attn_text = self.attn1(
+            hidden_states=norm_hidden,
+            encoder_hidden_states=norm_text,
+            image_rotary_emb=image_rotary_emb,
+            **attention_kwargs,
+        )
+        hidden_states = hidden_states + gate_msa * attn_hidden
+        encoder_hidden_states = encoder_hidden_states + text_gate_msa * attn_text
+
+        # (ii) reference cross-attention: video-token queries, T_ref keys/values (supp. Eq. supp-retrieval-qkv)
+        hidden_states = hidden_states + self.ref_attn(
+            self.norm_ref(hidden_states),
+            encoder_hidden_states=reference_tokens,
+            retrieval_sink=retrieval_sink,
+        )
+
+        # (iii) feed-forward over video + text tokens (as in CogVideoXBlock)
+        norm_hidden, norm_text, gate_ff, text_gate_ff = self.norm2(hidden_states, encoder_hidden_states, temb)
+        ff_output = self.ff(torch.cat([norm_text, norm_hidden], dim=1))
+        hidden_states = hidden_states + gate_ff * ff_output[:, text_length:]
+        encoder_hidden_states = encoder_hidden_states + text_gate_ff * ff_output[:, :text_length]
+        return hidden_states, encoder_hidden_states
+
+
+class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
+    """GSFixer's restorer v_theta (supplement A.1); ``in_channels = 2 * out_channels`` (noisy + condition)."""
+
+    _no_split_modules = ["ReferenceGuidedBlock", "CogVideoXPatchEmbed"]
+
+    @register_to_config
+    def __init__(
+        self,
+        num_attention_heads: int = 48,
+        attention_head_dim: int = 64,
+        in_channels: int = 32,
+        out_channels: int | None = 16,
+        flip_sin_to_cos: bool = True,
+        freq_shift: int = 0,
+        time_embed_dim: int = 512,
+        ofs_embed_dim: int | None = None,
+        text_embed_dim: int = 4096,
+        num_layers: int = 42,
+        dropout: float = 0.0,
+        attention_bias: bool = True,
+        sample_width: int = 90,
+        sample_height: int = 60,
+        sample_frames: int = 49,
+        patch_size: int = 2,
+        patch_size_t: int | None = None,
+        temporal_compression_ratio: int = 4,
+        max_text_seq_length: int = 226,
+        activation_fn: str = "gelu-approximate",
+        timestep_activation_fn: str = "silu",
+        norm_elementwise_affine: bool = True,
+        norm_eps: float = 1e-5,
+        spatial_interpolation_scale: float = 1.875,
+        temporal_interpolation_scale: float = 1.0,
+        use_rotary_positional_embeddings: bool = True,
+        use_learned_positional_embeddings: bool = True,
+        patch_bias: bool = True,
+        ref_2d_dim: int = 1024,
+        ref_3d_dim: int = 2048,
+        timestep_scale: float = 1.0,
+    ):
+        if out_channels is None or in_channels != 2 * out_channels:
+            raise ValueError(
+                f"transformer in_channels={in_channels} must be 2 x out_channels={out_channels} "
+                "(noisy latent concatenated with the rendered-sequence latent)"
+            )
+        # The parent builds everything but the blocks (num_layers=0); ours replace CogVideoXBlock.
+        super().__init__(
+            num_attention_heads=num_attention_heads,
+            attention_head_dim=attention_head_dim,
+            in_channels=in_channels,
+            out_channels=out_channels,
+            flip_sin_to_cos=flip_sin_to_cos,
+            freq_shift=freq_shift,
+            time_embed_dim=time_embed_dim,
+            ofs_embed_dim=ofs_embed_dim,
+            text_embed_dim=text_embed_dim,
+            num_layers=0,
+            dropout=dropout,
+            attention_bias=attention_bias,
+            sample_width=sample_width,
+            sample_height=sample_height,
+            sample_frames=sample_frames,
+            patch_size=patch_size,
+            patch_size_t=patch_size_t,
+            temporal_compression_ratio=temporal_compression_ratio,
+            max_text_seq_length=max_text_seq_length,
+            activation_fn=activation_fn,
+            timestep_activation_fn=timestep_activation_fn,
+            norm_elementwise_affine=norm_elementwise_affine,
+            norm_eps=norm_eps,
+            spatial_interpolation_scale=spatial_interpolation_scale,
+            temporal_interpolation_scale=temporal_interpolation_scale,
+            use_rotary_positional_embeddings=use_rotary_positional_embeddings,
+            use_learned_positional_embeddings=use_learned_positional_embeddings,
+            patch_bias=patch_bias,
+        )
+        # diffusers registers the config before __init__ runs, so the parent call above recorded num_layers=0.
+        self.register_to_config(num_layers=num_layers)
+        inner_dim = num_attention_heads * attention_head_dim
+        self.transformer_blocks = nn.ModuleList(
+            [
+                ReferenceGuidedBlock(
+                    inner_dim,
+                    num_attention_heads,
+                    attention_head_dim,
+                    time_embed_dim,
+                    dropout=dropout,
+                    activation_fn=activation_fn,
+                    attention_bias=attention_bias,
+                    norm_elementwise_affine=norm_elementwise_affine,
+                    norm_eps=norm_eps,
+                )
+                for _ in range(num_layers)
+            ]
+        )
+        self.ref_proj_2d = nn.Linear(ref_2d_dim, inner_dim)  # Proj_2D (DINOv2 features)
+        self.ref_proj_3d = nn.Linear(ref_3d_dim, inner_dim)  # Proj_3D (VGGT features)
+        self._rotary_cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def reference_tokens(self, ref_2d: torch.Tensor, ref_3d: torch.Tensor) -> torch.Tensor:
+        """T_ref = Proj_2D(ref_2d) + Proj_3D(ref_3d), both views' tokens already concatenated along R."""
+        if ref_2d.shape[:2] != ref_3d.shape[:2]:
+            raise ValueError(
+                f"ref_2d {tuple(ref_2d.shape)} and ref_3d {tuple(ref_3d.shape)} need the same (B, R)"
+            )
+        dtype = self.ref_proj_2d.weight.dtype
+        return self.ref_proj_2d(ref_2d.to(dtype)) + self.ref_proj_3d(ref_3d.to(dtype))
+
+    def _rotary_embedding(self, frames: int, height: int, width: int, device: torch.device):
+        """3D RoPE for a latent grid, computed as CogVideoX's pipelines do (cached per grid)."""
+        from diffusers.models.embeddings import get_3d_rotary_pos_embed
+        from diffusers.pipelines.cogvideo.pipeline_cogvideox_image2video import (
+            get_resize_crop_region_for_grid,
+        )
+
+        key = (frames, height, width, str(device))
+        if key not in self._rotary_cache:
+            p = self.config.patch_size
+            grid = (height // p, width // p)
+            crops = get_resize_crop_region_for_grid(
+                grid, self.config.sample_width // p, self.config.sample_height // p
+            )
+            self._rotary_cache[key] = get_3d_rotary_pos_embed(
+                embed_dim=self.config.attention_head_dim,
+                crops_coords=crops,
+                grid_size=grid,
+                temporal_size=frames,
+                device=device,
+            )
+        return self._rotary_cache[key]
+
+    def forward(
+        self,
+        noisy: torch.Tensor,
+        cond: torch.Tensor,
+        timestep: torch.Tensor,
+        text: torch.Tensor,
+        ref_2d: torch.Tensor,
+        ref_3d: torch.Tensor,
+        return_retrieval: bool = False,
+    ) -> RestorerOutput:
+        """Velocity v_theta(xi, t, R_b) (main paper Eq. 3) and optionally F of the final block (Eq. 7).
+
+        ``timestep`` is the schedule's native time (rectified flow t in [0, 1], DDPM step in [0, T-1]); it is
+        multiplied by ``config.timestep_scale`` before the sinusoidal embedding.
+        """
+        if noisy.shape != cond.shape:
+            raise ValueError(f"noisy {tuple(noisy.shape)} and cond {tuple(cond.shape)} latents must match")
+        batch, frames, _, height, width = noisy.shape
+        if (
+            not self.config.use_rotary_positional_embeddings
+            and text.shape[1] != self.config.max_text_seq_length
+        ):
+            raise ValueError(
+                f"text length {text.shape[1]} must equal max_text_seq_length={self.config.max_text_seq_length}"
+            )
+        timestep = torch.as_tensor(timestep, device=noisy.device).float().reshape(-1).expand(batch)
+        rotary = (
+            self._rotary_embedding(frames, height, width, noisy.device)
+            if self.config.use_rotary_positional_embeddings
+            else None
+        )
+        sink: dict[str, torch.Tensor] | None = {} if return_retrieval else None
+        velocity = super().forward(
+            hidden_states=torch.cat([noisy, cond], dim=2),
+            encoder_hidden_states=text.to(noisy.dtype),
+            timestep=timestep * self.config.timestep_scale,
+            image_rotary_emb=rotary,
+            attention_kwargs={
+                "reference_tokens": self.reference_tokens(ref_2d, ref_3d),
+                "retrieval_sink": sink,
+            },
+            return_dict=False,
+        )[0]
+        return RestorerOutput(velocity=velocity, retrieval=sink["retrieval"] if sink is not None else None)

@@ -1,0 +1,162 @@
+"""Cross-field rules that the typed schema cannot express.
+
+Types and key names are checked by OmegaConf when Hydra composes the config; the rules here relate
+several fields (a privileged teacher must see more views than the student, N <= M, 8k+1 clips, ...).
+Every error names the offending field so a sweep with a bad point fails with a one-line message.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from omegaconf import DictConfig
+
+
+class ConfigError(ValueError):
+    """An invalid combination of config values; ``field`` is the dotted key to change."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"config field '{field}': {message}")
+        self.field = field
+
+
+def _require(condition: bool, field: str, message: str) -> None:
+    if not condition:
+        raise ConfigError(field, message)
+
+
+def _is_8k_plus_1(frames: int) -> bool:
+    return frames >= 9 and (frames - 1) % 8 == 0
+
+
+def _views_label(views: int | None) -> str:
+    return "all" if views is None else str(views)
+
+
+def _check_increasing(values: Iterable[int], field: str) -> list[int]:
+    values = list(values)
+    _require(all(a < b for a, b in zip(values, values[1:])), field, f"must be strictly increasing, got {values}")
+    return values
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` naming the first field whose value is inconsistent with the others."""
+    _validate_data(cfg)
+    _validate_training(cfg)
+    _validate_backbone(cfg)
+    _validate_deployment(cfg)
+
+
+def _validate_data(cfg: DictConfig) -> None:
+    synthetic, prepare, datamodule = cfg.data.synthetic, cfg.data.prepare, cfg.data.datamodule
+    overlap = sorted(set(synthetic.train_seeds) & set(synthetic.test_seeds))
+    _require(not overlap, "data.synthetic.test_seeds", f"must be disjoint from train_seeds, both contain {overlap}")
+    _require(
+        _is_8k_plus_1(prepare.frames_per_clip),
+        "data.prepare.frames_per_clip",
+        f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
+    )
+    fit = prepare.fit
+    snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
+    _require(
+        snapshots and snapshots[-1] <= fit.iterations,
+        "data.prepare.fit.snapshot_iters",
+        f"snapshots {snapshots} must lie inside the fit budget of {fit.iterations} iterations",
+    )
+    missing = sorted(set(prepare.student_snapshots) - set(snapshots))
+    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among fit.snapshot_iters {snapshots}")
+    student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
+    dense_counts = [v for v in prepare.dense_views if v is not None]
+    _check_increasing(dense_counts, "data.prepare.dense_views")
+    _require(
+        not dense_counts or dense_counts[0] > student_sets[-1],
+        "data.prepare.dense_views",
+        f"dense view sets {dense_counts} must be larger than every student set {student_sets} (V_s in V_d)",
+    )
+    unknown = sorted(set(datamodule.student_views) - set(student_sets))
+    _require(not unknown, "data.datamodule.student_views", f"{unknown} are not prepared (data.prepare.student_views)")
+    unknown = sorted(set(datamodule.student_snapshots) - set(prepare.student_snapshots))
+    _require(
+        not unknown, "data.datamodule.student_snapshots", f"{unknown} are not prepared (data.prepare.student_snapshots)"
+    )
+    _require(0.0 <= datamodule.caption_dropout < 1.0, "data.datamodule.caption_dropout", "must be in [0, 1)")
+
+
+def _validate_training(cfg: DictConfig) -> None:
+    teacher, prepare = cfg.teacher, cfg.data.prepare
+    student_max = max(cfg.data.datamodule.student_views)
+    available = {*prepare.student_views, *prepare.dense_views}
+    _require(
+        teacher.views in available,
+        "teacher.views",
+        f"{_views_label(teacher.views)} views are not prepared; prepared sets: "
+        f"{sorted(_views_label(v) for v in available)}",
+    )
+    if teacher.privileged:
+        _require(
+            teacher.views is None or teacher.views > student_max,
+            "teacher.views",
+            f"a privileged teacher must see more views than the student ({_views_label(teacher.views)} teacher "
+            f"views vs up to {student_max} student views); use teacher.privileged=false for variant B",
+        )
+    else:
+        _require(
+            teacher.views is not None and teacher.views <= student_max,
+            "teacher.privileged",
+            f"a teacher with {_views_label(teacher.views)} views is privileged; set teacher.privileged=true",
+        )
+    deploy_steps = cfg.backbone.schedule.deploy_steps
+    _require(
+        1 <= cfg.stage.rollout_steps <= deploy_steps,
+        "stage.rollout_steps",
+        f"Stage-2 rollout N={cfg.stage.rollout_steps} must be in [1, M] with M=backbone.schedule.deploy_steps="
+        f"{deploy_steps} (the grid is resampled from the deployment schedule)",
+    )
+    _require(cfg.loss.lambda_ret >= 0, "loss.lambda_ret", f"must be >= 0, got {cfg.loss.lambda_ret}")
+    _require(cfg.loss.lambda_align >= 0, "loss.lambda_align", f"must be >= 0, got {cfg.loss.lambda_align}")
+    _require(cfg.optimizer.lr > 0, "optimizer.lr", f"must be > 0, got {cfg.optimizer.lr}")
+    _require(
+        cfg.optimizer.warmup_steps <= cfg.stage.max_steps,
+        "optimizer.warmup_steps",
+        f"warm-up ({cfg.optimizer.warmup_steps}) longer than the stage ({cfg.stage.max_steps} steps)",
+    )
+
+
+def _validate_backbone(cfg: DictConfig) -> None:
+    backbone = cfg.backbone
+    _require(backbone.lora.rank > 0, "backbone.lora.rank", f"must be > 0, got {backbone.lora.rank}")
+    _require(backbone.lora.alpha > 0, "backbone.lora.alpha", f"must be > 0, got {backbone.lora.alpha}")
+    _require(
+        backbone.schedule.kind in ("rectified_flow", "vpred_ddim"),
+        "backbone.schedule.kind",
+        f"must be 'rectified_flow' or 'vpred_ddim', got {backbone.schedule.kind!r}",
+    )
+    # The codec's spatial factor times the patch size must tile the rendered frames exactly.
+    factor = (8 if backbone.codec.kind == "cogvideox" else backbone.codec.block_size) * backbone.transformer.patch_size
+    height, width = cfg.data.synthetic.height, cfg.data.synthetic.width
+    if cfg.data.source.preset != "synthetic" and cfg.data.source.height is not None:
+        height, width = cfg.data.source.height, cfg.data.source.width
+    _require(
+        height % factor == 0 and width % factor == 0,
+        "backbone.transformer.patch_size",
+        f"frames of {height}x{width} are not divisible by codec factor x patch size = {factor}",
+    )
+
+
+def _validate_deployment(cfg: DictConfig) -> None:
+    deploy = cfg.deploy
+    repairs = _check_increasing(deploy.repair_iters, "deploy.repair_iters")
+    _require(bool(repairs), "deploy.repair_iters", "needs at least one repair iteration")
+    _require(
+        0 < repairs[0] and repairs[-1] < deploy.total_iters,
+        "deploy.repair_iters",
+        f"repairs {repairs} must lie strictly inside the refinement budget (0, {deploy.total_iters})",
+    )
+    _require(
+        _is_8k_plus_1(deploy.clip_frames),
+        "deploy.clip_frames",
+        f"clips must have 8k+1 frames (9, 17, 25, 49), got {deploy.clip_frames}",
+    )
+    _require(
+        deploy.steps is None or deploy.steps >= 1, "deploy.steps", f"must be >= 1 (or null for M), got {deploy.steps}"
+    )

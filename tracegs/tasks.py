@@ -1,0 +1,257 @@
+"""What each entry point does with a composed config: build the components its sections describe, run.
+
+The console scripts in :mod:`tracegs.cli` stay one line each; the demo chains these same functions.
+Config sections are turned into the owning package's dataclasses (``OmegaConf.to_object``), so every
+component receives typed hyperparameters and never the whole Hydra tree.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import resource
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger("tracegs")
+
+
+def section(node: DictConfig) -> Any:
+    """The dataclass instance behind a structured config node (interpolations resolved)."""
+    return OmegaConf.to_object(node)
+
+
+# ----------------------------------------------------------------------------------------- prepare
+def prepare(cfg: DictConfig) -> Path:
+    """Generate the synthetic benchmark if selected, then build the paired-clip cache (issue: data)."""
+    from tracegs.data.prepare import merge_manifests, run_prepare
+    from tracegs.restorer.build import build_backbone
+
+    backbone = build_backbone(section(cfg.backbone))
+    synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
+    manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
+    if cfg.data.prepare.num_shards == 1:
+        manifest = merge_manifests(cfg.data.prepare.cache_dir)
+    log.info("paired-clip cache: %s", manifest)
+    return manifest
+
+
+# ------------------------------------------------------------------------------------------- train
+def train(cfg: DictConfig) -> Path | None:
+    """Train ``cfg.stage.name`` into ``cfg.run_dir``; variant A trains no Stage 2."""
+    from tracegs.training.config import TrainConfig
+    from tracegs.training.run import train_stage
+
+    if cfg.stage.name == "stage2" and not cfg.ablation.train_stage2:
+        log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
+        return None
+    if cfg.stage.name == "baseline" and cfg.experiment.baseline_steps == 0:
+        raise ValueError(
+            f"stage=baseline: experiment={cfg.experiment.name} uses a pretrained baseline restorer "
+            "(backbone.transformer.pretrained_path); there is nothing to train"
+        )
+    train_cfg = TrainConfig(
+        stage=section(cfg.stage),
+        optimizer=section(cfg.optimizer),
+        loss=section(cfg.loss),
+        teacher=section(cfg.teacher),
+        policy=section(cfg.policy),
+        trainer=section(cfg.trainer),
+        backbone=section(cfg.backbone),
+        data=section(cfg.data.datamodule),
+        output_dir=cfg.run_dir,
+    )
+    product = train_stage(train_cfg)
+    log.info("%s product: %s", cfg.stage.name, product)
+    return product
+
+
+# ---------------------------------------------------------------------------------------- restorers
+def _digest(path: Path) -> str:
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    sha = hashlib.sha256()
+    for file in files:
+        sha.update(file.read_bytes())
+    return sha.hexdigest()[:16]
+
+
+def build_restorer(cfg: DictConfig, with_student: bool):
+    """The deployed restorer: variant A's weights, plus the selected variant's student adapter if asked."""
+    from tracegs.deploy.restorers import DiffusionRestorer
+    from tracegs.restorer import adapters
+    from tracegs.restorer.build import build_backbone
+    from tracegs.restorer.sampler import RestorationPipeline
+
+    backbone_cfg = section(cfg.backbone)
+    baseline = cfg.artifacts.baseline_weights
+    if baseline is not None:
+        if not Path(baseline).is_dir():
+            raise FileNotFoundError(
+                f"artifacts.baseline_weights: no baseline restorer at {baseline} (run tracegs-train stage=baseline)"
+            )
+        backbone_cfg.transformer.pretrained_path = baseline
+    identity = [f"base={_digest(Path(backbone_cfg.transformer.pretrained_path))}"
+                if backbone_cfg.transformer.pretrained_path else "base=random-init"]
+    backbone = build_backbone(backbone_cfg, device="cuda" if torch.cuda.is_available() else "cpu")
+    adapter = None
+    if with_student:
+        student = Path(cfg.artifacts.student_adapter)
+        if not student.is_file():
+            raise FileNotFoundError(
+                f"artifacts.student_adapter: no student adapter at {student} "
+                f"(run tracegs-train stage=stage2 ablation={cfg.ablation.name})"
+            )
+        adapter = "student"
+        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False)
+        identity.append(f"student={_digest(student)}")
+    pipeline = RestorationPipeline(backbone, adapter=adapter)
+    return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity))
+
+
+def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
+    """Method name -> restorer (None = plain 3DGS, no restoration)."""
+    builders = {"3dgs": lambda: None, "baseline": lambda: build_restorer(cfg, False),
+                "tracegs": lambda: build_restorer(cfg, True)}
+    return {m: builders[m]() for m in methods}
+
+
+# ------------------------------------------------------------------------------------------- scenes
+def test_scenes(cfg: DictConfig) -> list[str]:
+    """The evaluation scenes: the synthetic benchmark's test seeds (generated if missing) or the dataset's."""
+    from tracegs.data.colmap import list_scenes
+    from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark
+
+    if cfg.evaluation.scenes is not None:
+        return list(cfg.evaluation.scenes)
+    if cfg.data.source.preset == "synthetic":
+        synthetic = section(cfg.data.synthetic)
+        generate_benchmark(synthetic)
+        return benchmark_scene_names(synthetic, "test")
+    return list_scenes(section(cfg.data.source))
+
+
+def ground_truth_renderer(cfg: DictConfig):
+    """Renders ground truth at any pose where the scene is known (the synthetic benchmark), else None."""
+    if cfg.data.source.preset != "synthetic":
+        return None
+    from tracegs.data.prepare import normalised_ground_truth
+    from tracegs.splat.render import render
+
+    source = section(cfg.data.source)
+    background = torch.tensor(list(cfg.data.synthetic.background), dtype=torch.float32)
+    models: dict = {}
+
+    @torch.no_grad()
+    def render_truth(scene, cameras):
+        if scene.name not in models:
+            models[scene.name] = normalised_ground_truth(scene, source)
+        return torch.stack([render(models[scene.name], c, background=background).image for c in cameras])
+
+    return render_truth
+
+
+# --------------------------------------------------------------------------------- deploy / evaluate
+def evaluate(cfg: DictConfig) -> dict:
+    """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
+    from tracegs.deploy.evaluate import evaluate as run_evaluation
+
+    methods = list(cfg.evaluation.methods)
+    results = run_evaluation(
+        section(cfg.evaluation),
+        section(cfg.data.source),
+        section(cfg.deploy),
+        section(cfg.splat),
+        build_restorers(cfg, methods),
+        scenes=test_scenes(cfg),
+        gt_renderer=ground_truth_renderer(cfg),
+    )
+    log.info("evaluation written to %s", cfg.evaluation.out_dir)
+    return results
+
+
+def deploy(cfg: DictConfig) -> list[Path]:
+    """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
+    from tracegs.deploy.evaluate import deploy_scenes
+
+    method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
+    restorer = build_restorers(cfg, [method])[method]
+    return deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
+                         section(cfg.splat), restorer, test_scenes(cfg), cfg.run_dir)
+
+
+# ------------------------------------------------------------------------------------------- report
+def report(cfg: DictConfig) -> Path:
+    """Merge evaluation shards (main), prepare shards (prepare) or an ablation sweep (ablation)."""
+    from tracegs.data.prepare import merge_manifests
+    from tracegs.deploy.evaluate import merge_results
+    from tracegs.eval.report import write_ablation_report
+
+    kind = cfg.report.kind
+    if kind == "prepare":
+        return merge_manifests(cfg.data.prepare.cache_dir)
+    if kind == "main":
+        out = Path(cfg.evaluation.out_dir)
+        merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods))
+        return out / "results.json"
+    if kind == "ablation":
+        inputs = list(cfg.report.inputs) or [str(Path(cfg.paths.experiment_dir) / "eval" / v)
+                                             for v in ("A", "B", "C", "D", "E", "F-", "F")]
+        return write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
+    raise ValueError(f"report.kind must be 'main', 'prepare' or 'ablation', got {kind!r}")
+
+
+# --------------------------------------------------------------------------------------------- demo
+def peak_rss_gib() -> float:
+    """Peak resident memory of this process and its finished children, in GiB (Linux: ru_maxrss in KiB)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    scale = 1024**3 if sys.platform == "darwin" else 1024**2
+    return max(own, children) / scale
+
+
+DEMO_STEPS = (
+    ("prepare", ()),
+    ("train", ("stage=baseline",)),
+    ("train", ("stage=stage1",)),
+    ("train", ("stage=stage2", "ablation=F")),
+    ("evaluate", ("ablation=F",)),
+)
+
+
+def demo(cfg: DictConfig) -> Path:
+    """The whole pipeline on the composed experiment: prepare -> A -> Stage 1 -> Stage 2 (F) -> evaluation."""
+    import lightning
+    from hydra import compose
+    from hydra.core.hydra_config import HydraConfig
+
+    from tracegs.config.validate import validate
+    from tracegs.eval.report import print_results_table
+    from tracegs.io import write_json_atomic
+
+    start = time.perf_counter()
+    user_overrides = list(HydraConfig.get().overrides.task)
+    tasks = {"prepare": prepare, "train": train, "evaluate": evaluate}
+    results: dict = {}
+    for index, (name, extra) in enumerate(DEMO_STEPS, 1):
+        step_cfg = compose(config_name=name, overrides=[*user_overrides, *extra])
+        validate(step_cfg)
+        lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
+        log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))
+        outcome = tasks[name](step_cfg)
+        if name == "evaluate":
+            results = outcome
+    results["wall_s"] = round(time.perf_counter() - start, 1)
+    results["peak_rss_gib"] = round(peak_rss_gib(), 3)
+    out_dir = Path(cfg.run_dir)
+    write_json_atomic(results, out_dir / "results.json")
+    print_results_table(results)
+    print(f"\ntracegs-demo: finished in {results['wall_s']:.0f} s, peak RSS {results['peak_rss_gib']:.2f} GiB")
+    print(f"tracegs-demo: all outputs under {Path(cfg.paths.experiment_dir).resolve()}")
+    print(f"tracegs-demo: results table in {out_dir.resolve() / 'results.json'}")
+    return out_dir

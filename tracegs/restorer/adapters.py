@@ -125,7 +125,10 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
     source = dict(_lora_parameters(model, src))
     with torch.no_grad():
         for param_name, param in _lora_parameters(model, dst):
-            param.copy_(source[param_name.replace(f".{dst}.", f".{src}.")])
+            value = source[param_name.replace(f".{dst}.", f".{src}.")]
+            if value.is_meta:  # a model built on the meta device (sizing) has no values to copy
+                continue
+            param.copy_(value)
     _trainable_flags(model)[dst] = trainable
     activate(model, src)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 
 import torch
@@ -59,16 +58,16 @@ def load_transformer(
     weights must cover the model exactly; otherwise the error lists the differing fields / keys."""
     path = require_local_dir(cfg.pretrained_path, "transformer.pretrained_path")
     stored = ReferenceGuidedTransformer.load_config(path)
-    defaults = inspect.signature(ReferenceGuidedTransformer.__init__).parameters
     wanted = transformer_kwargs(cfg)
-    effective = {k: stored.get(k, defaults[k].default) for k in wanted}
-    differing = {k: (effective[k], v) for k, v in wanted.items() if effective[k] != v}
+    differing = {k: (stored[k], v) for k, v in wanted.items() if k in stored and stored[k] != v}
     if differing:
         raise CheckpointMismatchError(
             f"{path}/config.json disagrees with the transformer config (stored, wanted): {differing}"
         )
+    # Keys a plain CogVideoX config lacks (reference dims, timestep scale) come from ``cfg``.
+    absent = {k: v for k, v in wanted.items() if k not in stored}
     model, info = ReferenceGuidedTransformer.from_pretrained(
-        path, torch_dtype=dtype, output_loading_info=True
+        path, torch_dtype=dtype, output_loading_info=True, **absent
     )
     missing, unexpected = sorted(info.get("missing_keys", [])), sorted(info.get("unexpected_keys", []))
     if missing or unexpected or info.get("mismatched_keys"):

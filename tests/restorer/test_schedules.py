@@ -1,0 +1,105 @@
+import pytest
+import torch
+from diffusers import CogVideoXDDIMScheduler
+
+from tracegs.restorer.config import ScheduleConfig
+from tracegs.restorer.schedules import RectifiedFlowSchedule, VPredictionDDIMSchedule
+
+
+def schedules():
+    return [
+        RectifiedFlowSchedule(ScheduleConfig(kind="rectified_flow", deploy_steps=20)),
+        VPredictionDDIMSchedule(ScheduleConfig(kind="vpred_ddim", deploy_steps=50)),
+    ]
+
+
+@pytest.mark.parametrize("steps", [50, 10])
+def test_ddim_step_matches_diffusers_cogvideox_scheduler(steps):
+    ours = VPredictionDDIMSchedule(ScheduleConfig(kind="vpred_ddim", deploy_steps=steps))
+    # CogVideoX-5B's scheduler_config.json values
+    reference = CogVideoXDDIMScheduler(
+        beta_start=0.00085,
+        beta_end=0.012,
+        beta_schedule="scaled_linear",
+        clip_sample=False,
+        prediction_type="v_prediction",
+        rescale_betas_zero_snr=True,
+        set_alpha_to_one=True,
+        snr_shift_scale=1.0,
+        timestep_spacing="trailing",
+    )
+    reference.set_timesteps(steps)
+    grid = ours.timesteps(steps)
+    assert torch.equal(grid[:-1], reference.timesteps)
+    g = torch.Generator().manual_seed(0)
+    z, v = torch.randn(2, 3, 4, 5, 6, generator=g), torch.randn(2, 3, 4, 5, 6, generator=g)
+    for t, t_prev in zip(grid[:-1], grid[1:]):
+        expected = reference.step(v, int(t), z).prev_sample
+        got = ours.step(z, v, t.expand(2), t_prev.expand(2))
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+        noise = torch.randn(z.shape, generator=g)
+        torch.testing.assert_close(
+            ours.add_noise(z, noise, t.expand(2)),
+            reference.add_noise(z, noise, t.expand(2)),
+            rtol=1e-5,
+            atol=1e-5,
+        )
+        torch.testing.assert_close(
+            ours.velocity_target(z, noise, t.expand(2)),
+            reference.get_velocity(z, noise, t.expand(2)),
+            rtol=1e-5,
+            atol=1e-5,
+        )
+
+
+@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+def test_rollout_with_exact_velocity_recovers_clean_latent(schedule):
+    g = torch.Generator().manual_seed(1)
+    x0, noise = torch.randn(2, 3, 4, 6, 6, generator=g), torch.randn(2, 3, 4, 6, 6, generator=g)
+    for grid in (schedule.timesteps(), schedule.resample(schedule.timesteps(), 5, g)):
+        z = schedule.add_noise(x0, noise, grid[0].expand(2))
+        assert not torch.allclose(z, x0, atol=0.1)
+        for t, t_prev in zip(grid[:-1], grid[1:]):
+            z = schedule.step(
+                z, schedule.velocity_target(x0, noise, t.expand(2)), t.expand(2), t_prev.expand(2)
+            )
+        torch.testing.assert_close(z, x0, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+def test_predict_clean_inverts_add_noise(schedule):
+    g = torch.Generator().manual_seed(2)
+    x0, noise = torch.randn(4, 2, 3, 4, 4, generator=g), torch.randn(4, 2, 3, 4, 4, generator=g)
+    t = schedule.sample_train_t(4, g)
+    z = schedule.add_noise(x0, noise, t)
+    torch.testing.assert_close(
+        schedule.predict_clean(z, schedule.velocity_target(x0, noise, t), t), x0, atol=1e-4, rtol=1e-4
+    )
+
+
+@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+def test_resampled_grid_is_strictly_decreasing_subset_with_both_ends(schedule):
+    grid = schedule.timesteps()
+    assert (grid[1:] < grid[:-1]).all()
+    g = torch.Generator().manual_seed(3)
+    seen = set()
+    for n in (1, 2, 5, 10, grid.numel() - 1):
+        for _ in range(5):
+            sub = schedule.resample(grid, n, g)
+            assert sub.numel() == n + 1
+            assert sub[0] == grid[0] and sub[-1] == grid[-1]
+            assert (sub[1:] < sub[:-1]).all()
+            assert all(bool((grid == value).any()) for value in sub)
+            seen.add(tuple(sub.tolist()))
+    assert len(seen) > 5  # interior points are actually resampled
+    with pytest.raises(ValueError, match="rollout steps"):
+        schedule.resample(grid, grid.numel(), g)
+
+
+def test_deployment_schedule_ends():
+    rf, ddim = schedules()
+    assert rf.timesteps(20)[0] == 1.0 and rf.timesteps(20)[-1] == 0.0 and rf.timesteps(20).numel() == 21
+    grid = ddim.timesteps(50)
+    assert grid.numel() == 51 and grid[0] == 999 and grid[-1] == -1
+    # zero terminal SNR: the first point is pure noise
+    assert float(ddim.alpha_bar(grid[:1])) == pytest.approx(0.0, abs=1e-8)

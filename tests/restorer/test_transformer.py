@@ -1,0 +1,143 @@
+import math
+
+import pytest
+import torch
+from diffusers import CogVideoXTransformer3DModel
+
+from tracegs.restorer import adapters
+from tracegs.restorer.build import (
+    CheckpointMismatchError,
+    create_transformer,
+    load_transformer,
+    transformer_kwargs,
+)
+from tracegs.restorer.config import TransformerConfig, paper_backbone_config
+
+
+def test_tiny_forward_backward_shapes(backbone, make_inputs):
+    model = backbone.transformer
+    model.requires_grad_(True)
+    inputs = make_inputs()
+    out = model(**inputs, return_retrieval=True)
+    assert out.velocity.shape == inputs["noisy"].shape
+    b, f, _, h, w = inputs["noisy"].shape
+    p = model.config.patch_size
+    assert out.retrieval.shape == (b, f * (h // p) * (w // p), 192)
+    (out.velocity.square().mean() + out.retrieval.square().mean()).backward()
+    for name in ("patch_embed.proj.weight", "ref_proj_2d.weight", "ref_proj_3d.weight"):
+        assert model.get_parameter(name).grad.abs().sum() > 0, name
+    assert model.transformer_blocks[0].ref_attn.to_q.weight.grad.abs().sum() > 0
+    assert model(**inputs).retrieval is None
+
+
+def test_every_conditioning_input_reaches_the_velocity(backbone, make_inputs):
+    model = backbone.transformer
+    inputs = make_inputs()
+    with torch.no_grad():
+        base = model(**inputs).velocity
+        for key in ("cond", "ref_2d", "ref_3d", "text", "timestep"):
+            changed = dict(inputs, **{key: inputs[key] + 0.5})
+            assert not torch.allclose(model(**changed).velocity, base, atol=1e-4), key
+
+
+def test_retrieval_equals_independent_recomputation(backbone, make_inputs):
+    model = backbone.transformer
+    adapters.add_adapter(model, "student", backbone.cfg.lora)
+    with torch.no_grad():  # a non-zero LoRA so the recomputation must include phi (W^b of Eq. 7)
+        for param in adapters.adapter_parameters(model, "student"):
+            param.normal_(std=0.05)
+    inputs = make_inputs()
+    block = model.transformer_blocks[-1]
+    captured = {}
+    handle = block.norm_ref.register_forward_hook(
+        lambda mod, args, out: captured.setdefault("queries_in", out)
+    )
+    with torch.no_grad():
+        retrieval = model(**inputs, return_retrieval=True).retrieval
+    handle.remove()
+
+    attn, heads = block.ref_attn, model.config.num_attention_heads
+    head_dim = model.config.attention_head_dim
+
+    def effective(linear):  # W + (alpha / r) B A, read from the weights, not by calling the module
+        delta = linear.lora_B["student"].weight @ linear.lora_A["student"].weight * linear.scaling["student"]
+        return linear.base_layer.weight + delta, linear.base_layer.bias
+
+    tokens = model.ref_proj_2d.weight @ inputs["ref_2d"].transpose(1, 2)
+    tokens = tokens.transpose(1, 2) + model.ref_proj_2d.bias
+    tokens = tokens + inputs["ref_3d"] @ model.ref_proj_3d.weight.T + model.ref_proj_3d.bias
+    (wq, bq), (wk, bk), (wv, bv) = effective(attn.to_q), effective(attn.to_k), effective(attn.to_v)
+    q = captured["queries_in"] @ wq.T + bq
+    k, v = tokens @ wk.T + bk, tokens @ wv.T + bv
+    per_head = []
+    for h in range(heads):
+        sl = slice(h * head_dim, (h + 1) * head_dim)
+        weights = torch.softmax(q[..., sl] @ k[..., sl].transpose(1, 2) / math.sqrt(head_dim), dim=-1)
+        per_head.append(weights @ v[..., sl])
+    torch.testing.assert_close(retrieval, torch.cat(per_head, dim=-1), rtol=1e-4, atol=1e-5)
+
+
+def test_text_length_must_match_config(backbone, make_inputs):
+    inputs = make_inputs()
+    inputs["text"] = inputs["text"][:, :5]
+    with pytest.raises(ValueError, match="max_text_seq_length"):
+        backbone.transformer(**inputs)
+
+
+def test_paper_configuration_on_meta_device():
+    cfg = paper_backbone_config()
+    model = create_transformer(cfg.transformer, "meta")
+    assert next(model.parameters()).is_meta
+    assert len(model.transformer_blocks) == 42 and model.config.num_layers == 42
+    attn = model.transformer_blocks[0].attn1
+    assert attn.heads == 48 and attn.to_q.weight.shape == (3072, 3072)
+    assert model.transformer_blocks[0].ff.net[2].weight.shape == (3072, 12288)
+    assert model.transformer_blocks[0].ref_attn.to_k.weight.shape == (3072, 3072)
+    adapters.add_adapter(model, "student", cfg.lora)
+    adapters.clone_adapter(model, "student", "teacher", trainable=False)
+    for name in ("student", "teacher"):
+        assert sum(p.numel() for p in adapters.adapter_parameters(model, name)) == 66_060_288
+    lora_layers = {n.split(".lora_")[0] for n, _ in model.named_parameters() if ".lora_A.student" in n}
+    assert len(lora_layers) == 42 * 2 * 4
+
+    # 49 x 480 x 720 -> 13 x 60 x 90 latents (8x spatial, 1 + (F - 1) / 4 frames) -> 17,550 video tokens
+    latent = (1, 1 + (49 - 1) // 4, 16, 480 // 8, 720 // 8)
+    assert latent[1:] == (13, 16, 60, 90)
+    meta = torch.device("meta")
+    out = model(
+        noisy=torch.empty(latent, device=meta),
+        cond=torch.empty(latent, device=meta),
+        timestep=torch.tensor([999], device=meta),
+        text=torch.empty(1, 226, 4096, device=meta),
+        ref_2d=torch.empty(1, 2 * 37 * 37, 1024, device=meta),
+        ref_3d=torch.empty(1, 2 * 37 * 37, 2048, device=meta),
+        return_retrieval=True,
+    )
+    assert out.velocity.shape == latent
+    assert out.retrieval.shape == (1, 17_550, 3072)
+
+
+def test_load_transformer_round_trip(tmp_path, backbone, make_inputs):
+    cfg = TransformerConfig(pretrained_path=str(tmp_path / "restorer"))
+    backbone.transformer.save_pretrained(cfg.pretrained_path)
+    loaded = load_transformer(cfg)
+    inputs = make_inputs()
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(**inputs).velocity, backbone.transformer(**inputs).velocity)
+
+
+def test_load_transformer_lists_missing_keys(tmp_path):
+    cfg = TransformerConfig(pretrained_path=str(tmp_path / "plain_cogvideox"))
+    # A plain CogVideoX checkpoint of the same shape has no reference cross-attention / projections.
+    kwargs = {
+        k: v
+        for k, v in transformer_kwargs(cfg).items()
+        if k not in ("ref_2d_dim", "ref_3d_dim", "timestep_scale")
+    }
+    CogVideoXTransformer3DModel(**kwargs).save_pretrained(cfg.pretrained_path)
+    with pytest.raises(CheckpointMismatchError, match=r"missing keys \[.*ref_attn.*\]"):
+        load_transformer(cfg)
+    with pytest.raises(CheckpointMismatchError, match="num_layers"):
+        load_transformer(TransformerConfig(num_layers=3, pretrained_path=cfg.pretrained_path))
+    with pytest.raises(FileNotFoundError, match="transformer.pretrained_path"):
+        load_transformer(TransformerConfig(pretrained_path=str(tmp_path / "absent")))

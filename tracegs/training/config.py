@@ -10,6 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.data.config import DataModuleConfig
+from tracegs.restorer.config import BackboneConfig
+
 STAGE_NAMES = ("baseline", "stage1", "stage2")
 MEMORY_MODES = ("stepwise", "retain")
 
@@ -40,14 +43,11 @@ class StageConfig:
 
     name: str = "stage2"
     max_steps: int = 150
-    batch_size: int = 4
     rollout_steps: int = 5
     memory_mode: str = "stepwise"
     seed: int = 0
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
     adapter_name: str = "aligned"
-    # Stage 1: directory of variant A's base weights (``baseline`` output); None = the backbone as built.
-    base_weights: str | None = None
     # Stage 2: Stage-1 adapter safetensors to clone; required for stage2.
     init_adapter: str | None = None
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
@@ -90,3 +90,33 @@ class LossConfig:
     lambda_ret: float = 0.15
     # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
     retrieval_eps: float = 1e-6
+
+
+@dataclass
+class TrainerConfig:
+    """Arguments forwarded to ``lightning.Trainer`` (paper scale: accelerator gpu, bf16-mixed, DDP)."""
+
+    accelerator: str = "cpu"
+    devices: str = "1"  # Lightning syntax: "1", "4", "auto", "0,1"
+    num_nodes: int = 1
+    strategy: str = "auto"
+    precision: str = "32-true"
+    log_every_n_steps: int = 10
+    # Any of "csv", "tensorboard", "wandb" (wandb needs the optional extra).
+    loggers: list[str] = field(default_factory=lambda: ["csv", "tensorboard"])
+    enable_progress_bar: bool = True
+
+
+@dataclass
+class TrainConfig:
+    """Everything ``train_stage`` needs. The Hydra schema composes this from the config groups."""
+
+    stage: StageConfig = field(default_factory=StageConfig)
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    data: DataModuleConfig = field(default_factory=DataModuleConfig)
+    output_dir: str = "outputs/train"

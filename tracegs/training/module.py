@@ -1,0 +1,150 @@
+"""Shared LightningModule machinery for the three training stages.
+
+All stages use Lightning's manual optimisation so that Stage 2 can back-propagate each visited state's
+loss as soon as it is computed (``stepwise`` memory mode) while every stage shares one optimiser step
+(AdamW, linear warm-up, optional global-norm clipping) and one set of logged quantities.
+
+Randomness (timesteps, noise, resampled grids) comes from a generator seeded by (seed, rank, global
+step) rather than from the global RNG, so a run resumed from a checkpoint draws exactly what the
+uninterrupted run would have drawn at the same step.
+"""
+
+from __future__ import annotations
+
+import time
+from abc import abstractmethod
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from tracegs.training.config import OptimizerConfig
+
+# Large odd multipliers keep the (seed, rank, step) -> generator-seed map collision-free in practice.
+_RANK_STRIDE = 1_000_003
+_SEED_STRIDE = 7_919_000_017
+
+
+def warmup_factor(step: int, warmup_steps: int) -> float:
+    """Linear learning-rate warm-up: (step + 1) / warmup_steps for the first ``warmup_steps`` steps, then 1."""
+    if warmup_steps <= 0:
+        return 1.0
+    return min(1.0, (step + 1) / warmup_steps)
+
+
+class RestorerTrainingModule(L.LightningModule):
+    """Base class: owns the transformer and schedule, the optimiser step and the logging.
+
+    Subclasses implement ``trainable_parameters`` and ``compute_and_backward`` (which must call
+    ``self.manual_backward`` on its losses and return the detached terms to log).
+    Checkpoints contain only the trainable parameters (at paper scale the frozen 5B backbone would
+    otherwise be copied into every checkpoint); everything frozen is rebuilt from the configuration.
+    """
+
+    def __init__(self, transformer: nn.Module, schedule, optimizer: OptimizerConfig, seed: int) -> None:
+        super().__init__()
+        self.automatic_optimization = False
+        # Checkpoints hold only trainable weights; ``on_load_checkpoint`` checks the key set itself.
+        self.strict_loading = False
+        self.transformer = transformer
+        self.schedule = schedule
+        self.optimizer_cfg = optimizer
+        self.seed = seed
+
+    # ----------------------------------------------------------------- subclass interface
+    @abstractmethod
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        """The parameters the optimiser updates (and the only ones saved in checkpoints)."""
+
+    @abstractmethod
+    def compute_and_backward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
+        """Compute this stage's losses for ``batch``, back-propagate them, return detached terms to log."""
+
+    # ----------------------------------------------------------------- helpers for subclasses
+    def predict(self, noisy: Tensor, cond: Tensor, timestep: Tensor, batch: dict, return_retrieval: bool = False):
+        """One restorer evaluation v(z_t, t, cond) with the sample's reference tokens and text embedding."""
+        if timestep.ndim == 0:
+            timestep = timestep.expand(noisy.shape[0])
+        return self.transformer(
+            noisy,
+            cond,
+            timestep.to(noisy.device),
+            self._float(batch["text"]),
+            self._float(batch["ref_2d"]),
+            self._float(batch["ref_3d"]),
+            return_retrieval=return_retrieval,
+        )
+
+    def latent(self, batch: dict, key: str) -> Tensor:
+        """A latent tensor of the batch in the training dtype (the cache may store float16)."""
+        return self._float(batch[key])
+
+    def randn_like(self, reference: Tensor, generator: torch.Generator) -> Tensor:
+        """Gaussian noise drawn on the CPU generator (device-independent streams), moved to the device."""
+        noise = torch.randn(reference.shape, generator=generator, dtype=torch.float32)
+        return noise.to(device=reference.device, dtype=reference.dtype)
+
+    def _float(self, tensor: Tensor) -> Tensor:
+        return tensor.to(device=self.device, dtype=torch.float32) if tensor.is_floating_point() else tensor
+
+    def step_generator(self) -> torch.Generator:
+        """Generator for this optimiser step, a pure function of (seed, rank, global step)."""
+        seed = self.seed * _SEED_STRIDE + self.global_rank * _RANK_STRIDE + self.global_step
+        return torch.Generator().manual_seed(seed % (2**63 - 1))
+
+    # ----------------------------------------------------------------- Lightning hooks
+    def configure_optimizers(self):
+        cfg = self.optimizer_cfg
+        optimizer = torch.optim.AdamW(
+            self.trainable_parameters(),
+            lr=cfg.lr,
+            betas=tuple(cfg.betas),
+            eps=cfg.eps,
+            weight_decay=cfg.weight_decay,
+        )
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: warmup_factor(step, cfg.warmup_steps)
+        )
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def training_step(self, batch: dict, batch_idx: int) -> None:
+        optimizer = self.optimizers()
+        scheduler = self.lr_schedulers()
+        started = time.perf_counter()
+        lr = optimizer.param_groups[0]["lr"]
+        optimizer.zero_grad(set_to_none=True)
+        terms = self.compute_and_backward(batch, self.step_generator())
+        grads = [p.grad for p in self.trainable_parameters() if p.grad is not None]
+        grad_norm = torch.nn.utils.get_total_norm(grads) if grads else torch.zeros(())
+        if self.optimizer_cfg.grad_clip is not None:
+            self.clip_gradients(
+                optimizer, gradient_clip_val=self.optimizer_cfg.grad_clip, gradient_clip_algorithm="norm"
+            )
+        optimizer.step()
+        scheduler.step()
+        elapsed = time.perf_counter() - started
+        batch_size = batch["target"].shape[0]
+        logged = {f"train/{name}": value for name, value in terms.items()}
+        logged["train/grad_norm"] = grad_norm
+        logged["train/lr"] = lr
+        logged["train/samples_per_sec"] = batch_size / max(elapsed, 1e-9)
+        logged["train/step_time_s"] = elapsed
+        self.log_dict(logged, prog_bar=False, batch_size=batch_size, on_step=True, on_epoch=False)
+        self.log("loss", terms["loss"], prog_bar=True, batch_size=batch_size, on_step=True, on_epoch=False)
+
+    def _trainable_names(self) -> set[str]:
+        ids = {id(p) for p in self.trainable_parameters()}
+        return {name for name, p in self.named_parameters() if id(p) in ids}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        keep = self._trainable_names()
+        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in keep}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        expected, found = self._trainable_names(), set(checkpoint["state_dict"])
+        if expected != found:
+            missing, unexpected = sorted(expected - found)[:5], sorted(found - expected)[:5]
+            raise ValueError(
+                f"checkpoint does not match this stage's trainable weights: missing {missing}, "
+                f"unexpected {unexpected}"
+            )

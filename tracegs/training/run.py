@@ -1,0 +1,183 @@
+"""``train_stage(cfg)``: build backbone, data, stage module and a ``lightning.Trainer``, train, export.
+
+Outputs under ``cfg.output_dir``: ``checkpoints/`` (resumable Lightning checkpoints, trainable weights
+only), ``csv/`` and ``tensorboard/`` logs, and the stage's product:
+- baseline: ``baseline_transformer/`` -- a diffusers directory with the full tiny transformer, to be set as
+  ``backbone.transformer.pretrained_path`` for Stage 1, Stage 2 and deployment (variant A);
+- stage1: ``stage1_adapter.safetensors`` (the aligned adapter phi);
+- stage2: ``student_adapter.safetensors`` (phi_S, the only thing deployment loads).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+
+from tracegs.data.datamodule import PairedClipDataModule
+from tracegs.restorer.build import build_backbone
+from tracegs.training.baseline import BaselineRestorerModule
+from tracegs.training.config import TrainConfig
+from tracegs.training.module import RestorerTrainingModule
+from tracegs.training.stage1 import Stage1AlignmentModule
+from tracegs.training.stage2 import Stage2DistillationModule
+
+PRODUCTS = {
+    "baseline": "baseline_transformer",
+    "stage1": "stage1_adapter.safetensors",
+    "stage2": "student_adapter.safetensors",
+}
+
+
+def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
+    """The LightningModule of ``cfg.stage.name`` around the backbone's transformer and schedule."""
+    stage = cfg.stage
+    if stage.name == "baseline":
+        return BaselineRestorerModule(backbone.transformer, backbone.schedule, cfg.optimizer, seed=stage.seed)
+    if stage.name == "stage1":
+        return Stage1AlignmentModule(
+            backbone.transformer,
+            backbone.schedule,
+            cfg.backbone.lora,
+            cfg.optimizer,
+            lambda_align=cfg.loss.lambda_align,
+            adapter_name=stage.adapter_name,
+            seed=stage.seed,
+        )
+    if stage.init_adapter is None:
+        raise ValueError("stage.init_adapter must name the Stage-1 adapter safetensors for stage2")
+    if not Path(stage.init_adapter).is_file():
+        raise FileNotFoundError(f"stage.init_adapter: no such file {stage.init_adapter}")
+    return Stage2DistillationModule(
+        backbone.transformer,
+        backbone.schedule,
+        stage.init_adapter,
+        cfg.optimizer,
+        rollout_steps=stage.rollout_steps,
+        deploy_steps=cfg.backbone.schedule.deploy_steps,
+        lambda_ret=cfg.loss.lambda_ret,
+        retrieval_eps=cfg.loss.retrieval_eps,
+        on_policy=cfg.policy.on_policy,
+        memory_mode=stage.memory_mode,
+        seed=stage.seed,
+    )
+
+
+def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
+    loggers: list[Logger] = []
+    for name in cfg.trainer.loggers:
+        if name == "csv":
+            loggers.append(CSVLogger(output_dir, name="csv", version=""))
+        elif name == "tensorboard":
+            loggers.append(TensorBoardLogger(output_dir, name="tensorboard", version=""))
+        elif name == "wandb":
+            from lightning.pytorch.loggers import WandbLogger  # optional dependency
+
+            loggers.append(WandbLogger(save_dir=str(output_dir), name=f"{cfg.stage.name}"))
+        else:
+            raise ValueError(f"trainer.loggers: unknown logger {name!r} (csv, tensorboard, wandb)")
+    return loggers
+
+
+def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
+    checkpoints = ModelCheckpoint(
+        dirpath=output_dir / "checkpoints",
+        filename="step{step:06d}",
+        auto_insert_metric_name=False,
+        every_n_train_steps=cfg.stage.checkpoint_every_n_steps,
+        save_top_k=-1,
+        save_last=True,
+    )
+    return L.Trainer(
+        accelerator=cfg.trainer.accelerator,
+        devices=cfg.trainer.devices,
+        num_nodes=cfg.trainer.num_nodes,
+        strategy=cfg.trainer.strategy,
+        precision=cfg.trainer.precision,
+        max_steps=cfg.stage.max_steps,
+        max_epochs=-1,
+        limit_val_batches=0,
+        num_sanity_val_steps=0,
+        log_every_n_steps=cfg.trainer.log_every_n_steps,
+        logger=build_loggers(cfg, output_dir),
+        callbacks=[checkpoints],
+        enable_progress_bar=cfg.trainer.enable_progress_bar,
+        enable_model_summary=False,
+        default_root_dir=output_dir,
+    )
+
+
+def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
+    """The checkpoint to resume from: an explicit path, this run's ``last.ckpt`` for "last", or None."""
+    resume = cfg.stage.resume_from
+    if resume is None:
+        return None
+    if resume == "last":
+        last = output_dir / "checkpoints" / "last.ckpt"
+        return str(last) if last.is_file() else None
+    if not Path(resume).is_file():
+        raise FileNotFoundError(f"stage.resume_from: no such checkpoint {resume}")
+    return resume
+
+
+def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path) -> Path:
+    """Write the stage's product atomically and return its path."""
+    product = output_dir / PRODUCTS[stage]
+    if stage == "baseline":
+        _save_pretrained_atomic(module.transformer, product)
+    elif stage == "stage1":
+        module.save_adapter(product)
+    else:
+        module.save_student(product)
+    return product
+
+
+def _save_pretrained_atomic(model, directory: Path) -> None:
+    # A diffusers directory is several files, so the atomic unit is the directory: write a sibling
+    # temp directory, then swap it in with renames.
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+    try:
+        model.save_pretrained(staging)
+        if directory.exists():
+            retired = Path(tempfile.mkdtemp(prefix=f".{directory.name}.old.", dir=directory.parent))
+            os.replace(directory, retired / directory.name)
+            os.replace(staging, directory)
+            shutil.rmtree(retired)
+        else:
+            os.replace(staging, directory)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+
+
+def as_train_config(cfg) -> TrainConfig:
+    """Accept a ``TrainConfig`` or a DictConfig of the same structure (validated against the schema)."""
+    if isinstance(cfg, TrainConfig):
+        return cfg
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg))
+    raise TypeError(f"train_stage expects a TrainConfig or DictConfig, got {type(cfg).__name__}")
+
+
+def train_stage(cfg) -> Path:
+    """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
+    cfg = as_train_config(cfg)
+    output_dir = Path(cfg.output_dir)
+    L.seed_everything(cfg.stage.seed, workers=True)
+    backbone = build_backbone(cfg.backbone)
+    module = build_module(cfg, backbone)
+    datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
+    trainer = build_trainer(cfg, output_dir)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg, output_dir))
+    product = output_dir / PRODUCTS[cfg.stage.name]
+    if trainer.is_global_zero:
+        export_product(module, cfg.stage.name, output_dir)
+    trainer.strategy.barrier()
+    return product

@@ -9,13 +9,12 @@ import pytest
 import torch
 
 from tracegs.eval.report import (
-    discover_variant_results,
     plot_per_step_quality,
     results_table_markdown,
     save_comparison_video,
     save_qualitative_grid,
     to_uint8,
-    write_ablation_table,
+    write_ablation_report,
     write_results_tables,
 )
 
@@ -57,15 +56,17 @@ def test_ablation_table_from_sweep_result_files(tmp_path):
         run_dir = tmp_path / "sweep" / f"job_{variant}"
         run_dir.mkdir(parents=True)
         (run_dir / "results.json").write_text(json.dumps(res))
-    files = discover_variant_results(tmp_path / "sweep")
-    assert sorted(files) == ["A", "E", "F"]
-    paths = write_ablation_table(files, tmp_path)
-    rows = {r["variant"]: r for r in csv.DictReader(paths["csv"].open())}
+    inputs = [tmp_path / "sweep" / f"job_{v}" for v in ("A", "E", "F")]
+    md = write_ablation_report(inputs, tmp_path)
+    rows = {r["variant"]: r for r in csv.DictReader((tmp_path / "table3.csv").open())}
+    assert list(rows) == ["A", "E", "F"]
     # mean over 3/6/9 views: baseline (i=1) -> 11 + 6 = 17; tracegs (i=2) -> 12 + 6 + offset
     assert float(rows["A"]["psnr"]) == pytest.approx(17.0)
     assert float(rows["F"]["psnr"]) == pytest.approx(20.0)
     assert float(rows["E"]["lpips"]) == pytest.approx(0.3)
-    assert "| F | 3,6,9 | 20.00 |" in paths["md"].read_text()
+    assert "| F | 3,6,9 | 20.00 |" in md.read_text()
+    with pytest.raises(FileNotFoundError, match="job_B"):
+        write_ablation_report([tmp_path / "sweep" / "job_B"], tmp_path)
 
 
 def test_grid_video_and_plot_are_written(tmp_path):

@@ -104,21 +104,6 @@ def load_results(path: str | Path) -> dict:
         raise ValueError(f"{path} is not valid JSON: {err}") from err
 
 
-def discover_variant_results(sweep_dir: str | Path) -> dict[str, Path]:
-    """Find every ``results.json`` under a sweep directory and key it by its recorded ``meta.variant``."""
-    found: dict[str, Path] = {}
-    for path in sorted(Path(sweep_dir).rglob("results.json")):
-        variant = load_results(path).get(META_KEY, {}).get("variant")
-        if variant is None:
-            continue
-        if variant in found:
-            raise ValueError(f"variant {variant!r} appears twice: {found[variant]} and {path}")
-        found[variant] = path
-    if not found:
-        raise FileNotFoundError(f"no results.json with meta.variant under {sweep_dir}")
-    return found
-
-
 def ablation_rows(variant_results: Mapping[str, Mapping], method: str = "tracegs") -> dict[str, dict]:
     """Per variant: each metric averaged over the view counts evaluated (Table 3 averages 3/6/9).
 
@@ -165,6 +150,28 @@ def write_ablation_table(variant_files: Mapping[str, str | Path], out_dir: str |
         for variant, row in rows.items():
             writer.writerow([variant, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
     return paths
+
+
+def write_ablation_report(inputs: Sequence[str | Path], out_dir: str | Path) -> Path:
+    """Table 3 from the evaluation folders (or ``results.json`` files) of an ablation sweep, one per variant.
+
+    A variant is named by the ``meta.variant`` its evaluation recorded, else by its folder name.
+    Returns the markdown table's path.
+    """
+    files: dict[str, Path] = {}
+    for item in inputs:
+        path = Path(item)
+        path = path / "results.json" if path.is_dir() or not path.suffix else path
+        variant = load_results(path).get(META_KEY, {}).get("variant") or path.parent.name
+        if variant in files:
+            raise ValueError(f"variant {variant!r} appears twice: {files[variant]} and {path}")
+        files[str(variant)] = path
+    return write_ablation_table(files, out_dir)["md"]
+
+
+def print_results_table(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> None:
+    """Print the Tables 1/2 layout (markdown) to stdout."""
+    print(results_table_markdown(results, views))
 
 
 # ---------------------------------------------------------------- images and video

@@ -1,0 +1,66 @@
+"""Hyperparameters of deployment (supplement A.5) and evaluation (supplement B). Embedded-scale defaults.
+
+Paper scale: ``total_iters=30000``, ``repair_iters=[7000, 17000, 27000]``, ``lambda_reg=1``,
+``frames_per_clip=49``; the restorer runs its full M = 50-step schedule (``backbone.schedule.deploy_steps``)
+with the backbone's guidance scale, so neither is repeated here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from tracegs.splat.trajectory import TrajectoryConfig
+
+METHODS = ("3dgs", "baseline", "tracegs")
+
+
+@dataclass
+class RefinementConfig:
+    """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
+
+    total_iters: int = 600  # J; paper 30000
+    repair_iters: list[int] = field(default_factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
+    lambda_reg: float = 1.0  # peak of the half-sine w_reg
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    clip_batch: int = 4  # clips restored per sampler call (memory knob only; paper scale: 1)
+    # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
+    steps: int | None = None
+    seed: int = 0
+
+    def validate(self) -> None:
+        repairs = list(self.repair_iters)
+        if not repairs:
+            raise ValueError("refinement.repair_iters must list at least one repair iteration")
+        if any(b <= a for a, b in zip(repairs, repairs[1:])):
+            raise ValueError(f"refinement.repair_iters must be strictly increasing, got {repairs}")
+        if repairs[0] <= 0 or repairs[-1] >= self.total_iters:
+            raise ValueError(
+                f"refinement.repair_iters {repairs} must lie strictly inside (0, total_iters={self.total_iters})"
+            )
+        if self.steps is not None and self.steps < 1:
+            raise ValueError(f"refinement.steps must be >= 1 or null (full schedule), got {self.steps}")
+        if self.clip_batch < 1:
+            raise ValueError(f"refinement.clip_batch must be >= 1, got {self.clip_batch}")
+
+
+@dataclass
+class EvaluationConfig:
+    """Which scenes, view counts and methods to deploy, and what to write (supplement B)."""
+
+    out_dir: str = "outputs/eval"
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    scenes: list[str] | None = None  # None = the benchmark's test scenes
+    # Sharding (Hydra multirun / SLURM array): this job evaluates every num_shards-th (scene, views) unit.
+    shard_index: int = 0
+    num_shards: int = 1
+    lpips: bool = True
+    lpips_convention: str = "3dgs"  # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
+    per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists
+    save_media: bool = True  # qualitative grid PNG + comparison video per scene/view count
+    grid_views: int = 3  # test views shown in the qualitative grid
+    video_frames: int = 24  # frames of the comparison video along a test trajectory
+    video_fps: int = 8
+    force: bool = False  # recompute finished units even when their settings are unchanged
+    variant: str | None = None  # ablation variant name recorded in results.json (Table 3)
+    progress: bool = True

@@ -1,0 +1,162 @@
+"""Deployment-time restore-refine loop (Algorithm 1 bottom; supplement A.5).
+
+G <- 3DGS(V_s) (sparse-only cold start up to the first repair iteration); then at each repair iteration
+the round's trajectory P^(r) is resampled (ellipse + bridges, round-dependent scale/height, random
+phase), rendered, split into clips anchored by two observed reference views, restored by the deployed
+restorer over its full schedule, and the restored frames *replace* the pseudo-observation set at the
+poses they were rendered at (Eq. supp-round-pseudo-set). Optimisation continues with
+L = L_sparse + w_reg(j) L_pseudo (Eq. supp-refinement-objective); captured views keep unit weight.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from tracegs.deploy.config import RefinementConfig
+from tracegs.deploy.restorers import Clip, ClipRestorer
+from tracegs.splat.cameras import Camera
+from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.fit import GaussianFitter, View
+from tracegs.splat.gaussians import GaussianModel
+from tracegs.splat.render import render
+from tracegs.splat.trajectory import round_trajectory
+
+
+def pseudo_weight(j: int, first_repair: int, total: int, lambda_reg: float = 1.0) -> float:
+    """w_reg(j) of Eq. supp-pseudo-weight: 0 before the first repair, then one global half-sine
+    lambda_reg * sin(pi (j - first) / (J - first)) that peaks at the midpoint and is 0 again at J.
+    It is defined once over the whole refinement interval and never restarted per repair round."""
+    if not 0 < first_repair < total:
+        raise ValueError(f"need 0 < first_repair ({first_repair}) < total ({total})")
+    if j < first_repair:
+        return 0.0
+    phase = min(j - first_repair, total - first_repair) / (total - first_repair)
+    # sin(pi) is 1.2e-16 in floating point; the schedule must vanish exactly at J.
+    return 0.0 if phase >= 1.0 else lambda_reg * math.sin(math.pi * phase)
+
+
+@dataclass
+class RepairRound:
+    """What one repair round produced: its pseudo-observation set (restored frames at their poses)."""
+
+    index: int
+    iteration: int
+    clips: list[Clip]  # the rendered clips the restorer saw
+    pseudo: list[View]  # replaces every earlier pseudo view
+
+
+def reference_index(camera: Camera, captured: Sequence[View], tol: float = 1e-4) -> int:
+    """Which captured view a clip end sits at (trajectory clips start/end exactly at reference views)."""
+    centres = torch.stack([v.camera.center for v in captured])
+    dist = (centres - camera.center).norm(dim=-1)
+    best = int(dist.argmin())
+    scale = float(centres.std(dim=0).norm().clamp_min(1.0))
+    if float(dist[best]) > tol * scale:
+        raise ValueError(f"clip end is {float(dist[best]):.3g} away from every captured view: not a reference view")
+    return best
+
+
+@torch.no_grad()
+def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Tensor,
+                 sh_degree: int | None) -> Tensor:
+    """Renders [F,3,H,W] in [0,1] of ``model`` at ``cameras``."""
+    return torch.stack([render(model, cam, background=background, sh_degree=sh_degree).image for cam in cameras]
+                       ).clamp(0, 1)
+
+
+def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
+                       fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
+    """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
+    whose two ends are observed reference views (their captured images become the clip's references)."""
+    cameras = [v.camera for v in captured]
+    clip_cameras = round_trajectory(cameras, None, round_index, cfg.trajectory, generator)
+    background = torch.tensor(fit_cfg.background, dtype=torch.float32)
+    clips = []
+    for cams in clip_cameras:
+        ref_a, ref_b = reference_index(cams[0], captured), reference_index(cams[-1], captured)
+        clips.append(Clip(
+            frames=render_views(fitter.model, cams, background, fitter.active_sh_degree),
+            cameras=list(cams),
+            references=torch.stack([captured[ref_a].image, captured[ref_b].image]),
+            caption=caption,
+        ))
+    return clips
+
+
+def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer, round_index: int,
+                 cfg: RefinementConfig, fit_cfg: GaussianFitConfig, caption: str,
+                 generator: torch.Generator) -> RepairRound:
+    """One repair call: render the round's clips, restore every clip, pool the restored target frames into
+    the new pseudo-set (Eq. supp-round-pseudo-set). The two clip ends are the reference views themselves,
+    already supervised by L_sparse, so only the frames between them become pseudo views."""
+    clips = render_round_clips(fitter, captured, round_index, cfg, fit_cfg, caption, generator)
+    seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
+    with torch.no_grad():
+        restored = restorer.restore(clips, seed=seed)
+    if len(restored) != len(clips):
+        raise RuntimeError(f"restorer returned {len(restored)} clips for {len(clips)}")
+    pseudo = [
+        View(image=frame, camera=cam)
+        for clip, frames in zip(clips, restored)
+        for frame, cam in zip(frames[1:-1], clip.cameras[1:-1])
+    ]
+    return RepairRound(index=round_index, iteration=fitter.iteration, clips=clips, pseudo=pseudo)
+
+
+def cold_start(captured: Sequence[View], init: GaussianModel, scene_extent: float, cfg: RefinementConfig,
+               fit_cfg: GaussianFitConfig, progress: bool = False) -> GaussianFitter:
+    """The sparse-only cold start G <- 3DGS(V_s), trained up to the first repair iteration.
+
+    Identical for every method, so evaluation fits it once per (scene, K) and branches it (``refine``
+    deep-copies it) for 3DGS, the baseline restorer and TRACE-GS."""
+    cfg.validate()
+    fit_cfg = copy.deepcopy(fit_cfg)
+    fit_cfg.iterations = cfg.total_iters  # schedules (lr decay, densification) span the whole J
+    fitter = GaussianFitter(init.clone(), fit_cfg, scene_extent)
+    fitter.train_until(cfg.repair_iters[0], list(captured), progress=progress)
+    return fitter
+
+
+def refine(cold: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer | None, cfg: RefinementConfig,
+           fit_cfg: GaussianFitConfig, caption: str = "", seed: int | None = None,
+           on_round: Callable[[RepairRound], None] | None = None, progress: bool = False) -> GaussianModel:
+    """Continue a cold start to J. ``restorer=None`` is plain 3DGS (L_sparse only, no repair rounds).
+
+    ``cold`` is left untouched (deep-copied), so several methods can branch from one cold start.
+    """
+    cfg.validate()
+    if cold.iteration != cfg.repair_iters[0]:
+        raise ValueError(f"cold start is at iteration {cold.iteration}, expected the first repair "
+                         f"iteration {cfg.repair_iters[0]}")
+    fitter = copy.deepcopy(cold)
+    captured = list(captured)
+    if restorer is None:
+        fitter.train_until(cfg.total_iters, captured, progress=progress)
+        return fitter.model
+    generator = torch.Generator().manual_seed(cfg.seed if seed is None else seed)
+    weight = functools.partial(pseudo_weight, first_repair=cfg.repair_iters[0], total=cfg.total_iters,
+                               lambda_reg=cfg.lambda_reg)
+    ends = list(cfg.repair_iters[1:]) + [cfg.total_iters]
+    for round_index, end in enumerate(ends):
+        current = repair_round(fitter, captured, restorer, round_index, cfg, fit_cfg, caption, generator)
+        if on_round is not None:
+            on_round(current)
+        # Replace, never accumulate: only this round's restorations are pseudo-observations.
+        fitter.train_until(end, captured, pseudo=current.pseudo, pseudo_weight=weight, progress=progress)
+    return fitter.model
+
+
+def restore_refine(captured: Sequence[View], restorer: ClipRestorer | None, cfg: RefinementConfig,
+                   fit_cfg: GaussianFitConfig, init: GaussianModel, scene_extent: float, caption: str = "",
+                   seed: int | None = None, on_round: Callable[[RepairRound], None] | None = None,
+                   progress: bool = False) -> GaussianModel:
+    """Algorithm 1 (bottom) end to end: cold start from V_s, then N_r repair rounds up to J."""
+    cold = cold_start(captured, init, scene_extent, cfg, fit_cfg, progress=progress)
+    return refine(cold, captured, restorer, cfg, fit_cfg, caption, seed, on_round, progress)

@@ -43,11 +43,16 @@ class StageConfig:
 
     name: str = "stage2"
     max_steps: int = 150
+    # Per-device batch size of this stage; None = data.batch_size.
+    batch_size: int | None = None
     rollout_steps: int = 5
     memory_mode: str = "stepwise"
     seed: int = 0
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
     adapter_name: str = "aligned"
+    # Stage 1 / 2: variant A's transformer (diffusers directory written by the baseline stage), used as the
+    # frozen base; None = backbone.transformer.pretrained_path as configured (paper scale: GSFixer).
+    base_weights: str | None = None
     # Stage 2: Stage-1 adapter safetensors to clone; required for stage2.
     init_adapter: str | None = None
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
@@ -105,6 +110,9 @@ class TrainerConfig:
     # Any of "csv", "tensorboard", "wandb" (wandb needs the optional extra).
     loggers: list[str] = field(default_factory=lambda: ["csv", "tensorboard"])
     enable_progress_bar: bool = True
+    deterministic: bool = False
+    # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
+    cpu_threads: int | None = None
 
 
 @dataclass

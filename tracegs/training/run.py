@@ -10,12 +10,14 @@ only), ``csv/`` and ``tensorboard/`` logs, and the stage's product:
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import tempfile
 from pathlib import Path
 
 import lightning as L
+import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
@@ -108,6 +110,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         logger=build_loggers(cfg, output_dir),
         callbacks=[checkpoints],
         enable_progress_bar=cfg.trainer.enable_progress_bar,
+        deterministic=cfg.trainer.deterministic,
         enable_model_summary=False,
         default_root_dir=output_dir,
     )
@@ -168,9 +171,20 @@ def as_train_config(cfg) -> TrainConfig:
 
 def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
-    cfg = as_train_config(cfg)
+    cfg = copy.deepcopy(as_train_config(cfg))
     output_dir = Path(cfg.output_dir)
+    if cfg.trainer.cpu_threads is not None:
+        torch.set_num_threads(cfg.trainer.cpu_threads)
     L.seed_everything(cfg.stage.seed, workers=True)
+    if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
+        if not Path(cfg.stage.base_weights).is_dir():
+            raise FileNotFoundError(
+                f"stage.base_weights: no baseline restorer directory {cfg.stage.base_weights} "
+                "(train stage=baseline first, or set it to null to use backbone.transformer.pretrained_path)"
+            )
+        cfg.backbone.transformer.pretrained_path = cfg.stage.base_weights
+    if cfg.stage.batch_size is not None:
+        cfg.data.batch_size = cfg.stage.batch_size
     backbone = build_backbone(cfg.backbone)
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)

@@ -1,0 +1,227 @@
+"""Stage-2 memory modes side by side: peak memory and step time of ``retain`` vs ``stepwise`` for several N.
+
+Usage: ``.venv/bin/python benchmarks/stage2.py [--batch 2] [--steps 3] [--rollouts 2 5 10 20]``
+
+What is measured (embedded tiny restorer, CPU, one intra-op thread so runs under load stay comparable):
+- step time: median wall time of a full Lightning training step (rollout, N teacher + N student evaluations,
+  backward, clipping, AdamW) after one warm-up step;
+- irreducible work: N x (one student forward + backward at a visited state) + N x (one no-grad teacher
+  forward), each timed alone with plain torch calls in the same process; overhead ratio = step time / that;
+- peak memory: CPU tensors have no allocator statistics like ``torch.cuda.max_memory_allocated``, so we
+  use the kernel's resident-set high-water mark: before each step we reset it (``echo 5 >
+  /proc/self/clear_refs``), read the resident set size, and after the step read ``VmHWM``; the peak is the
+  difference (MiB). Each (mode, N) runs in its own fresh process with ``MALLOC_MMAP_THRESHOLD_=65536``, so
+  every tensor above 64 KiB is its own mapping that returns to the kernel when freed; RSS then follows live
+  tensor memory instead of malloc's cached heap. The figure still includes allocator slack and the
+  transient buffers of kernels, so it is an upper bound on live tensor bytes, not an exact count.
+The last printed line is one JSON object (ratios of the worst case over N where a single number is asked).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import lightning as L
+
+MMAP_THRESHOLD = "65536"
+
+
+def _status(field: str) -> int:
+    """A ``/proc/self/status`` field in KiB."""
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(f"/proc/self/status has no {field}")
+
+
+def _reset_peak() -> None:
+    with open("/proc/self/clear_refs", "w") as handle:
+        handle.write("5")
+
+
+def _build(mode: str, rollout: int, batch_size: int, adapter: Path):
+    import torch
+
+    from tracegs.restorer.build import create_transformer
+    from tracegs.restorer.config import BackboneConfig
+    from tracegs.restorer.schedules import build_schedule
+    from tracegs.training.config import OptimizerConfig
+    from tracegs.training.stage2 import Stage2DistillationModule
+
+    cfg = BackboneConfig()
+    tc = cfg.transformer
+    torch.manual_seed(0)
+    transformer = create_transformer(tc).requires_grad_(False)
+    module = Stage2DistillationModule(
+        transformer,
+        build_schedule(cfg.schedule),
+        adapter,
+        OptimizerConfig(lr=1e-4, grad_clip=1.0),
+        rollout_steps=rollout,
+        deploy_steps=max(cfg.schedule.deploy_steps, rollout),
+        memory_mode=mode,
+    )
+    g = torch.Generator().manual_seed(1)
+    latent = (batch_size, tc.sample_frames, tc.latent_channels, tc.sample_height, tc.sample_width)
+    refs = 2 * (6 * 9)  # two reference views of 48x72 pixels in 8x8 patches (embedded encoder)
+    batch = {
+        "student_cond": torch.randn(latent, generator=g),
+        "teacher_cond": torch.randn(latent, generator=g),
+        "target": torch.randn(latent, generator=g),
+        "ref_2d": torch.randn(batch_size, refs, tc.ref_2d_dim, generator=g),
+        "ref_3d": torch.randn(batch_size, refs, tc.ref_3d_dim, generator=g),
+        "text": torch.randn(batch_size, tc.max_text_seq_length, tc.text_embed_dim, generator=g),
+    }
+    return module, batch
+
+
+class _StepProbe(L.Callback):
+    """Lightning callback measuring wall time and resident-set peak of every training step."""
+
+    def __init__(self):
+        super().__init__()
+        self.times: list[float] = []
+        self.peaks_kib: list[int] = []
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        _reset_peak()
+        self._rss = _status("VmRSS")
+        self._start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.times.append(time.perf_counter() - self._start)
+        self.peaks_kib.append(_status("VmHWM") - self._rss)
+
+
+def _irreducible(module, batch, rollout: int, repeats: int) -> float:
+    """N x (student forward + backward) + N x (teacher forward), each evaluation timed alone."""
+    import torch
+
+    from tracegs.restorer.adapters import activate
+    from tracegs.training.stage2 import STUDENT, TEACHER
+
+    schedule = module.schedule
+    state = torch.randn_like(batch["target"])
+    t = schedule.timesteps(module.deploy_steps)[1]
+
+    def evaluate(cond):
+        return module.predict(state, batch[cond], t, batch, return_retrieval=module.lambda_ret != 0)
+
+    student_times, teacher_times = [], []
+    for _ in range(repeats + 1):  # first round is warm-up
+        activate(module.transformer, STUDENT)
+        start = time.perf_counter()
+        out = evaluate("student_cond")
+        (out.velocity.square().mean() + out.retrieval.square().mean()).backward()
+        student_times.append(time.perf_counter() - start)
+        activate(module.transformer, TEACHER)
+        start = time.perf_counter()
+        with torch.no_grad():
+            evaluate("teacher_cond")
+        teacher_times.append(time.perf_counter() - start)
+    activate(module.transformer, STUDENT)
+    for p in module.trainable_parameters():
+        p.grad = None
+    return rollout * (statistics.median(student_times[1:]) + statistics.median(teacher_times[1:]))
+
+
+def _measure(mode: str, rollout: int, batch_size: int, steps: int, adapter: str, queue) -> None:
+    import torch
+    from torch.utils.data import DataLoader
+
+    torch.set_num_threads(1)
+    module, batch = _build(mode, rollout, batch_size, Path(adapter))
+    probe = _StepProbe()
+    trainer = L.Trainer(
+        accelerator="cpu", devices=1, max_steps=steps + 1, logger=False, enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, callbacks=[probe],
+    )
+    trainer.fit(module, train_dataloaders=DataLoader([batch], batch_size=None))
+    irreducible = _irreducible(module, batch, rollout, repeats=max(3, steps))
+    queue.put({
+        "step_s": statistics.median(probe.times[1:]),
+        "peak_mib": max(probe.peaks_kib[1:]) / 1024,
+        "irreducible_s": irreducible,
+    })
+
+
+def _make_adapter(path: Path) -> None:
+    import torch
+
+    from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
+    from tracegs.restorer.build import create_transformer
+    from tracegs.restorer.config import BackboneConfig
+
+    cfg = BackboneConfig()
+    transformer = create_transformer(cfg.transformer)
+    add_adapter(transformer, "aligned", cfg.lora)
+    with torch.no_grad():
+        for p in adapter_parameters(transformer, "aligned"):
+            p.normal_(0.0, 0.02)
+    save_adapter(transformer, "aligned", path)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=3, help="measured steps per (mode, N) after one warm-up")
+    parser.add_argument("--rollouts", type=int, nargs="+", default=[2, 5, 10, 20])
+    args = parser.parse_args(argv)
+    if not Path("/proc/self/clear_refs").exists():
+        sys.exit("benchmarks/stage2.py needs Linux /proc/self/clear_refs to reset the peak resident set size")
+    # Inherited by the spawned workers (glibc reads it at process start).
+    os.environ["MALLOC_MMAP_THRESHOLD_"] = MMAP_THRESHOLD
+    context = mp.get_context("spawn")
+    results: dict[tuple[str, int], dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        adapter = Path(tmp) / "stage1_adapter.safetensors"
+        _make_adapter(adapter)
+        for rollout in args.rollouts:
+            for mode in ("retain", "stepwise"):
+                queue = context.Queue()
+                worker = context.Process(target=_measure, args=(mode, rollout, args.batch, args.steps, str(adapter), queue))
+                worker.start()
+                results[(mode, rollout)] = queue.get()
+                worker.join()
+                if worker.exitcode != 0:
+                    sys.exit(f"measurement of {mode} N={rollout} failed (exit code {worker.exitcode})")
+
+    print(f"Stage-2 step, embedded tiny restorer, batch {args.batch}, CPU 1 thread, median of {args.steps} steps")
+    print(f"{'N':>3} | {'retain peak MiB':>15} {'stepwise peak MiB':>17} | {'retain s':>9} {'stepwise s':>10} "
+          f"{'stepwise/retain':>15} | {'irreducible s':>13} {'overhead':>8}")
+    time_ratios, overheads = {}, {}
+    for rollout in args.rollouts:
+        retain, stepwise = results[("retain", rollout)], results[("stepwise", rollout)]
+        time_ratios[rollout] = stepwise["step_s"] / retain["step_s"]
+        irreducible = (retain["irreducible_s"] + stepwise["irreducible_s"]) / 2
+        overheads[rollout] = stepwise["step_s"] / irreducible
+        print(f"{rollout:>3} | {retain['peak_mib']:>15.1f} {stepwise['peak_mib']:>17.1f} | {retain['step_s']:>9.3f} "
+              f"{stepwise['step_s']:>10.3f} {time_ratios[rollout]:>15.3f} | {irreducible:>13.3f} "
+              f"{overheads[rollout]:>8.3f}")
+    lo, hi = min(args.rollouts), max(args.rollouts)
+    summary = {
+        f"stepwise_mem_ratio_{hi}_{lo}": results[("stepwise", hi)]["peak_mib"] / results[("stepwise", lo)]["peak_mib"],
+        f"retain_mem_ratio_{hi}_{lo}": results[("retain", hi)]["peak_mib"] / results[("retain", lo)]["peak_mib"],
+        "stepwise_over_retain_time": max(time_ratios.values()),
+        "overhead_ratio": max(overheads.values()),
+        "stepwise_over_retain_time_by_n": {str(n): round(r, 4) for n, r in time_ratios.items()},
+        "overhead_ratio_by_n": {str(n): round(r, 4) for n, r in overheads.items()},
+        "peak_mib": {f"{m}_{n}": round(v["peak_mib"], 2) for (m, n), v in results.items()},
+        "step_s": {f"{m}_{n}": round(v["step_s"], 4) for (m, n), v in results.items()},
+        "batch": args.batch,
+    }
+    print(json.dumps(summary))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -40,8 +40,8 @@ class EmbeddedCodec:
     """Fixed orthonormal transform over ``s x s`` pixel blocks, truncated to the C lowest-frequency coefficients.
 
     Written by hand because no library offers a fast, weight-free, near-lossless latent codec for CPU:
-    a 2D DCT-II per block on an orthonormal luma / two-opponent-chroma colour basis, coefficients ranked by
-    ``u + v`` for luma and ``2 (u + v) + 0.5`` for chroma (natural images put far less energy in chroma detail),
+    a 2D DCT-II per block on an orthonormal luma / two-opponent-chroma colour basis, coefficients ranked by the
+    square low-pass order ``max(u, v)`` with chroma at half the resolution (key ``2 max(u, v) + 1``, like 4:2:0),
     keeping the first ``latent_channels``. Each kept coefficient is multiplied by ``(1 + u + v) / 2`` so the
     channels have comparable variance (natural-image DCT amplitudes fall roughly as ``1 / (1 + u + v)``);
     otherwise the diffusion loss would ignore the detail channels. No temporal compression: f = F.
@@ -59,13 +59,13 @@ class EmbeddedCodec:
         dct = _dct_matrix(s)
         basis = torch.kron(colour, torch.kron(dct, dct))  # rows index (colour, u, v); columns index (c, y, x)
         ranked = sorted(
-            (float(u + v) if ch == 0 else 2.0 * (u + v) + 0.5, ch * s * s + u * s + v, 1.0 + u + v)
+            (max(u, v) if ch == 0 else 2 * max(u, v) + 1, ch, u + v, ch * s * s + u * s + v, 1.0 + u + v)
             for ch in range(3)
             for u in range(s)
             for v in range(s)
         )[:c]
-        rows = [index for _, index, _ in ranked]
-        gain = torch.tensor([g / 2.0 for _, _, g in ranked], dtype=torch.float64)
+        rows = [entry[3] for entry in ranked]
+        gain = torch.tensor([entry[4] / 2.0 for entry in ranked], dtype=torch.float64)
         self._analysis = (basis[rows] * gain[:, None]).float().to(device)  # (C, 3 s s)
         self._synthesis = (basis[rows] / gain[:, None]).float().to(device)  # pseudo-inverse of the analysis
 

@@ -27,18 +27,18 @@ def guided_velocity(
     """Classifier-free guidance v_u + s (v_c - v_u), the unconditional branch using the all-zero text
     embedding (supplement A.2). Scale 1 is exactly the conditional velocity, so that pass is skipped."""
     if guidance_scale == 1.0:
-        return model(z, cond, t, text, ref_2d, ref_3d).velocity
+        return model(noisy=z, cond=cond, timestep=t, text=text, ref_2d=ref_2d, ref_3d=ref_3d).velocity
 
     def twice(x: torch.Tensor) -> torch.Tensor:
         return torch.cat([x, x])
 
     both = model(
-        twice(z),
-        twice(cond),
-        twice(t),
-        torch.cat([text, torch.zeros_like(text)]),
-        twice(ref_2d),
-        twice(ref_3d),
+        noisy=twice(z),
+        cond=twice(cond),
+        timestep=twice(t),
+        text=torch.cat([text, torch.zeros_like(text)]),
+        ref_2d=twice(ref_2d),
+        ref_3d=twice(ref_3d),
     )
     conditional, unconditional = both.velocity.chunk(2)
     return unconditional + guidance_scale * (conditional - unconditional)

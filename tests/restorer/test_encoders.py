@@ -1,0 +1,105 @@
+import dataclasses
+
+import pytest
+import torch
+from tokenizers import Tokenizer, models, pre_tokenizers
+from transformers import Dinov2Config, Dinov2Model, PreTrainedTokenizerFast, T5Config, T5EncoderModel
+
+from tracegs.restorer.build import build_backbone
+from tracegs.restorer.config import QUALITY_SUFFIX, BackboneConfig, ReferenceEncoderConfig, TextEncoderConfig
+from tracegs.restorer.encoders import (
+    Dinov2Encoder,
+    EmbeddedReferenceEncoder,
+    EmbeddedTextEncoder,
+    T5TextEncoder,
+    build_reference_encoder,
+)
+
+
+def test_embedded_reference_tokens():
+    encoder = EmbeddedReferenceEncoder(ReferenceEncoderConfig())
+    refs = torch.rand(2, 2, 3, 48, 72)
+    ref_2d, ref_3d = encoder(refs)
+    assert ref_2d.shape == (2, 2 * 6 * 9, 192) and ref_3d.shape == (2, 108, 200)
+    assert torch.equal(encoder(refs)[0], ref_2d)
+    # 2D tokens are per view; 3D tokens depend on the pair jointly
+    changed = refs.clone()
+    changed[:, 1] = torch.rand(2, 3, 48, 72)
+    new_2d, new_3d = encoder(changed)
+    assert torch.equal(new_2d[:, :54], ref_2d[:, :54]) and not torch.equal(new_2d[:, 54:], ref_2d[:, 54:])
+    assert not torch.equal(new_3d[:, :54], ref_3d[:, :54])
+    with pytest.raises(ValueError, match=r"\(B, 2, 3, H, W\)"):
+        encoder(torch.rand(2, 3, 3, 48, 72))
+
+
+def test_embedded_text_encoder_prompt_null_and_determinism():
+    cfg = TextEncoderConfig()
+    encoder = EmbeddedTextEncoder(cfg)
+    assert encoder.prompt("a wooden table.") == "a wooden table" + QUALITY_SUFFIX
+    a = encoder.encode(["a wooden table", "a red car"])
+    assert a.shape == (2, cfg.max_length, cfg.dim)
+    assert torch.equal(a, EmbeddedTextEncoder(cfg).encode(["a wooden table", "a red car"]))
+    assert not torch.allclose(a[0], a[1])
+    assert a[0].abs().sum(dim=-1).min() > 0  # the suffix fills the remaining token slots
+    null = encoder.null(3)
+    assert null.shape == (3, cfg.max_length, cfg.dim) and not null.any()
+    assert not torch.equal(encoder.encode([""])[0], null[0])  # dropout uses zeros, not the empty caption
+
+
+def test_dinov2_from_local_directory(tmp_path):
+    config = Dinov2Config(
+        hidden_size=16,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=32,
+        patch_size=7,
+        image_size=28,
+    )
+    torch.manual_seed(0)
+    Dinov2Model(config).save_pretrained(tmp_path / "dino")
+    encoder = Dinov2Encoder(ReferenceEncoderConfig(dino_path=str(tmp_path / "dino"), image_size=28))
+    tokens = encoder(torch.rand(3, 3, 48, 72))
+    assert tokens.shape == (3, 16, 16) and encoder.dim == 16
+    assert not any(p.requires_grad for p in encoder.model.parameters())
+
+
+def test_t5_from_local_directory(tmp_path):
+    words = ["<pad>", "</s>", "<unk>", "a", "red", "car", "the", "video", "is", "of", "high", "quality"]
+    tokenizer = Tokenizer(models.WordLevel({w: i for i, w in enumerate(words)}, unk_token="<unk>"))
+    tokenizer.pre_tokenizer = pre_tokenizers.Whitespace()
+    PreTrainedTokenizerFast(
+        tokenizer_object=tokenizer, pad_token="<pad>", eos_token="</s>", unk_token="<unk>"
+    ).save_pretrained(tmp_path / "t5")
+    config = T5Config(vocab_size=len(words), d_model=16, d_kv=4, num_heads=2, num_layers=1, d_ff=32)
+    torch.manual_seed(0)
+    T5EncoderModel(config).save_pretrained(tmp_path / "t5")
+    cfg = TextEncoderConfig(kind="t5", dim=16, max_length=12, pretrained_path=str(tmp_path / "t5"))
+    encoder = T5TextEncoder(cfg)
+    emb = encoder.encode(["a red car", "the car"])
+    assert emb.shape == (2, 12, 16) and not torch.allclose(emb[0], emb[1])
+    assert not encoder.null(2).any()
+    with pytest.raises(ValueError, match="d_model=16"):
+        T5TextEncoder(dataclasses.replace(cfg, dim=32))
+
+
+def test_vggt_missing_gives_install_hint():
+    cfg = ReferenceEncoderConfig(kind="dinov2_vggt", dino_path="/nonexistent", vggt_path="/nonexistent")
+    try:
+        import vggt  # noqa: F401
+    except ImportError:
+        with pytest.raises(ImportError, match="pip install git\\+https://github.com/facebookresearch/vggt"):
+            build_reference_encoder(cfg)
+    else:
+        with pytest.raises(FileNotFoundError, match="reference_encoder.vggt_path"):
+            build_reference_encoder(cfg)
+
+
+def test_backbone_rejects_inconsistent_dimensions():
+    cfg = BackboneConfig()
+    cfg.codec.latent_channels = 16
+    with pytest.raises(ValueError, match="transformer.latent_channels"):
+        build_backbone(cfg)
+    cfg = BackboneConfig()
+    cfg.reference_encoder.patch_size = 4
+    with pytest.raises(ValueError, match="transformer.ref_2d_dim"):
+        build_backbone(cfg)

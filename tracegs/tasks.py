@@ -35,7 +35,9 @@ def prepare(cfg: DictConfig) -> Path:
 
     backbone = build_backbone(section(cfg.backbone))
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
-    manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
+    prepare_cfg = section(cfg.data.prepare)
+    prepare_cfg.fit = section(cfg.splat)  # one 3DGS optimiser config (splat group) for preparation and deployment
+    manifest = run_prepare(prepare_cfg, section(cfg.data.source), backbone, synthetic)
     if cfg.data.prepare.num_shards == 1:
         manifest = merge_manifests(cfg.data.prepare.cache_dir)
     log.info("paired-clip cache: %s", manifest)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 
 class ConfigError(ValueError):
@@ -56,15 +56,15 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.frames_per_clip",
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
-    fit = prepare.fit
-    snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
+    fit = cfg.splat  # the one 3DGS optimiser config, used by preparation and deployment
+    snapshots = _check_increasing(fit.snapshot_iters, "splat.snapshot_iters")
     _require(
         snapshots and snapshots[-1] <= fit.iterations,
-        "data.prepare.fit.snapshot_iters",
+        "splat.snapshot_iters",
         f"snapshots {snapshots} must lie inside the fit budget of {fit.iterations} iterations",
     )
     missing = sorted(set(prepare.student_snapshots) - set(snapshots))
-    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among fit.snapshot_iters {snapshots}")
+    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among splat.snapshot_iters {snapshots}")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
     dense_counts = [v for v in prepare.dense_views if v is not None]
     _check_increasing(dense_counts, "data.prepare.dense_views")
@@ -115,11 +115,6 @@ def _validate_training(cfg: DictConfig) -> None:
     _require(cfg.loss.lambda_ret >= 0, "loss.lambda_ret", f"must be >= 0, got {cfg.loss.lambda_ret}")
     _require(cfg.loss.lambda_align >= 0, "loss.lambda_align", f"must be >= 0, got {cfg.loss.lambda_align}")
     _require(cfg.optimizer.lr > 0, "optimizer.lr", f"must be > 0, got {cfg.optimizer.lr}")
-    _require(
-        cfg.optimizer.warmup_steps <= cfg.stage.max_steps,
-        "optimizer.warmup_steps",
-        f"warm-up ({cfg.optimizer.warmup_steps}) longer than the stage ({cfg.stage.max_steps} steps)",
-    )
 
 
 def _validate_backbone(cfg: DictConfig) -> None:
@@ -144,19 +139,17 @@ def _validate_backbone(cfg: DictConfig) -> None:
 
 
 def _validate_deployment(cfg: DictConfig) -> None:
-    deploy = cfg.deploy
-    repairs = _check_increasing(deploy.repair_iters, "deploy.repair_iters")
-    _require(bool(repairs), "deploy.repair_iters", "needs at least one repair iteration")
+    # The refinement schedule's own rules live with it (RefinementConfig.validate, also used by library
+    # callers); its messages start with the dotted field they concern.
+    try:
+        OmegaConf.to_object(cfg.deploy).validate()
+    except ValueError as error:
+        field, _, message = str(error).partition(" ")
+        raise ConfigError(field.replace("refinement.", "deploy."), message) from error
+    clip_frames = cfg.deploy.trajectory.frames_per_clip
     _require(
-        0 < repairs[0] and repairs[-1] < deploy.total_iters,
-        "deploy.repair_iters",
-        f"repairs {repairs} must lie strictly inside the refinement budget (0, {deploy.total_iters})",
-    )
-    _require(
-        _is_8k_plus_1(deploy.clip_frames),
-        "deploy.clip_frames",
-        f"clips must have 8k+1 frames (9, 17, 25, 49), got {deploy.clip_frames}",
-    )
-    _require(
-        deploy.steps is None or deploy.steps >= 1, "deploy.steps", f"must be >= 1 (or null for M), got {deploy.steps}"
+        clip_frames == cfg.data.prepare.frames_per_clip,
+        "deploy.trajectory.frames_per_clip",
+        f"deployment clips ({clip_frames} frames) must match the training clips "
+        f"(data.prepare.frames_per_clip={cfg.data.prepare.frames_per_clip})",
     )

@@ -113,6 +113,12 @@ class TrainerConfig:
     deterministic: bool = False
     # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
     cpu_threads: int | None = None
+    # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection.
+    fast_dev_run: int = 0
+    overfit_batches: float = 0.0
+    detect_anomaly: bool = False
+    # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints and requeues.
+    slurm_requeue_signal: str = "SIGUSR2"
 
 
 @dataclass

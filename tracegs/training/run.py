@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
@@ -20,6 +21,7 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
+from lightning.pytorch.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.data.datamodule import PairedClipDataModule
@@ -111,6 +113,12 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         callbacks=[checkpoints],
         enable_progress_bar=cfg.trainer.enable_progress_bar,
         deterministic=cfg.trainer.deterministic,
+        fast_dev_run=cfg.trainer.fast_dev_run,
+        overfit_batches=cfg.trainer.overfit_batches,
+        detect_anomaly=cfg.trainer.detect_anomaly,
+        plugins=[SLURMEnvironment(requeue_signal=getattr(signal, cfg.trainer.slurm_requeue_signal))]
+        if SLURMEnvironment.detect()
+        else None,
         enable_model_summary=False,
         default_root_dir=output_dir,
     )

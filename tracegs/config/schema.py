@@ -9,7 +9,6 @@ Cross-field rules that types cannot express live in :mod:`tracegs.config.validat
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 
@@ -56,7 +55,7 @@ class ArtifactsConfig:
 
     # Variant A's transformer (a diffusers directory written by ``stage=baseline``). null = the backbone's
     # own ``transformer.pretrained_path`` (paper scale: GSFixer's pretrained restorer is variant A).
-    baseline_weights: Optional[str] = "${paths.experiment_dir}/baseline/baseline_transformer"
+    baseline_weights: str | None = "${paths.experiment_dir}/baseline/baseline_transformer"
     # The aligned Stage-1 adapter every Stage-2 variant clones.
     stage1_adapter: str = "${paths.experiment_dir}/stage1/stage1_adapter.safetensors"
     # The deployed student adapter of the selected ablation variant.

@@ -8,6 +8,7 @@ teacher or freeze the student. ``activate`` switches the active adapter and then
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import re
@@ -50,7 +51,10 @@ def peft_config(cfg: LoraConfig) -> PeftLoraConfig:
 
 
 def _inject(model: torch.nn.Module, config: PeftLoraConfig, name: str) -> None:
-    with warnings.catch_warnings():
+    # peft allocates and initialises the factors on the CPU before moving them next to the base weight;
+    # for a model sized on the meta device, create them there directly (seconds -> milliseconds at 5B scale).
+    on_meta = next(model.parameters()).is_meta
+    with torch.device("meta") if on_meta else contextlib.nullcontext(), warnings.catch_warnings():
         # peft warns on every adapter after the first; several named adapters are the point here.
         warnings.filterwarnings("ignore", message="Already found a `peft_config`")
         model.add_adapter(config, adapter_name=name)
@@ -125,10 +129,8 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
     source = dict(_lora_parameters(model, src))
     with torch.no_grad():
         for param_name, param in _lora_parameters(model, dst):
-            value = source[param_name.replace(f".{dst}.", f".{src}.")]
-            if value.is_meta:  # a model built on the meta device (sizing) has no values to copy
-                continue
-            param.copy_(value)
+            if not param.is_meta:  # a model sized on the meta device has no values to copy
+                param.copy_(source[param_name.replace(f".{dst}.", f".{src}.")])
     _trainable_flags(model)[dst] = trainable
     activate(model, src)
 

@@ -119,11 +119,16 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu") -> B
     codec = build_codec(cfg.codec, device)
     reference_encoder = build_reference_encoder(cfg.reference_encoder, device)
     _check_compatible(cfg, codec, reference_encoder)
+    dtype = getattr(torch, cfg.transformer.dtype, None)
+    if not isinstance(dtype, torch.dtype):
+        raise ValueError(f"transformer.dtype={cfg.transformer.dtype!r} is not a torch dtype name")
     if cfg.transformer.pretrained_path:
-        transformer = load_transformer(cfg.transformer, device)
+        transformer = load_transformer(cfg.transformer, device, dtype)
     else:
-        transformer = create_transformer(cfg.transformer, device)
+        transformer = create_transformer(cfg.transformer, device).to(dtype)
     transformer.requires_grad_(False).eval()
+    if cfg.transformer.gradient_checkpointing:
+        transformer.enable_gradient_checkpointing()
     return Backbone(
         transformer=transformer,
         codec=codec,

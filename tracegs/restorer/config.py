@@ -45,6 +45,8 @@ class TransformerConfig:
     # integer DDPM steps (scale 1). Callers always pass the schedule's native t.
     timestep_scale: float = 1000.0
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
+    dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (peft keeps LoRA factors in float32)
+    gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
 
 
 @dataclass
@@ -158,6 +160,8 @@ def paper_backbone_config(
             ref_3d_dim=2048,  # VGGT aggregator (frame + global attention tokens concatenated)
             timestep_scale=1.0,
             pretrained_path=transformer_path,
+            dtype="bfloat16",
+            gradient_checkpointing=True,
         ),
         lora=LoraConfig(rank=32, alpha=32),
         codec=CodecConfig(kind="cogvideox", latent_channels=16, pretrained_path=vae_path),

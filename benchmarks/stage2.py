@@ -2,8 +2,10 @@
 
 Usage: ``.venv/bin/python benchmarks/stage2.py [--batch 2] [--steps 3] [--rollouts 2 5 10 20]``
 
-What is measured (embedded tiny restorer, CPU, one intra-op thread so runs under load stay comparable):
-- step time: median wall time of a full Lightning training step (rollout, N teacher + N student evaluations,
+What is measured (embedded tiny restorer, CPU, one intra-op thread):
+- step time: median CPU time (``time.process_time``; with one thread it is the work done, unaffected by
+  other processes sharing the machine, which wall time is not -- wall time is printed too) of a full
+  Lightning training step (rollout, N teacher + N student evaluations,
   backward, clipping, AdamW) after one warm-up step;
 - irreducible work: N x (one student forward + backward at a visited state) + N x (one no-grad teacher
   forward), each timed alone with plain torch calls in the same process; overhead ratio = step time / that;
@@ -89,16 +91,18 @@ class _StepProbe(L.Callback):
 
     def __init__(self):
         super().__init__()
-        self.times: list[float] = []
+        self.cpu_times: list[float] = []
+        self.wall_times: list[float] = []
         self.peaks_kib: list[int] = []
 
     def on_train_batch_start(self, trainer, module, batch, batch_idx):
         _reset_peak()
         self._rss = _status("VmRSS")
-        self._start = time.perf_counter()
+        self._cpu, self._wall = time.process_time(), time.perf_counter()
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
-        self.times.append(time.perf_counter() - self._start)
+        self.cpu_times.append(time.process_time() - self._cpu)
+        self.wall_times.append(time.perf_counter() - self._wall)
         self.peaks_kib.append(_status("VmHWM") - self._rss)
 
 
@@ -119,15 +123,15 @@ def _irreducible(module, batch, rollout: int, repeats: int) -> float:
     student_times, teacher_times = [], []
     for _ in range(repeats + 1):  # first round is warm-up
         activate(module.transformer, STUDENT)
-        start = time.perf_counter()
+        start = time.process_time()
         out = evaluate("student_cond")
         (out.velocity.square().mean() + out.retrieval.square().mean()).backward()
-        student_times.append(time.perf_counter() - start)
+        student_times.append(time.process_time() - start)
         activate(module.transformer, TEACHER)
-        start = time.perf_counter()
+        start = time.process_time()
         with torch.no_grad():
             evaluate("teacher_cond")
-        teacher_times.append(time.perf_counter() - start)
+        teacher_times.append(time.process_time() - start)
     activate(module.transformer, STUDENT)
     for p in module.trainable_parameters():
         p.grad = None
@@ -148,7 +152,8 @@ def _measure(mode: str, rollout: int, batch_size: int, steps: int, adapter: str,
     trainer.fit(module, train_dataloaders=DataLoader([batch], batch_size=None))
     irreducible = _irreducible(module, batch, rollout, repeats=max(3, steps))
     queue.put({
-        "step_s": statistics.median(probe.times[1:]),
+        "step_s": statistics.median(probe.cpu_times[1:]),
+        "wall_s": statistics.median(probe.wall_times[1:]),
         "peak_mib": max(probe.peaks_kib[1:]) / 1024,
         "irreducible_s": irreducible,
     })
@@ -195,18 +200,20 @@ def main(argv: list[str] | None = None) -> dict:
                 if worker.exitcode != 0:
                     sys.exit(f"measurement of {mode} N={rollout} failed (exit code {worker.exitcode})")
 
-    print(f"Stage-2 step, embedded tiny restorer, batch {args.batch}, CPU 1 thread, median of {args.steps} steps")
-    print(f"{'N':>3} | {'retain peak MiB':>15} {'stepwise peak MiB':>17} | {'retain s':>9} {'stepwise s':>10} "
-          f"{'stepwise/retain':>15} | {'irreducible s':>13} {'overhead':>8}")
+    print(f"Stage-2 step, embedded tiny restorer, batch {args.batch}, CPU 1 thread, median of {args.steps} steps "
+          "(times are CPU seconds unless marked wall)")
+    print(f"{'N':>3} | {'retain peak MiB':>15} {'stepwise peak MiB':>17} | {'retain cpu s':>12} "
+          f"{'stepwise cpu s':>14} {'stepwise/retain':>15} | {'irreducible s':>13} {'overhead':>8} | "
+          f"{'retain wall s':>13} {'stepwise wall s':>15}")
     time_ratios, overheads = {}, {}
     for rollout in args.rollouts:
         retain, stepwise = results[("retain", rollout)], results[("stepwise", rollout)]
         time_ratios[rollout] = stepwise["step_s"] / retain["step_s"]
         irreducible = (retain["irreducible_s"] + stepwise["irreducible_s"]) / 2
         overheads[rollout] = stepwise["step_s"] / irreducible
-        print(f"{rollout:>3} | {retain['peak_mib']:>15.1f} {stepwise['peak_mib']:>17.1f} | {retain['step_s']:>9.3f} "
-              f"{stepwise['step_s']:>10.3f} {time_ratios[rollout]:>15.3f} | {irreducible:>13.3f} "
-              f"{overheads[rollout]:>8.3f}")
+        print(f"{rollout:>3} | {retain['peak_mib']:>15.1f} {stepwise['peak_mib']:>17.1f} | {retain['step_s']:>12.3f} "
+              f"{stepwise['step_s']:>14.3f} {time_ratios[rollout]:>15.3f} | {irreducible:>13.3f} "
+              f"{overheads[rollout]:>8.3f} | {retain['wall_s']:>13.3f} {stepwise['wall_s']:>15.3f}")
     lo, hi = min(args.rollouts), max(args.rollouts)
     summary = {
         f"stepwise_mem_ratio_{hi}_{lo}": results[("stepwise", hi)]["peak_mib"] / results[("stepwise", lo)]["peak_mib"],
@@ -216,7 +223,8 @@ def main(argv: list[str] | None = None) -> dict:
         "stepwise_over_retain_time_by_n": {str(n): round(r, 4) for n, r in time_ratios.items()},
         "overhead_ratio_by_n": {str(n): round(r, 4) for n, r in overheads.items()},
         "peak_mib": {f"{m}_{n}": round(v["peak_mib"], 2) for (m, n), v in results.items()},
-        "step_s": {f"{m}_{n}": round(v["step_s"], 4) for (m, n), v in results.items()},
+        "step_cpu_s": {f"{m}_{n}": round(v["step_s"], 4) for (m, n), v in results.items()},
+        "step_wall_s": {f"{m}_{n}": round(v["wall_s"], 4) for (m, n), v in results.items()},
         "batch": args.batch,
     }
     print(json.dumps(summary))

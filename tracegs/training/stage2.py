@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
+from lightning.pytorch.strategies import ParallelStrategy
 from torch import Tensor, nn
 
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
@@ -63,9 +66,6 @@ class Stage2DistillationModule(RestorerTrainingModule):
     def trainable_parameters(self) -> list[nn.Parameter]:
         return self._student_params
 
-    def teacher_parameters(self) -> list[nn.Parameter]:
-        return adapter_parameters(self.transformer, TEACHER)
-
     def training_grid(self, generator: torch.Generator) -> Tensor:
         """{t'_i}_{i=0..N}, resampled from the M-step deployment schedule (Algorithm 1, line 4).
 
@@ -102,7 +102,9 @@ class Stage2DistillationModule(RestorerTrainingModule):
                 self.retrieval_eps,
             )
             if self.memory_mode == "stepwise":
-                self.manual_backward(terms["loss"] / n)
+                # Under DDP only the last backward synchronises: the earlier ones accumulate locally.
+                with self._gradient_sync(last=i == n - 1):
+                    self.manual_backward(terms["loss"] / n)
             else:
                 retained.append(terms["loss"])
             for name, value in terms.items():
@@ -113,6 +115,13 @@ class Stage2DistillationModule(RestorerTrainingModule):
         if retained:
             self.manual_backward(torch.stack(retained).mean())
         return totals
+
+    def _gradient_sync(self, last: bool):
+        """Context for one stepwise backward: DDP's all-reduce is deferred to the rollout's last backward."""
+        strategy = self.trainer.strategy
+        if last or not isinstance(strategy, ParallelStrategy):
+            return contextlib.nullcontext()
+        return strategy.block_backward_sync()
 
     def save_student(self, path) -> None:
         """Write the distilled student adapter phi_S (the only thing deployment needs)."""

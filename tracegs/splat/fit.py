@@ -1,0 +1,212 @@
+"""3DGS optimisation with snapshots and a weighted pseudo-observation term (supplement Eq. for L_3DGS(j))."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import kornia
+import torch
+from gsplat.strategy import DefaultStrategy
+from gsplat.strategy.ops import reset_opa
+from rich.progress import Progress
+from torch import Tensor
+
+from tracegs.splat.cameras import Camera
+from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.gaussians import GaussianModel
+from tracegs.splat.render import render
+
+
+@dataclass
+class View:
+    """A posed image: `image` [3,H,W] in [0,1] seen by `camera`."""
+
+    image: Tensor
+    camera: Camera
+
+    def __post_init__(self) -> None:
+        if self.image.ndim != 3 or self.image.shape[0] != 3:
+            raise ValueError(f"View.image must have shape (3, H, W), got {tuple(self.image.shape)}")
+        if tuple(self.image.shape[1:]) != (self.camera.height, self.camera.width):
+            raise ValueError(f"View.image is {tuple(self.image.shape[1:])} but its camera renders "
+                             f"{(self.camera.height, self.camera.width)}")
+
+
+def camera_extent(cameras: Sequence[Camera]) -> float:
+    """3DGS scene scale: 1.1 x the largest distance of a camera centre from the centres' mean."""
+    centres = torch.stack([camera.center for camera in cameras])
+    radius = (centres - centres.mean(dim=0)).norm(dim=1).max().item() * 1.1
+    return radius if radius > 0 else 1.0
+
+
+def photometric_loss(rendered: Tensor, target: Tensor, ssim_weight: float, window: int = 11) -> Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM), the 3DGS reconstruction loss (lambda = 0.2)."""
+    l1 = (rendered - target).abs().mean()
+    ssim = kornia.metrics.ssim(rendered[None], target[None], window).mean()
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
+
+
+def _merge_infos(infos: list[dict]) -> dict:
+    """One densification record for several renders of the same step.
+
+    gsplat normally sees one batched render whose loss averages the cameras (hence its `n_cameras` factor);
+    here each render's loss is summed, so the stacked gradients keep `n_cameras` = 1.
+    """
+    if len(infos) == 1:
+        return infos[0]
+    means2d = torch.cat([info["means2d"].detach() for info in infos])
+    means2d.grad = torch.cat([info["means2d"].grad for info in infos])
+    return {"means2d": means2d, "radii": torch.cat([info["radii"] for info in infos]), "width": infos[0]["width"],
+            "height": infos[0]["height"], "n_cameras": 1, "gaussian_ids": None}
+
+
+class _ViewSampler:
+    """3DGS-style sampling: a fresh random permutation of the views each time the previous one is used up."""
+
+    def __init__(self, generator: torch.Generator):
+        self.generator = generator
+        self.queue: list[int] = []
+        self.size = -1
+
+    def next(self, size: int) -> int:
+        if size != self.size or not self.queue:
+            self.size = size
+            self.queue = torch.randperm(size, generator=self.generator).tolist()
+        return self.queue.pop()
+
+
+class GaussianFitter:
+    """Runtime state of one 3DGS optimisation (model, Adam optimisers, densification state, iteration).
+
+    Deep-copyable, so deployment can branch from a cold start.
+    """
+
+    PARAMETER_LRS = {"quats": "lr_quats", "scales": "lr_scales", "opacities": "lr_opacities", "sh0": "lr_sh_dc",
+                     "shN": "lr_sh_rest"}
+
+    def __init__(self, model: GaussianModel, cfg: GaussianFitConfig, scene_extent: float):
+        if scene_extent <= 0:
+            raise ValueError(f"scene_extent must be positive, got {scene_extent}")
+        self.model = model
+        self.cfg = cfg
+        self.scene_extent = scene_extent
+        self.iteration = 0
+        params = model.parameter_dict()
+        self.optimizers = {
+            name: torch.optim.Adam([param], lr=self._initial_lr(name), eps=1e-15) for name, param in params.items()
+        }
+        dens = cfg.densification
+        # gsplat's DefaultStrategy runs on CPU tensors (only its rasterizer needs CUDA).
+        self.strategy = DefaultStrategy(
+            prune_opa=dens.prune_opa, grow_grad2d=dens.grow_grad2d, grow_scale3d=dens.grow_scale3d,
+            prune_scale3d=dens.prune_scale3d, refine_start_iter=dens.refine_start_iter,
+            refine_stop_iter=dens.refine_stop_iter if dens.enabled else 0, reset_every=dens.reset_every,
+            refine_every=dens.refine_every,
+        )
+        self.strategy.check_sanity(params, self.optimizers)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=scene_extent)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.captured_sampler = _ViewSampler(self.generator)
+        self.pseudo_sampler = _ViewSampler(self.generator)
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=model.means.device)
+
+    def _initial_lr(self, name: str) -> float:
+        return self.means_lr(0) if name == "means" else getattr(self.cfg, self.PARAMETER_LRS[name])
+
+    def means_lr(self, step: int) -> float:
+        """Exponential decay from lr_means to lr_means_final over cfg.iterations, times the scene extent."""
+        progress = min(max(step / max(self.cfg.iterations, 1), 0.0), 1.0)
+        log_lr = (1 - progress) * math.log(self.cfg.lr_means) + progress * math.log(self.cfg.lr_means_final)
+        return math.exp(log_lr) * self.scene_extent
+
+    def sh_degree(self, step: int) -> int:
+        return min(self.cfg.sh_degree, step // max(self.cfg.sh_degree_interval, 1))
+
+    def _render_loss(self, view: View, step: int) -> tuple[Tensor, dict]:
+        camera = view.camera.to(self.model.means.device)
+        out = render(self.model, camera, self.background, self.sh_degree(step), self.cfg.backend)
+        image = view.image.to(out.image)
+        return photometric_loss(out.image, image, self.cfg.ssim_weight, self.cfg.ssim_window), out.info
+
+    def step(self, captured: Sequence[View], pseudo: Sequence[View] = (),
+             pseudo_weight: Callable[[int], float] | None = None) -> float:
+        """One optimisation step j = self.iteration: L_sparse + w(j) L_pseudo (w = 1 without a schedule)."""
+        step = self.iteration
+        params = self.model.parameter_dict()
+        loss, info = self._render_loss(captured[self.captured_sampler.next(len(captured))], step)
+        infos = [info]
+        weight = 0.0
+        if pseudo:
+            weight = 1.0 if pseudo_weight is None else float(pseudo_weight(step))
+        if weight > 0.0:
+            pseudo_loss, pseudo_info = self._render_loss(pseudo[self.pseudo_sampler.next(len(pseudo))], step)
+            loss = loss + weight * pseudo_loss
+            infos.append(pseudo_info)
+        for info in infos:
+            self.strategy.step_pre_backward(params, self.optimizers, self.strategy_state, step, info)
+        loss.backward()
+
+        self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        if self.cfg.densification.enabled and all(info["means2d"].grad is not None for info in infos):
+            self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, _merge_infos(infos))
+            dens = self.cfg.densification
+            if step > 0 and step % dens.reset_every == 0 and step < dens.refine_stop_iter:
+                # gsplat 1.5.3 writes `step % reset_every == 0 & step > 0`, which Python chains into a
+                # condition that is never true, so its opacity reset never runs; apply it here (idempotent if a
+                # fixed gsplat also resets).
+                reset_opa(params, self.optimizers, self.strategy_state, value=dens.prune_opa * 2.0)
+            self.model.load_parameter_dict(params)
+        self.iteration += 1
+        return loss.item()
+
+    def train_until(self, until: int, captured: Sequence[View], pseudo: Sequence[View] = (),
+                    pseudo_weight: Callable[[int], float] | None = None,
+                    on_snapshot: Callable[[int, GaussianModel], None] | None = None,
+                    progress: bool = True) -> dict[str, float]:
+        """Optimise from `self.iteration` up to `until` iterations; `on_snapshot(iteration, model)` fires after
+        every iteration listed in cfg.snapshot_iters. Returns the mean loss and the model size."""
+        if not captured:
+            raise ValueError("train_until needs at least one captured view")
+        losses = []
+        with Progress(disable=not progress, transient=True) as bar:
+            task = bar.add_task("3DGS", total=max(until - self.iteration, 0))
+            while self.iteration < until:
+                losses.append(self.step(captured, pseudo, pseudo_weight))
+                if on_snapshot is not None and self.iteration in self.cfg.snapshot_iters:
+                    on_snapshot(self.iteration, self.model)
+                bar.advance(task)
+        return {"loss": sum(losses) / len(losses) if losses else float("nan"),
+                "final_loss": losses[-1] if losses else float("nan"),
+                "num_gaussians": float(len(self.model)), "iteration": float(self.iteration)}
+
+
+def initial_model(views: Sequence[View], cfg: GaussianFitConfig) -> GaussianModel:
+    """Random Gaussians in the region the cameras look at (when no SfM points are given)."""
+    from tracegs.splat.trajectory import focus_point
+
+    cameras = [view.camera for view in views]
+    centre = focus_point(cameras)
+    radius = 0.5 * min((camera.center - centre).norm().item() for camera in cameras)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    return GaussianModel.random(cfg.init_num_points, center=centre, radius=radius, generator=generator)
+
+
+def fit_gaussians(views: Sequence[View], cfg: GaussianFitConfig, init: GaussianModel | None = None,
+                  snapshots: Sequence[int] | None = None, progress: bool = False) -> dict[int, GaussianModel]:
+    """Fit a 3DGS to `views`; returns copies of the model after each snapshot iteration (default
+    cfg.snapshot_iters; the last one is cfg.iterations)."""
+    wanted = sorted(set(cfg.snapshot_iters if snapshots is None else snapshots) | {cfg.iterations})
+    if wanted[0] < 1:
+        raise ValueError(f"snapshot iterations must be >= 1, got {wanted}")
+    run_cfg = replace(cfg, snapshot_iters=wanted)
+    model = (init if init is not None else initial_model(views, cfg)).clone()
+    fitter = GaussianFitter(model, run_cfg, camera_extent([view.camera for view in views]))
+    results: dict[int, GaussianModel] = {}
+    fitter.train_until(wanted[-1], views, on_snapshot=lambda it, m: results.__setitem__(it, m.clone()),
+                       progress=progress)
+    return results

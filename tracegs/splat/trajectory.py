@@ -1,0 +1,150 @@
+"""Deployment camera trajectories (supplement A.5): a 360-degree ellipse around the scene's focus point plus
+bridge poses to the observed reference views, cut into clips whose first and last frames are the references."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from kornia.geometry.quaternion import Quaternion
+from torch import Tensor
+
+from tracegs.splat.cameras import Camera, look_at_rotation
+from tracegs.splat.config import TrajectoryConfig
+
+
+def focus_point(cameras: Sequence[Camera]) -> Tensor:
+    """The point nearest (least squares) to all optical axes; the centres' mean if the axes are parallel."""
+    centres = torch.stack([camera.center.double() for camera in cameras])
+    forwards = torch.stack([camera.rotation[2].double() for camera in cameras])
+    projectors = torch.eye(3, dtype=torch.float64) - forwards[:, :, None] * forwards[:, None, :]
+    system = projectors.sum(dim=0)
+    rhs = (projectors @ centres[:, :, None]).sum(dim=0)
+    if torch.linalg.matrix_rank(system, atol=1e-6 * len(cameras)) < 3:
+        return centres.mean(dim=0).float()
+    return torch.linalg.solve(system, rhs)[:, 0].float()
+
+
+def mean_up(cameras: Sequence[Camera]) -> Tensor:
+    """Average world-space 'up' (camera -y) direction, normalised."""
+    up = -torch.stack([camera.rotation[1] for camera in cameras]).float().mean(dim=0)
+    return up / up.norm().clamp_min(1e-12)
+
+
+def ellipse_poses(cameras: Sequence[Camera], n: int, scale: float = 1.0, height_variation: float = 0.0,
+                  phase: float = 0.0, focus: Tensor | None = None) -> list[Camera]:
+    """`n` cameras on a closed ellipse around `focus` (default `focus_point(cameras)`), all looking at it.
+
+    The ellipse lies in the plane through the cameras' mean height, perpendicular to their mean up direction;
+    its axes follow the principal directions of the camera centres and its semi-axes are `scale` times their
+    spread (at least half the mean distance). The height oscillates once around the loop with amplitude
+    `height_variation` x the mean horizontal distance, shifted by `phase` (radians). Pose 0 sits at the angle
+    of the first camera. Intrinsics and image size come from `cameras[0]`.
+    """
+    if n < 1:
+        raise ValueError(f"ellipse_poses needs n >= 1, got {n}")
+    focus = focus_point(cameras) if focus is None else focus.float()
+    up = mean_up(cameras)
+    offsets = torch.stack([camera.center.float() for camera in cameras]) - focus
+    heights = offsets @ up
+    planar = offsets - heights[:, None] * up
+    mean_distance = planar.norm(dim=1).mean().clamp_min(1e-6)
+    # Principal horizontal axes of the camera centres; fall back to any horizontal basis for one camera.
+    basis = torch.linalg.svd(planar, full_matrices=True).Vh if len(cameras) > 1 else None
+    axis_u = basis[0] if basis is not None else planar[0]
+    axis_u = axis_u - (axis_u @ up) * up
+    if axis_u.norm() < 1e-6:
+        axis_u = torch.linalg.cross(up, torch.tensor([1.0, 0.0, 0.0]))
+        if axis_u.norm() < 1e-6:
+            axis_u = torch.linalg.cross(up, torch.tensor([0.0, 1.0, 0.0]))
+    axis_u = axis_u / axis_u.norm()
+    axis_v = torch.linalg.cross(up, axis_u)
+    coord_u, coord_v = planar @ axis_u, planar @ axis_v
+    semi_u = scale * max((2.0 * coord_u.square().mean()).sqrt().item(), 0.5 * mean_distance.item())
+    semi_v = scale * max((2.0 * coord_v.square().mean()).sqrt().item(), 0.5 * mean_distance.item())
+    start = math.atan2(coord_v[0].item() / semi_v, coord_u[0].item() / semi_u)
+    base_height = heights.mean().item()
+    reference = cameras[0]
+    poses = []
+    for k in range(n):
+        theta = start + 2.0 * math.pi * k / n
+        height = base_height + height_variation * mean_distance.item() * math.sin(theta - start + phase)
+        eye = focus + semi_u * math.cos(theta) * axis_u + semi_v * math.sin(theta) * axis_v + height * up
+        poses.append(Camera.from_pose(reference.K.float(), look_at_rotation(eye, focus, up), eye, reference.width,
+                                      reference.height))
+    return poses
+
+
+def bridge_poses(cam_a: Camera, cam_b: Camera, n: int) -> list[Camera]:
+    """`n` poses from `cam_a` (included) towards `cam_b` (excluded): slerped rotation, linearly interpolated
+    centre and intrinsics."""
+    if n < 0:
+        raise ValueError(f"bridge_poses needs n >= 0, got {n}")
+    q_a = Quaternion.from_matrix(cam_a.rotation.double())
+    q_b = Quaternion.from_matrix(cam_b.rotation.double())
+    poses = []
+    for k in range(n):
+        t = k / n
+        rotation = q_a.slerp(q_b, t).matrix().float()
+        centre = torch.lerp(cam_a.center.float(), cam_b.center.float(), t)
+        intrinsics = torch.lerp(cam_a.K.float(), cam_b.K.float(), t)
+        poses.append(Camera.from_pose(intrinsics, rotation, centre, cam_a.width, cam_a.height))
+    return poses
+
+
+def clip_layout(num_frames: int) -> tuple[int, int, int]:
+    """Frames per (bridge, path, bridge) segment: 16/17/16 at 49 frames (GSFixer), 2/5/2 at 9."""
+    if num_frames < 3:
+        raise ValueError(f"a clip needs at least 3 frames, got {num_frames}")
+    bridge = (num_frames - 1) // 3
+    return bridge, num_frames - 2 * bridge, bridge
+
+
+def make_clip(ref_a: Camera, ref_b: Camera, path: Sequence[Camera], num_frames: int) -> list[Camera]:
+    """A clip that starts at `ref_a`, bridges onto `path` (resampled evenly), and bridges off it to end at
+    `ref_b`."""
+    if not path:
+        raise ValueError("make_clip needs a non-empty path")
+    head, middle, tail = clip_layout(num_frames)
+    picks = torch.linspace(0, len(path) - 1, middle).round().long().tolist()
+    segment = [path[i] for i in picks]
+    leaving = bridge_poses(ref_b, segment[-1], tail)[::-1]
+    clip = bridge_poses(ref_a, segment[0], head) + segment + leaving
+    if head == 0:
+        clip[0] = ref_a
+    if tail == 0:
+        clip[-1] = ref_b
+    return clip
+
+
+def _nearest(poses: Sequence[Camera], camera: Camera) -> int:
+    centres = torch.stack([pose.center for pose in poses])
+    return int((centres - camera.center.float()).norm(dim=1).argmin())
+
+
+def round_trajectory(cameras_observed: Sequence[Camera], ref_pairs: Sequence[tuple[Camera, Camera]],
+                     round_index: int, cfg: TrajectoryConfig, generator: torch.Generator | None = None
+                     ) -> list[list[Camera]]:
+    """Clips for repair round `round_index` (0-based): a freshly sampled ellipse (round-dependent scale and
+    height variation, random vertical phase) and, per reference pair (a, b), one clip from a to b whose middle
+    follows the ellipse forward from the pose nearest a to the pose nearest b. Pairs that chain around the
+    observed views ((v0, v1), (v1, v2), ..., (vK, v0)) cover the whole 360 degrees."""
+    if not ref_pairs:
+        raise ValueError("round_trajectory needs at least one reference pair")
+    if round_index < 0:
+        raise ValueError(f"round_index must be >= 0, got {round_index}")
+    scale = cfg.ellipse_scales[min(round_index, len(cfg.ellipse_scales) - 1)]
+    variation = cfg.height_variations[min(round_index, len(cfg.height_variations) - 1)]
+    phase = 2.0 * math.pi * torch.rand((), generator=generator).item()
+    ellipse = ellipse_poses(cameras_observed, cfg.ellipse_frames, scale, variation, phase)
+    n = len(ellipse)
+    clips = []
+    for ref_a, ref_b in ref_pairs:
+        start, stop = _nearest(ellipse, ref_a), _nearest(ellipse, ref_b)
+        length = (stop - start) % n
+        if length < 1:  # both references project onto one pose: go once around the loop
+            length = n
+        path = [ellipse[(start + k) % n] for k in range(length + 1)]
+        clips.append(make_clip(ref_a, ref_b, path, cfg.frames_per_clip))
+    return clips

@@ -1,1 +1,12 @@
-"""Reference-guided video restorer: transformer, LoRA adapters, codecs, encoders, schedules, sampler."""
+"""Reference-guided video restorer (supplement A.1-A.3), one code path for both scales.
+
+- ``config``: dataclasses (embedded defaults) and ``paper_backbone_config()`` (CogVideoX-5B-I2V values).
+- ``transformer.ReferenceGuidedTransformer``: diffusers CogVideoX + reference cross-attention, retrieval read-out.
+- ``adapters``: named peft LoRA adapters (teacher / student) on one frozen base.
+- ``codec``: ``EmbeddedCodec`` (block DCT) and ``CogVideoXCodec`` (AutoencoderKLCogVideoX).
+- ``encoders``: reference (embedded / DINOv2 + VGGT) and text (embedded / T5) encoders.
+- ``schedules``: ``RectifiedFlowSchedule`` and ``VPredictionDDIMSchedule`` behind ``NoiseSchedule``.
+- ``sampler``: ``sample`` and ``RestorationPipeline``; ``build``: ``build_backbone`` and loaders.
+
+Submodules are imported explicitly so that ``tracegs.restorer.config`` stays free of heavy imports.
+"""

@@ -125,7 +125,9 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu") -> B
     if cfg.transformer.pretrained_path:
         transformer = load_transformer(cfg.transformer, device, dtype)
     else:
-        transformer = create_transformer(cfg.transformer, device).to(dtype)
+        transformer = create_transformer(cfg.transformer, device)
+        if dtype != torch.float32:  # (diffusers warns on any .to(dtype), even a no-op one)
+            transformer.to(dtype)
     transformer.requires_grad_(False).eval()
     if cfg.transformer.gradient_checkpointing:
         transformer.enable_gradient_checkpointing()

@@ -196,6 +196,9 @@ def rasterize_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     """
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     bins = bin_tiles(means2d.detach(), extents, tiles_x, tiles_y, tile_size)
+    if bins.splat.shape[0] == 0:  # nothing on screen; stay in the graph so a loss on it backpropagates zeros
+        anchor = 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + features.sum())
+        return anchor + means2d.new_zeros(height, width, features.shape[1]), anchor + means2d.new_ones(height, width)
     power = _pair_power(means2d, conics, bins, tiles_x, tile_size)
     out, final = _TileComposite.apply(power, opacities[bins.splat], features[bins.splat], bins)
 

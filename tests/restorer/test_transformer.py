@@ -165,3 +165,13 @@ def test_gradient_checkpointing_gives_same_outputs_and_adapter_gradients(backbon
     torch.testing.assert_close(checkpointed.retrieval, plain.retrieval)
     for a, b in zip(grads, plain_grads):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_bf16_base_accepts_float32_inputs(backbone, make_inputs):
+    model, inputs = backbone.transformer, make_inputs(batch=1, frames=2)
+    with torch.no_grad():
+        reference = model(**inputs, return_retrieval=True)
+        model.to(torch.bfloat16)
+        out = model(**inputs, return_retrieval=True)
+    assert out.velocity.dtype == torch.float32 and out.retrieval.dtype == torch.float32
+    assert (out.velocity - reference.velocity).abs().mean() < 0.05 * reference.velocity.abs().mean()

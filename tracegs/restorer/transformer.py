@@ -273,7 +273,8 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         """Velocity v_theta(xi, t, R_b) (main paper Eq. 3) and optionally F of the final block (Eq. 7).
 
         ``timestep`` is the schedule's native time (rectified flow t in [0, 1], DDPM step in [0, T-1]); it is
-        multiplied by ``config.timestep_scale`` before the sinusoidal embedding.
+        multiplied by ``config.timestep_scale`` before the sinusoidal embedding. Inputs are cast to the
+        weights' dtype; outputs come back in the dtype of ``noisy``.
         """
         if noisy.shape != cond.shape:
             raise ValueError(f"noisy {tuple(noisy.shape)} and cond {tuple(cond.shape)} latents must match")
@@ -292,9 +293,10 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
             else None
         )
         sink: dict[str, torch.Tensor] | None = {} if return_retrieval else None
+        weights = self.patch_embed.proj.weight.dtype  # e.g. a bf16 base fed float32 cached latents
         velocity = super().forward(
-            hidden_states=torch.cat([noisy, cond], dim=2),
-            encoder_hidden_states=text.to(noisy.dtype),
+            hidden_states=torch.cat([noisy, cond], dim=2).to(weights),
+            encoder_hidden_states=text.to(weights),
             timestep=timestep * self.config.timestep_scale,
             image_rotary_emb=rotary,
             attention_kwargs={
@@ -303,4 +305,5 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
             },
             return_dict=False,
         )[0]
-        return RestorerOutput(velocity=velocity, retrieval=sink["retrieval"] if sink is not None else None)
+        retrieval = sink["retrieval"].to(noisy.dtype) if sink is not None else None
+        return RestorerOutput(velocity=velocity.to(noisy.dtype), retrieval=retrieval)

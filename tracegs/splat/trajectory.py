@@ -76,20 +76,31 @@ def ellipse_poses(cameras: Sequence[Camera], n: int, scale: float = 1.0, height_
     return poses
 
 
+def interpolate_pose(cam_a: Camera, cam_b: Camera, t: float) -> Camera:
+    """Pose a fraction `t` of the way from `cam_a` to `cam_b`: slerped rotation, linearly interpolated centre
+    and intrinsics."""
+    rotation = Quaternion.from_matrix(cam_a.rotation.double()).slerp(
+        Quaternion.from_matrix(cam_b.rotation.double()), t).matrix().float()
+    centre = torch.lerp(cam_a.center.float(), cam_b.center.float(), t)
+    intrinsics = torch.lerp(cam_a.K.float(), cam_b.K.float(), t)
+    return Camera.from_pose(intrinsics, rotation, centre, cam_a.width, cam_a.height)
+
+
 def bridge_poses(cam_a: Camera, cam_b: Camera, n: int) -> list[Camera]:
-    """`n` poses from `cam_a` (included) towards `cam_b` (excluded): slerped rotation, linearly interpolated
-    centre and intrinsics."""
+    """`n` evenly spaced poses from `cam_a` (included) towards `cam_b` (excluded)."""
     if n < 0:
         raise ValueError(f"bridge_poses needs n >= 0, got {n}")
-    q_a = Quaternion.from_matrix(cam_a.rotation.double())
-    q_b = Quaternion.from_matrix(cam_b.rotation.double())
+    return [interpolate_pose(cam_a, cam_b, k / n) for k in range(n)]
+
+
+def resample_path(path: Sequence[Camera], n: int) -> list[Camera]:
+    """`n` poses evenly spaced (in path index) along the polyline of `path`, both ends included."""
+    if len(path) == 1 or n == 1:
+        return [path[0]] * n
     poses = []
-    for k in range(n):
-        t = k / n
-        rotation = q_a.slerp(q_b, t).matrix().float()
-        centre = torch.lerp(cam_a.center.float(), cam_b.center.float(), t)
-        intrinsics = torch.lerp(cam_a.K.float(), cam_b.K.float(), t)
-        poses.append(Camera.from_pose(intrinsics, rotation, centre, cam_a.width, cam_a.height))
+    for position in torch.linspace(0, len(path) - 1, n).tolist():
+        index = min(int(position), len(path) - 2)
+        poses.append(interpolate_pose(path[index], path[index + 1], position - index))
     return poses
 
 
@@ -103,12 +114,11 @@ def clip_layout(num_frames: int) -> tuple[int, int, int]:
 
 def make_clip(ref_a: Camera, ref_b: Camera, path: Sequence[Camera], num_frames: int) -> list[Camera]:
     """A clip that starts at `ref_a`, bridges onto `path` (resampled evenly), and bridges off it to end at
-    `ref_b`."""
+    `ref_b`: `clip_layout(num_frames)` frames per segment."""
     if not path:
         raise ValueError("make_clip needs a non-empty path")
     head, middle, tail = clip_layout(num_frames)
-    picks = torch.linspace(0, len(path) - 1, middle).round().long().tolist()
-    segment = [path[i] for i in picks]
+    segment = resample_path(path, middle)
     leaving = bridge_poses(ref_b, segment[-1], tail)[::-1]
     clip = bridge_poses(ref_a, segment[0], head) + segment + leaving
     if head == 0:

@@ -1,0 +1,122 @@
+"""Deployment trajectories: clip anchoring, look-at orientation, smoothness, round dependence."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import ring_cameras
+
+from tracegs.splat.config import TrajectoryConfig
+from tracegs.splat.trajectory import (
+    bridge_poses,
+    clip_layout,
+    ellipse_poses,
+    focus_point,
+    make_clip,
+    round_trajectory,
+)
+
+
+def viewing_angle_to(camera, point) -> float:
+    """Angle (degrees) between the optical axis and the direction to `point`."""
+    direction = point - camera.center
+    cosine = (camera.rotation[2] @ direction) / direction.norm()
+    return math.degrees(math.acos(min(1.0, cosine.item())))
+
+
+def assert_proper_rotation(camera):
+    rotation = camera.rotation.double()
+    assert torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-5)
+    assert torch.linalg.det(rotation).item() == pytest.approx(1.0, abs=1e-5)
+
+
+def observed_views():
+    # Eight views on a wavy ring looking at the origin, shifted so the focus is not at the world origin.
+    shift = torch.tensor([0.5, -0.3, 0.2])
+    cameras = ring_cameras(8)
+    for camera in cameras:
+        camera.world_to_camera[:3, 3] -= camera.rotation @ shift
+    return cameras, shift
+
+
+def test_focus_point_is_where_the_axes_meet():
+    cameras, shift = observed_views()
+    assert torch.allclose(focus_point(cameras), shift, atol=1e-4)
+
+
+def test_ellipse_is_closed_and_looks_at_the_focus():
+    cameras, shift = observed_views()
+    poses = ellipse_poses(cameras, 48, scale=0.8, height_variation=0.2, phase=1.0)
+    assert len(poses) == 48
+    for pose in poses:
+        assert_proper_rotation(pose)
+        assert viewing_angle_to(pose, shift) < 0.05
+    centres = torch.stack([pose.center for pose in poses])
+    steps = (centres.roll(-1, dims=0) - centres).norm(dim=1)  # includes the wrap-around step
+    assert steps.max() < 1.5 * steps.mean()
+    horizontal = (centres - shift)[:, :2].norm(dim=1)
+    assert horizontal.mean() == pytest.approx(0.8 * 3.5, rel=0.05)  # scale x the cameras' ring radius
+    heights = centres[:, 2] - shift[2]
+    assert heights.max() - heights.min() > 0.2 * 2 * 3.5 * 0.8  # vertical variation is applied
+
+
+def test_clip_is_anchored_by_reference_views_and_smooth():
+    cameras, shift = observed_views()
+    path = ellipse_poses(cameras, 64, scale=1.0, height_variation=0.1, phase=0.3)[:9]
+    clip = make_clip(cameras[0], cameras[1], path, 49)
+    assert len(clip) == 49 and clip_layout(49) == (16, 17, 16)
+    assert torch.allclose(clip[0].world_to_camera, cameras[0].world_to_camera, atol=1e-5)
+    assert torch.allclose(clip[-1].world_to_camera, cameras[1].world_to_camera, atol=1e-5)
+    radius = (cameras[0].center - shift).norm()
+    for previous, current in zip(clip[:-1], clip[1:]):
+        assert_proper_rotation(current)
+        assert (current.center - previous.center).norm() < 0.1 * radius
+        relative = current.rotation @ previous.rotation.T
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, (relative.trace().item() - 1) / 2))))
+        assert angle < 5.0
+    for pose in clip:
+        assert viewing_angle_to(pose, shift) < 2.0
+
+
+def test_bridge_interpolates_between_its_ends():
+    cameras, _ = observed_views()
+    bridge = bridge_poses(cameras[2], cameras[3], 4)
+    assert torch.allclose(bridge[0].world_to_camera, cameras[2].world_to_camera, atol=1e-5)
+    halfway = bridge_poses(cameras[2], cameras[3], 2)[1]
+    assert torch.allclose(halfway.center, (cameras[2].center + cameras[3].center) / 2, atol=1e-5)
+
+
+def test_round_trajectory_depends_on_round_and_phase():
+    cameras, shift = observed_views()
+    pairs = [(cameras[i], cameras[(i + 1) % 8]) for i in range(8)]
+    cfg = TrajectoryConfig(frames_per_clip=9, ellipse_scales=[1.0, 0.7], height_variations=[0.05, 0.2])
+    round0 = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(0))
+    again = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(0))
+    other_phase = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(1))
+    round1 = round_trajectory(cameras, pairs, 1, cfg, torch.Generator().manual_seed(0))
+    assert len(round0) == 8 and all(len(clip) == 9 for clip in round0)
+    for clip, (ref_a, ref_b) in zip(round0, pairs):
+        assert torch.allclose(clip[0].world_to_camera, ref_a.world_to_camera, atol=1e-5)
+        assert torch.allclose(clip[-1].world_to_camera, ref_b.world_to_camera, atol=1e-5)
+
+    def middle_centres(clips):
+        return torch.stack([clip[4].center for clip in clips])
+
+    assert torch.equal(middle_centres(round0), middle_centres(again))
+    assert not torch.allclose(middle_centres(round0), middle_centres(other_phase), atol=1e-3)
+    radius0 = (middle_centres(round0) - shift)[:, :2].norm(dim=1).mean()
+    radius1 = (middle_centres(round1) - shift)[:, :2].norm(dim=1).mean()
+    assert radius1 < 0.85 * radius0  # later rounds use the smaller ellipse scale
+    # The eight clips together go once around the scene.
+    angles = torch.atan2(*(middle_centres(round0) - shift)[:, [1, 0]].T)
+    assert len(set(torch.floor((angles + math.pi) / (math.pi / 4)).long().tolist())) >= 6
+
+
+def test_invalid_trajectory_arguments_raise():
+    cameras, _ = observed_views()
+    with pytest.raises(ValueError, match="at least 3"):
+        clip_layout(2)
+    with pytest.raises(ValueError, match="reference pair"):
+        round_trajectory(cameras, [], 0, TrajectoryConfig())

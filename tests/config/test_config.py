@@ -166,3 +166,20 @@ def test_cli_reports_bad_combination_in_one_line(tmp_path):
     # Nothing but Hydra's own run log was written: no checkpoint, adapter or cache.
     written = [p for p in tmp_path.rglob("*") if p.is_file() and ".hydra" not in p.parts and p.suffix != ".log"]
     assert written == []
+
+
+def test_paper_backbone_yaml_matches_the_library_preset():
+    """conf/backbone/cogvideox5b.yaml (what users run) and paper_backbone_config() (what the restorer's
+    meta-device tests check against the paper) must not drift apart."""
+    from tracegs.restorer.config import paper_backbone_config
+
+    cfg = compose(config_name="train", overrides=["experiment=paper"])
+    composed = OmegaConf.to_object(cfg.backbone)
+    preset = paper_backbone_config(
+        transformer_path=composed.transformer.pretrained_path,
+        vae_path=composed.codec.pretrained_path,
+        dino_path=composed.reference_encoder.dino_path,
+        vggt_path=composed.reference_encoder.vggt_path,
+        t5_path=composed.text_encoder.pretrained_path,
+    )
+    assert composed == preset

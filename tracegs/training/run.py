@@ -1,7 +1,7 @@
 """``train_stage(cfg)``: build backbone, data, stage module and a ``lightning.Trainer``, train, export.
 
 Outputs under ``cfg.output_dir``: ``checkpoints/`` (resumable Lightning checkpoints, trainable weights
-only), ``csv/`` and ``tensorboard/`` logs, and the stage's product:
+only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard/`` logs, and the stage's product:
 - baseline: ``baseline_transformer/`` -- a diffusers directory with the full tiny transformer, to be set as
   ``backbone.transformer.pretrained_path`` for Stage 1, Stage 2 and deployment (variant A);
 - stage1: ``stage1_adapter.safetensors`` (the aligned adapter phi);
@@ -77,8 +77,10 @@ def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
     loggers: list[Logger] = []
     for name in cfg.trainer.loggers:
         if name == "csv":
-            loggers.append(CSVLogger(output_dir, name="csv", version=""))
+            # A new version folder per (re)start: Lightning's CSV writer deletes an existing metrics.csv.
+            loggers.append(CSVLogger(output_dir, name="csv"))
         elif name == "tensorboard":
+            # One folder across restarts: TensorBoard appends event files, so resumed curves continue.
             loggers.append(TensorBoardLogger(output_dir, name="tensorboard", version=""))
         elif name == "wandb":
             from lightning.pytorch.loggers import WandbLogger  # optional dependency

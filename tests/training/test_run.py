@@ -1,0 +1,123 @@
+"""``train_stage`` end to end: baseline -> Stage 1 -> Stage 2 through the real DataModule and Trainer."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+from training_support import (
+    CHANNELS,
+    FRAMES,
+    HEIGHT,
+    TEXT_LEN,
+    TINY_LORA,
+    TINY_SCHEDULE,
+    TINY_TRANSFORMER,
+    WIDTH,
+)
+
+from tracegs.data.config import DataModuleConfig
+from tracegs.data.prepare import MANIFEST, condition_key
+from tracegs.data.splits import view_set_key
+from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
+from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
+from tracegs.training.run import train_stage
+
+REF_TOKENS = 5
+# The embedded reference encoder with 2x2 patches gives 12 (2D) and 12 + 8 (3D) features per token.
+BACKBONE = BackboneConfig(
+    transformer=dataclasses.replace(TINY_TRANSFORMER, ref_2d_dim=12, ref_3d_dim=20),
+    lora=TINY_LORA,
+    codec=CodecConfig(latent_channels=CHANNELS),
+    reference_encoder=ReferenceEncoderConfig(patch_size=2),
+    text_encoder=TextEncoderConfig(dim=TINY_TRANSFORMER.text_embed_dim, max_length=TEXT_LEN),
+    schedule=TINY_SCHEDULE,
+)
+
+
+def write_cache(root: Path, clips: int = 4) -> Path:
+    """A cache in the prepared layout (manifest + one safetensors shard per clip) with random latents."""
+    g = torch.Generator().manual_seed(0)
+    latent = (FRAMES, CHANNELS, HEIGHT, WIDTH)
+    paths = []
+    for clip in range(clips):
+        target = torch.randn(latent, generator=g)
+        tensors = {
+            "latent/target": target,
+            f"latent/{condition_key(3, 140)}": target + 0.7 * torch.randn(latent, generator=g),
+            f"latent/{condition_key(None)}": target + 0.1 * torch.randn(latent, generator=g),
+            "ref_2d": torch.randn(REF_TOKENS, 12, generator=g),
+            "ref_3d": torch.randn(REF_TOKENS, 20, generator=g),
+            "text": torch.randn(TEXT_LEN, TINY_TRANSFORMER.text_embed_dim, generator=g),
+        }
+        rel = f"scene_a/clip_{clip:03d}.safetensors"
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        save_file({k: v.half() for k, v in tensors.items()}, str(root / rel))
+        paths.append(rel)
+    manifest = {"teacher_views": [view_set_key(3), view_set_key(None)], "scenes": {"scene_a": {"clips": paths}}}
+    (root / MANIFEST).write_text(json.dumps(manifest))
+    return root
+
+
+def config(tmp_path: Path, cache: Path, name: str, steps: int, out: str, **stage) -> TrainConfig:
+    return TrainConfig(
+        stage=StageConfig(name=name, max_steps=steps, batch_size=2, rollout_steps=3, checkpoint_every_n_steps=1,
+                          **stage),
+        optimizer=OptimizerConfig(lr=3e-3, warmup_steps=2),
+        trainer=TrainerConfig(enable_progress_bar=False, log_every_n_steps=1),
+        backbone=BACKBONE,
+        data=DataModuleConfig(cache_dir=str(cache), student_views=[3], student_snapshots=[140], caption_dropout=0.0),
+        output_dir=str(tmp_path / out),
+    )
+
+
+@pytest.fixture(scope="module")
+def stages(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("run")
+    cache = write_cache(tmp / "cache")
+    baseline = train_stage(config(tmp, cache, "baseline", 2, "baseline"))
+    stage1 = train_stage(config(tmp, cache, "stage1", 2, "stage1", base_weights=str(baseline)))
+    return tmp, cache, baseline, stage1
+
+
+def logged_columns(run_dir: Path) -> set[str]:
+    columns = set()
+    for metrics in (run_dir / "csv").glob("version_*/metrics.csv"):
+        with open(metrics) as handle:
+            columns |= set(next(csv.reader(handle)))
+    return columns
+
+
+def test_stages_chain_and_log_every_term(stages):
+    tmp, _, baseline, stage1 = stages
+    assert (baseline / "config.json").is_file() and stage1.is_file()
+    assert {"train/fm_student", "train/grad_norm", "train/lr", "train/samples_per_sec"} <= logged_columns(
+        tmp / "baseline"
+    )
+    assert {"train/fm_student", "train/fm_teacher", "train/align", "train/loss"} <= logged_columns(tmp / "stage1")
+    assert any((tmp / "stage1" / "tensorboard").glob("events.out.tfevents.*"))
+    assert (tmp / "stage1" / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages):
+    tmp, cache, baseline, stage1 = stages
+    extra = dict(base_weights=str(baseline), init_adapter=str(stage1))
+    full = train_stage(config(tmp, cache, "stage2", 4, "full", **extra))
+    assert {"train/traj", "train/ret", "train/loss"} <= logged_columns(tmp / "full")
+    # interrupted after 2 steps (an epoch boundary: 4 clips, batch 2), then rerun to 4: resumes from last.ckpt
+    train_stage(config(tmp, cache, "stage2", 2, "interrupted", **extra))
+    resumed = train_stage(config(tmp, cache, "stage2", 4, "interrupted", **extra))
+    a, b = load_file(str(full)), load_file(str(resumed))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_stage2_without_stage1_adapter_fails_clearly(stages):
+    tmp, cache, baseline, _ = stages
+    with pytest.raises(FileNotFoundError, match="stage.init_adapter"):
+        train_stage(config(tmp, cache, "stage2", 1, "missing", base_weights=str(baseline),
+                           init_adapter=str(tmp / "nope.safetensors")))

@@ -1,0 +1,106 @@
+"""PairedClipDataModule over a prepared tiny cache: sample dict, teacher setting, caption dropout shared by
+both roles, split by scene, and clear errors for damaged or mismatched caches."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from tracegs.data.config import DataModuleConfig
+from tracegs.data.datamodule import CacheError, PairedClipDataModule
+
+
+def module(cache: Path, teacher_views: int | None = None, **kwargs) -> PairedClipDataModule:
+    cfg = DataModuleConfig(cache_dir=str(cache), student_views=[3], student_snapshots=[8], batch_size=2, **kwargs)
+    dm = PairedClipDataModule(cfg, teacher_views=teacher_views)
+    dm.setup("fit")
+    return dm
+
+
+def two_scene_cache(prepared, tmp_path: Path) -> Path:
+    """A copy of the prepared cache whose one scene also appears under a second name."""
+    cache = tmp_path / "cache"
+    shutil.copytree(prepared[0] / "cache", cache)
+    manifest = json.loads((cache / "manifest.json").read_text())
+    shutil.copytree(cache / "scene_000", cache / "scene_001")
+    entry = manifest["scenes"]["scene_000"]
+    manifest["scenes"]["scene_001"] = {**entry, "clips": [c.replace("scene_000", "scene_001") for c in entry["clips"]]}
+    (cache / "manifest.json").write_text(json.dumps(manifest))
+    return cache
+
+
+def test_sample_dict_matches_the_cache(prepared):
+    cache = prepared[0] / "cache"
+    dm = module(cache, teacher_views=None, caption_dropout=0.0)
+    batch = next(iter(dm.train_dataloader()))
+    shard = load_file(str(cache / "scene_000" / f"clip_{int(batch['clip'][0]):03d}.safetensors"))
+    f, c, h, w = shard["latent/target"].shape
+    assert batch["student_cond"].shape == (2, f, c, h, w) and batch["student_cond"].dtype == torch.float32
+    torch.testing.assert_close(batch["student_cond"][0], shard["latent/s3_it8"].float())
+    torch.testing.assert_close(batch["teacher_cond"][0], shard["latent/dall"].float())
+    torch.testing.assert_close(batch["target"][0], shard["latent/target"].float())
+    torch.testing.assert_close(batch["text"][0], shard["text"].float())
+    assert batch["ref_2d"].shape[:2] == (2, shard["ref_2d"].shape[0])
+    assert batch["teacher_views"].tolist() == [-1, -1] and batch["student_views"].tolist() == [3, 3]
+    assert batch["snapshot"].tolist() == [8, 8] and batch["scene"] == ["scene_000", "scene_000"]
+    assert not batch["text_dropped"].any()
+
+
+def test_teacher_view_setting_selects_the_dense_condition(prepared):
+    cache = prepared[0] / "cache"
+    sample = module(cache, teacher_views=3).train_set[0]
+    shard = load_file(str(cache / "scene_000" / "clip_000.safetensors"))
+    torch.testing.assert_close(sample["teacher_cond"], shard["latent/d3"].float())
+    assert sample["teacher_views"] == 3
+    with pytest.raises(CacheError, match="teacher views 12 not prepared"):
+        module(cache, teacher_views=12)
+
+
+def test_caption_dropout_zeroes_the_shared_text_and_is_seeded(prepared):
+    cache = prepared[0] / "cache"
+    always = module(cache, caption_dropout=1.0).train_set[0]
+    assert always["text_dropped"] and not always["text"].any()
+    dataset = module(cache, caption_dropout=0.5).train_set
+    flags = [bool(dataset[(0, seed)]["text_dropped"]) for seed in range(200)]
+    assert 60 < sum(flags) < 140  # about half, a fresh draw per draw seed
+    assert flags == [bool(dataset[(0, seed)]["text_dropped"]) for seed in range(200)]  # reproducible
+    for seed, dropped in enumerate(flags[:20]):
+        sample = dataset[(0, seed)]
+        assert bool(sample["text"].any()) != dropped
+
+
+def test_epochs_redraw_but_stay_reproducible(prepared):
+    dm = module(prepared[0] / "cache", caption_dropout=0.5)
+    sampler = dm.train_dataloader().sampler
+    epoch0 = list(sampler)
+    sampler.set_epoch(1)
+    epoch1 = list(sampler)
+    sampler.set_epoch(0)
+    assert list(sampler) == epoch0 and epoch0 != epoch1
+
+
+def test_split_by_scene(prepared, tmp_path):
+    cache = two_scene_cache(prepared, tmp_path)
+    dm = module(cache, val_scenes=["scene_001"])
+    assert {s for s, _, _ in dm.train_set.clips} == {"scene_000"}
+    assert {s for s, _, _ in dm.val_set.clips} == {"scene_001"}
+    assert next(iter(dm.val_dataloader()))["scene"] == ["scene_001", "scene_001"]
+    with pytest.raises(CacheError, match="scene_009"):
+        module(cache, val_scenes=["scene_009"])
+
+
+def test_corrupt_shard_names_the_file(prepared, tmp_path):
+    cache = two_scene_cache(prepared, tmp_path)
+    shard = cache / "scene_001" / "clip_001.safetensors"
+    data = shard.read_bytes()
+    shard.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CacheError, match="scene_001/clip_001.safetensors: corrupt shard"):
+        module(cache)
+    shard.write_bytes(b"\xff" * 64)
+    with pytest.raises(CacheError, match="clip_001.safetensors: corrupt shard"):
+        module(cache)

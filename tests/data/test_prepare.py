@@ -1,0 +1,132 @@
+"""End-to-end preparation on a tiny synthetic scene: from nothing, idempotent rerun, resume after a kill,
+and bad input that fails before writing anything."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from safetensors import safe_open
+from scene_builders import all_files, tiny_configs, write_scene
+
+from tracegs.data.config import PrepareConfig, SceneSourceConfig
+from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare, shard_is_valid
+
+
+def test_prepare_builds_the_cache_from_nothing(prepared):
+    tmp, _, _, prepare, manifest_path = prepared
+    manifest = json.loads(manifest_path.read_text())
+    assert manifest["teacher_views"] == ["3", "6", "all"]
+    entry = manifest["scenes"]["scene_000"]
+    assert len(entry["clips"]) == 2
+    for rel in entry["clips"]:
+        with safe_open(str(tmp / "cache" / rel), framework="pt") as f:
+            keys = set(f.keys())
+            latent = f.get_tensor("latent/s3_it8")
+            poses = f.get_tensor("poses")
+            refs = json.loads(f.metadata()["refs"])
+        assert {"latent/s3_it8", "latent/d3", "latent/d6", "latent/dall", "latent/target", "ref_2d", "ref_3d",
+                "text", "frames/gt", "frames/target", "frames/ref"} <= keys
+        assert latent.shape[0] == 5 and poses.shape == (5, 4, 4)
+        # Both clip ends are reference views of the 3-view set (hence of every sparse set).
+        scene_info = json.loads((tmp / "cache" / entry["scene_file"]).read_text())
+        assert set(refs) <= set(scene_info["split"]["view_sets"]["3"])
+    assert (tmp / "cache" / "scene_000" / "contact_sheet.png").is_file()
+    psnr = entry["psnr_vs_gt"]
+    assert set(psnr) == {"s3_it8", "d3", "d6", "dall"} and all(v > 5 for v in psnr.values())
+
+
+def test_second_run_does_no_work(prepared, backbone):
+    tmp, synthetic, source, prepare, manifest = prepared
+    before = all_files(tmp)
+    start = time.perf_counter()
+    assert run_prepare(prepare, source, backbone, synthetic, progress=False) == manifest
+    assert all_files(tmp) == before
+    assert time.perf_counter() - start < 5.0
+
+
+def test_killed_run_completes_on_rerun(tmp_path, prepared, backbone):
+    _, synthetic, source, _, _ = prepared  # reuse the generated scene, prepare into a fresh cache
+    prepare = replace(tiny_configs(tmp_path)[2], clips_per_scene=3)
+    script = (
+        "import sys\n"
+        "sys.path.insert(0, sys.argv[1])\n"
+        "from dataclasses import replace\n"
+        "from pathlib import Path\n"
+        "from scene_builders import tiny_configs\n"
+        "from tracegs.data.prepare import run_prepare\n"
+        "from tracegs.restorer.build import build_backbone\n"
+        "from tracegs.restorer.config import BackboneConfig\n"
+        "synthetic, source, _ = tiny_configs(Path(sys.argv[2]))\n"
+        "prepare = replace(tiny_configs(Path(sys.argv[3]))[2], clips_per_scene=3)\n"
+        "run_prepare(prepare, source, build_backbone(BackboneConfig()), synthetic, progress=False)\n"
+    )
+    generated = Path(synthetic.root).parent
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, "-c", script, str(Path(__file__).parent), str(generated),
+                                str(tmp_path)], env=env, stderr=subprocess.PIPE, text=True)
+    # Kill once the first fit unit (both snapshots of the 3-view fit) is complete, before the others.
+    first_fit = tmp_path / "work" / "scene_000" / "fit_3" / "it000016.ply"
+    deadline = time.monotonic() + 120
+    while not first_fit.is_file() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.poll() is None, f"prepare ended before it could be killed: {process.stderr.read()[-2000:]}"
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    process.stderr.close()
+    assert not (tmp_path / "cache" / "manifest.json").exists()
+    finished_fits = {p: p.stat().st_mtime_ns for p in first_fit.parent.glob("*.ply")}
+    assert len(finished_fits) == 2
+    manifest = json.loads(run_prepare(prepare, source, backbone, synthetic, progress=False).read_text())
+    clips = manifest["scenes"]["scene_000"]["clips"]
+    assert len(clips) == 3 and all(shard_is_valid(tmp_path / "cache" / c) for c in clips)
+    assert all(p.stat().st_mtime_ns == t for p, t in finished_fits.items()), "a finished fit was redone"
+    assert not list(tmp_path.rglob(".*.tmp"))
+
+
+def test_sharded_manifests_merge(tmp_path, prepared, backbone):
+    _, synthetic, source, _, _ = prepared
+    prepare = replace(tiny_configs(tmp_path)[2], num_shards=2, shard_index=0)
+    shard = run_prepare(prepare, source, backbone, synthetic, progress=False)
+    assert shard.name == "manifest_shard000_of002.json"
+    merged = json.loads(merge_manifests(tmp_path / "cache").read_text())
+    assert list(merged["scenes"]) == ["scene_000"]
+
+
+@pytest.mark.parametrize("damage", ["missing_image_folder", "missing_image", "radial_camera", "too_many_views"])
+def test_bad_input_fails_clearly_and_writes_nothing(tmp_path, backbone, damage):
+    import pycolmap
+
+    root, _ = write_scene(tmp_path / "scenes" / "ring", n=16)
+    prepare = PrepareConfig(cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"),
+                            pseudo_target="dense", dense_views=[None])
+    expected: tuple[type[Exception], str]
+    if damage == "missing_image_folder":
+        for image in (root / "images").iterdir():
+            image.unlink()
+        (root / "images").rmdir()
+        expected = (FileNotFoundError, "image folder not found")
+    elif damage == "missing_image":
+        (root / "images" / "img_007.png").unlink()
+        expected = (FileNotFoundError, "img_007.png")
+    elif damage == "radial_camera":
+        model = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+        for camera in model.cameras.values():
+            camera.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+            camera.params = [30.0, 18.0, 12.0, 0.01]
+        model.write(str(root / "sparse" / "0"))
+        expected = (PrepareError, "SIMPLE_RADIAL.*undistort")
+    else:
+        prepare = replace(prepare, student_views=[3, 6, 9], dense_views=[18])
+        expected = (PrepareError, "asked for 18 training views but the scene has only 14")
+    source = SceneSourceConfig(root=str(root.parent), preset="custom")
+    with pytest.raises(expected[0], match=expected[1]):
+        run_prepare(prepare, source, backbone, progress=False)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "work").exists()

@@ -1,0 +1,265 @@
+"""COLMAP scenes: loading (pycolmap), downscaled image folders, normalisation, dataset presets, writing.
+
+pycolmap bundles its own zlib; importing it before PIL/torch can crash a later PNG write (DESIGN.md
+section 6), so it is imported inside the functions that need it, after PIL and torch are loaded.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from tracegs.data.config import SceneSourceConfig
+from tracegs.splat.cameras import Camera
+
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+RADIAL_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
+                 "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV", "RAD_TAN_THIN_PRISM_FISHEYE")
+
+# Folder names per dataset layout. Mip-NeRF 360 ships images_{2,4,8} next to sparse/0; the DL3DV
+# benchmark's COLMAP export and NeRFBusters' captures use the same sparse/0 + images_N layout. NeRFBusters
+# evaluates on its second capture, whose frames are named "frame_2_*".
+PRESETS: dict[str, dict[str, str | None]] = {
+    "synthetic": {"image_dir": "images", "sparse_dir": "sparse/0", "test_prefix": None},
+    "mipnerf360": {"image_dir": "images_4", "sparse_dir": "sparse/0", "test_prefix": None},
+    "dl3dv": {"image_dir": "images_4", "sparse_dir": "sparse/0", "test_prefix": None},
+    "nerfbusters": {"image_dir": "images_2", "sparse_dir": "sparse/0", "test_prefix": "frame_2_"},
+    "custom": {"image_dir": "images", "sparse_dir": "sparse/0", "test_prefix": None},
+}
+
+
+class SceneFormatError(ValueError):
+    """A scene directory does not hold a usable COLMAP model and image folder."""
+
+
+@dataclass
+class Scene:
+    """One posed multi-view scene, images loaded lazily from ``image_paths``.
+
+    ``points``/``colors`` are the SfM points (colours in [0,1]); ``visibility[p, i]`` says whether point
+    ``p`` is observed in image ``i`` (its COLMAP track), so a view set can be initialised only from the
+    points that its own views would triangulate.
+    """
+
+    name: str
+    root: Path
+    cameras: list[Camera]
+    image_names: list[str]
+    image_paths: list[Path]
+    points: torch.Tensor
+    colors: torch.Tensor
+    visibility: torch.Tensor
+    caption: str | None = None
+    # Normalisation applied by ``normalize_scene``: x_normalised = (x_stored - world_offset) / world_scale.
+    world_offset: torch.Tensor = field(default_factory=lambda: torch.zeros(3))
+    world_scale: float = 1.0
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def load_image(self, index: int) -> torch.Tensor:
+        """Image ``index`` as float [3, H, W] in [0, 1], resized to its camera's size if needed."""
+        camera = self.cameras[index]
+        with Image.open(self.image_paths[index]) as pil:
+            pil = pil.convert("RGB")
+            if pil.size != (camera.width, camera.height):
+                pil = pil.resize((camera.width, camera.height), Image.Resampling.LANCZOS)
+            array = np.asarray(pil, dtype=np.float32) / 255.0
+        return torch.from_numpy(array).permute(2, 0, 1).contiguous()
+
+    def extent(self) -> float:
+        """3DGS's scene extent: 1.1 x the largest camera-centre distance from their mean."""
+        centres = torch.stack([c.center for c in self.cameras])
+        return float(1.1 * (centres - centres.mean(0)).norm(dim=-1).max().clamp_min(1e-6))
+
+    def points_seen_by(self, views: list[int], min_views: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """SfM points observed by at least ``min_views`` of ``views`` (what those views triangulate)."""
+        keep = self.visibility[:, views].sum(dim=1) >= min_views
+        return self.points[keep], self.colors[keep]
+
+
+def preset_dirs(cfg: SceneSourceConfig) -> tuple[str, str, str | None]:
+    if cfg.preset not in PRESETS:
+        raise SceneFormatError(f"source.preset={cfg.preset!r} unknown; choose one of {sorted(PRESETS)}")
+    preset = PRESETS[cfg.preset]
+    return cfg.image_dir or preset["image_dir"], cfg.sparse_dir or preset["sparse_dir"], preset["test_prefix"]
+
+
+def list_scenes(cfg: SceneSourceConfig) -> list[str]:
+    """Scene names: ``cfg.scenes`` or every directory under ``cfg.root`` holding a sparse model."""
+    root = Path(cfg.root)
+    if cfg.scenes is not None:
+        return list(cfg.scenes)
+    if not root.is_dir():
+        raise SceneFormatError(f"source.root {root} does not exist")
+    _, sparse_dir, _ = preset_dirs(cfg)
+    return sorted(p.name for p in root.iterdir() if (p / sparse_dir).is_dir())
+
+
+def camera_from_colmap(colmap_camera, cam_from_world: np.ndarray, source: Path) -> Camera:
+    """A ``Camera`` from a pycolmap camera and its 3x4 cam_from_world matrix (both OpenCV convention)."""
+    model = colmap_camera.model.name
+    params = [float(p) for p in colmap_camera.params]
+    if model == "PINHOLE":
+        fx, fy, cx, cy = params
+    elif model == "SIMPLE_PINHOLE":
+        fx, cx, cy = params
+        fy = fx
+    elif model in RADIAL_MODELS:
+        raise SceneFormatError(
+            f"{source}: camera model {model} has lens distortion; undistort the images first "
+            "(colmap image_undistorter) to get a PINHOLE model"
+        )
+    else:
+        raise SceneFormatError(f"{source}: unsupported camera model {model} (need {SUPPORTED_MODELS})")
+    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    w2c = torch.eye(4, dtype=torch.float32)
+    w2c[:3, :4] = torch.from_numpy(np.asarray(cam_from_world, dtype=np.float32))
+    return Camera(K=K, world_to_camera=w2c, width=int(colmap_camera.width), height=int(colmap_camera.height))
+
+
+def normalize_scene(scene: Scene) -> Scene:
+    """Similarity transform x' = (x - c) / r: camera centres to mean zero and radius 1/1.1.
+
+    Rotations stay orthonormal because the world scale is folded into the camera translation:
+    X_cam' = X_cam / r = R x' + (R c + t) / r.
+    """
+    centres = torch.stack([c.center for c in scene.cameras])
+    centre = centres.mean(0)
+    radius = 1.1 * float((centres - centre).norm(dim=-1).max().clamp_min(1e-6))
+    cameras = []
+    for camera in scene.cameras:
+        w2c = camera.world_to_camera.clone()
+        w2c[:3, 3] = (w2c[:3, :3] @ centre + w2c[:3, 3]) / radius
+        cameras.append(replace(camera, world_to_camera=w2c))
+    return replace(scene, cameras=cameras, points=(scene.points - centre) / radius, world_offset=centre,
+                   world_scale=radius)
+
+
+def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
+    """Load scene ``name`` under ``cfg.root``; every listed image must exist in the image folder."""
+    import pycolmap  # lazily, after PIL and torch (bundled zlib, see module docstring)
+
+    image_dir, sparse_dir, _ = preset_dirs(cfg)
+    root = Path(cfg.root) / name
+    sparse = root / sparse_dir
+    images_root = root / image_dir
+    if not sparse.is_dir():
+        raise SceneFormatError(f"{sparse}: COLMAP model directory not found")
+    if not images_root.is_dir():
+        raise FileNotFoundError(f"{images_root}: image folder not found")
+    try:
+        reconstruction = pycolmap.Reconstruction(str(sparse))
+    except Exception as error:  # pycolmap raises plain RuntimeError/ValueError on malformed models
+        raise SceneFormatError(f"{sparse}: cannot read COLMAP model ({error})") from error
+    images = sorted(reconstruction.images.values(), key=lambda im: im.name)
+    if not images:
+        raise SceneFormatError(f"{sparse}: the model has no registered images")
+    paths = [images_root / im.name for im in images]
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(f"{missing[0]}: listed in {sparse} but absent ({len(missing)} missing)")
+    cameras = []
+    for image, path in zip(images, paths):
+        camera = camera_from_colmap(image.camera, image.cam_from_world().matrix(), sparse)
+        # Downscaled folders (images_4, ...) keep COLMAP's full-resolution intrinsics: rescale them.
+        with Image.open(path) as pil:
+            width, height = pil.size
+        width, height = cfg.width or width, cfg.height or height
+        if (width, height) != (camera.width, camera.height):
+            camera = camera.rescaled(width, height)
+        cameras.append(camera)
+    index_of = {im.image_id: i for i, im in enumerate(images)}
+    point_ids = sorted(reconstruction.points3D)
+    points = np.zeros((len(point_ids), 3), dtype=np.float32)
+    colors = np.zeros((len(point_ids), 3), dtype=np.float32)
+    visibility = torch.zeros(len(point_ids), len(images), dtype=torch.bool)
+    for row, pid in enumerate(point_ids):
+        point = reconstruction.points3D[pid]
+        points[row] = point.xyz
+        colors[row] = np.asarray(point.color, dtype=np.float32) / 255.0
+        for element in point.track.elements:
+            if element.image_id in index_of:
+                visibility[row, index_of[element.image_id]] = True
+    caption_file = root / "caption.txt"
+    scene = Scene(
+        name=name,
+        root=root,
+        cameras=cameras,
+        image_names=[im.name for im in images],
+        image_paths=paths,
+        points=torch.from_numpy(points),
+        colors=torch.from_numpy(colors),
+        visibility=visibility,
+        caption=caption_file.read_text().strip() if caption_file.is_file() else None,
+    )
+    return normalize_scene(scene) if cfg.normalize else scene
+
+
+def test_indices_for(cfg: SceneSourceConfig, scene: Scene) -> list[int] | None:
+    """Test views named by the preset (NeRFBusters' second capture); None = the every-8th rule."""
+    _, _, prefix = preset_dirs(cfg)
+    if prefix is None:
+        return None
+    return [i for i, n in enumerate(scene.image_names) if n.startswith(prefix)]
+
+
+def write_colmap_model(
+    path: Path,
+    cameras: list[Camera],
+    image_names: list[str],
+    points: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    tracks: list[list[tuple[int, np.ndarray]]] | None = None,
+) -> None:
+    """Write a binary COLMAP model (one PINHOLE camera per image) with pycolmap.
+
+    ``tracks[p]`` lists ``(image_index, xy)`` observations of point ``p``. The model is written to a
+    temporary sibling directory and renamed into place, so a killed run never leaves half a model.
+    """
+    import pycolmap  # lazily, after PIL and torch (bundled zlib)
+
+    reconstruction = pycolmap.Reconstruction()
+    keypoints: list[list[np.ndarray]] = [[] for _ in cameras]
+    point_refs: list[list[tuple[int, int]]] = []
+    for track in tracks or []:
+        refs = []
+        for image_index, xy in track:
+            refs.append((image_index, len(keypoints[image_index])))
+            keypoints[image_index].append(np.asarray(xy, dtype=np.float64))
+        point_refs.append(refs)
+    for i, (camera, name) in enumerate(zip(cameras, image_names)):
+        K = camera.K.double().numpy()
+        reconstruction.add_camera_with_trivial_rig(
+            pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
+                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=i + 1)
+        )
+        kp = np.stack(keypoints[i]) if keypoints[i] else np.zeros((0, 2))
+        image = pycolmap.Image(name=name, keypoints=kp, camera_id=i + 1, image_id=i + 1)
+        w2c = camera.world_to_camera.double().numpy()
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    for p in range(0 if points is None else len(points)):
+        track = pycolmap.Track()
+        for image_index, point2d_index in point_refs[p] if p < len(point_refs) else []:
+            track.add_element(image_index + 1, point2d_index)
+        color = np.clip(np.asarray(colors[p]) * 255.0 if colors is not None else np.zeros(3), 0, 255)
+        reconstruction.add_point3D(np.asarray(points[p], dtype=np.float64), track, color.astype(np.uint8))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        reconstruction.write(str(tmp))
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)

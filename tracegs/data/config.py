@@ -1,0 +1,88 @@
+"""Hyperparameters of scene loading, the synthetic benchmark, paired-clip preparation and the DataModule.
+
+Defaults are the embedded (CPU) scale. Paper-scale values (paper Sec. 4.1, supplement A.2/A.4) are given
+in each field's comment; the lead's Hydra yaml sets them for the cluster runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from tracegs.splat.config import GaussianFitConfig
+
+
+@dataclass
+class SyntheticConfig:
+    """The embedded synthetic benchmark: procedural Gaussian scenes rendered along camera paths."""
+
+    root: str = "data/synthetic"
+    train_seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3])
+    test_seeds: list[int] = field(default_factory=lambda: [100, 101])  # disjoint from train_seeds
+    num_views: int = 32
+    height: int = 48
+    width: int = 72
+    fov_x_deg: float = 70.0
+    # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
+    path_styles: list[str] = field(default_factory=lambda: ["orbit", "forward"])
+    orbit_arc_deg: float = 300.0  # an open arc, like a walk-around video; a closed ring would wrap
+    num_objects: int = 4
+    gaussians_per_unit_area: float = 250.0  # density of surface Gaussians on the textured shapes
+    init_points: int = 1500  # SfM-like points written to points3D (subsampled Gaussian centres)
+    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+@dataclass
+class SceneSourceConfig:
+    """Where scenes come from: a COLMAP dataset layout (presets) or the synthetic benchmark root."""
+
+    root: str = "data/synthetic"
+    # "synthetic" | "mipnerf360" | "dl3dv" | "nerfbusters" | "custom"; fills image_dir / sparse_dir.
+    preset: str = "synthetic"
+    scenes: list[str] | None = None  # None = every scene directory under root (sorted)
+    image_dir: str | None = None  # None = preset default, e.g. "images_4" for Mip-NeRF 360
+    sparse_dir: str | None = None  # None = preset default, e.g. "sparse/0"
+    height: int | None = None  # resize images (and intrinsics) to this size; None = as stored
+    width: int | None = None  # paper scale: 480 x 720
+    normalize: bool = True  # centre the cameras and scale them into the unit ball (3DGS convention)
+    test_every: int = 8
+
+
+@dataclass
+class PrepareConfig:
+    """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
+
+    cache_dir: str = "data/cache"
+    work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
+    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    # Dense view sets; None = all training views. Every student set is also fitted to its final
+    # snapshot so that a non-privileged teacher (variant B, 3 views) has a condition too.
+    dense_views: list[int | None] = field(default_factory=lambda: [12, 18, None])
+    student_snapshots: list[int] = field(default_factory=lambda: [140, 340])  # paper: 7000, 17000
+    # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
+    fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
+    clips_per_scene: int = 8  # paper: 150
+    # Clips follow the deployment trajectories (splat TrajectoryConfig defaults: ellipse + bridges).
+    frames_per_clip: int = 9  # paper: 49
+    pseudo_target: str = "gt"  # "gt" | "restorer" | "dense"; paper: "restorer" (frozen GSFixer)
+    pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
+    caption: str = "a photo of a scene"  # used when a scene has no caption.txt
+    shard_index: int = 0
+    num_shards: int = 1  # shard by scene for Hydra multirun / SLURM arrays
+    force: bool = False
+    contact_sheet: bool = True
+    latent_dtype: str = "float16"
+    seed: int = 0
+
+
+@dataclass
+class DataModuleConfig:
+    """Which cached conditions the PairedClipDataModule serves and how it batches them."""
+
+    cache_dir: str = "data/cache"
+    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    student_snapshots: list[int] = field(default_factory=lambda: [140, 340])
+    batch_size: int = 2  # paper: 2 per GPU
+    num_workers: int = 0
+    val_scenes: list[str] = field(default_factory=list)  # scene names held out for validation
+    caption_dropout: float = 0.1  # supplement A.2: zero text embedding, shared by both roles
+    seed: int = 0

@@ -1,0 +1,184 @@
+"""``PairedClipDataModule``: paired student/teacher samples served from the prepared cache.
+
+Sample dict (one clip; the default collate stacks a batch along a new first dim):
+
+- ``student_cond`` (f, C, h, w) float32: codec latent of R_s (K sparse views, early snapshot)
+- ``teacher_cond`` (f, C, h, w) float32: codec latent of R_d (the teacher's view set, final snapshot)
+- ``target`` (f, C, h, w) float32: codec latent of the pseudo-target I_T
+- ``ref_2d`` (R, D2), ``ref_3d`` (R, D3) float32: reference tokens of the clip's two reference views,
+  identical for both roles (supplement A.2)
+- ``text`` (L, Dt) float32: text embedding, already all-zero when the caption is dropped
+- ``text_dropped`` () bool: the caption-dropout flag, sampled once per sample and shared by both roles
+- ``scene`` str, ``clip`` int: provenance
+- ``student_views`` int (K), ``teacher_views`` int (-1 = all training views), ``snapshot`` int
+
+Each training draw picks K and the snapshot uniformly from the configured lists and the dropout flag with
+probability ``caption_dropout``, from a generator seeded by (seed, epoch, index): reproducible, yet a clip
+gets a fresh choice every epoch. Validation draws are seeded by the index only.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import lightning as L
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from tracegs.data.config import DataModuleConfig
+from tracegs.data.prepare import MANIFEST, condition_key
+from tracegs.data.splits import view_set_key
+
+
+class CacheError(ValueError):
+    """The prepared cache is missing, inconsistent with the request, or damaged."""
+
+
+def read_manifest(cache_dir: str | Path) -> dict:
+    path = Path(cache_dir) / MANIFEST
+    if not path.is_file():
+        raise CacheError(f"{path}: no manifest; run prepare first")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as error:
+        raise CacheError(f"{path}: corrupt manifest ({error})") from error
+
+
+def check_shard(path: Path, required: list[str]) -> None:
+    """Open a shard's header and check it holds ``required`` keys; raises ``CacheError`` naming the file."""
+    if not path.is_file():
+        raise CacheError(f"{path}: shard listed in the manifest is missing")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            keys = set(f.keys())
+    except (SafetensorError, OSError, ValueError) as error:
+        raise CacheError(f"{path}: corrupt shard ({error})") from error
+    missing = [k for k in required if k not in keys]
+    if missing:
+        raise CacheError(f"{path}: shard lacks {missing}; re-run prepare with these view sets / snapshots")
+
+
+class PairedClipDataset(Dataset):
+    """Clips of the given scenes; items are indices or ``(index, draw_seed)`` pairs from ``EpochSampler``."""
+
+    def __init__(self, cache_dir: str | Path, scenes: list[str], manifest: dict, student_views: list[int],
+                 student_snapshots: list[int], teacher_views: int | None, caption_dropout: float, seed: int):
+        self.cache_dir = Path(cache_dir)
+        self.clips = [(scene, i, self.cache_dir / rel) for scene in scenes
+                      for i, rel in enumerate(manifest["scenes"][scene]["clips"])]
+        self.student_views = list(student_views)
+        self.student_snapshots = list(student_snapshots)
+        self.teacher_views = teacher_views
+        self.teacher_key = condition_key(teacher_views)
+        self.caption_dropout = caption_dropout
+        self.seed = seed
+        required = [f"latent/{condition_key(k, s)}" for k in student_views for s in student_snapshots]
+        required += [f"latent/{self.teacher_key}", "latent/target", "ref_2d", "ref_3d", "text"]
+        for _, _, path in self.clips:
+            check_shard(path, required)
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    def __getitem__(self, item: int | tuple[int, int]) -> dict:
+        index, draw_seed = item if isinstance(item, tuple) else (item, self.seed * 1_000_003 + item)
+        scene, clip, path = self.clips[index]
+        generator = torch.Generator().manual_seed(draw_seed)
+        views = self.student_views[int(torch.randint(len(self.student_views), (), generator=generator))]
+        snapshot = self.student_snapshots[int(torch.randint(len(self.student_snapshots), (), generator=generator))]
+        dropped = bool(torch.rand((), generator=generator) < self.caption_dropout)
+        try:
+            tensors = load_file(str(path))
+        except (SafetensorError, OSError, ValueError) as error:
+            raise CacheError(f"{path}: corrupt shard ({error})") from error
+        text = tensors["text"].float()
+        return {
+            "student_cond": tensors[f"latent/{condition_key(views, snapshot)}"].float(),
+            "teacher_cond": tensors[f"latent/{self.teacher_key}"].float(),
+            "target": tensors["latent/target"].float(),
+            "ref_2d": tensors["ref_2d"].float(),
+            "ref_3d": tensors["ref_3d"].float(),
+            # Supplement A.2: a dropped caption is an all-zero embedding (not the encoding of ""), and the
+            # same embedding goes to both roles.
+            "text": torch.zeros_like(text) if dropped else text,
+            "text_dropped": torch.tensor(dropped),
+            "scene": scene,
+            "clip": clip,
+            "student_views": views,
+            "teacher_views": -1 if self.teacher_views is None else int(self.teacher_views),
+            "snapshot": snapshot,
+        }
+
+
+class EpochSampler(Sampler):
+    """Shuffled indices paired with a per-draw seed derived from (seed, epoch, index).
+
+    Lightning calls ``set_epoch`` on the sampler each epoch, so the student view count, snapshot and
+    caption-dropout flag are redrawn every epoch yet reproducible.
+    """
+
+    def __init__(self, length: int, seed: int, shuffle: bool = True):
+        self.length, self.seed, self.shuffle, self.epoch = length, seed, shuffle, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        generator = torch.Generator().manual_seed(self.seed * 7919 + self.epoch)
+        order = torch.randperm(self.length, generator=generator) if self.shuffle else torch.arange(self.length)
+        for index in order.tolist():
+            yield index, (self.seed * 1_000_003 + self.epoch) * 1_000_033 + index
+
+
+class PairedClipDataModule(L.LightningDataModule):
+    """Train/val split by scene over the prepared cache; see the module docstring for the sample dict.
+
+    ``teacher_views`` comes from the ``teacher`` config group (None = all training views, 3 for the
+    non-privileged variant B, 12 / 18 for variants C / D).
+    """
+
+    def __init__(self, cfg: DataModuleConfig, teacher_views: int | None = None):
+        super().__init__()
+        self.cfg = cfg
+        self.teacher_views = teacher_views
+        self.train_set: PairedClipDataset | None = None
+        self.val_set: PairedClipDataset | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        cfg = self.cfg
+        manifest = read_manifest(cfg.cache_dir)
+        available = manifest.get("teacher_views", [])
+        if view_set_key(self.teacher_views) not in available:
+            raise CacheError(f"{Path(cfg.cache_dir) / MANIFEST}: teacher views {view_set_key(self.teacher_views)} "
+                             f"not prepared (have {available})")
+        unknown = [s for s in cfg.val_scenes if s not in manifest["scenes"]]
+        if unknown:
+            raise CacheError(f"data.val_scenes {unknown} are not in the cache {cfg.cache_dir}")
+        train = [s for s in manifest["scenes"] if s not in cfg.val_scenes]
+        if not train:
+            raise CacheError(f"{cfg.cache_dir}: every scene is a validation scene; nothing to train on")
+
+        def dataset(scenes: list[str]) -> PairedClipDataset:
+            return PairedClipDataset(cfg.cache_dir, scenes, manifest, cfg.student_views, cfg.student_snapshots,
+                                     self.teacher_views, cfg.caption_dropout, cfg.seed)
+
+        self.train_set = dataset(train)
+        self.val_set = dataset(list(cfg.val_scenes)) if cfg.val_scenes else None
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(self.train_set, batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers,
+                          sampler=EpochSampler(len(self.train_set), self.cfg.seed), drop_last=False,
+                          persistent_workers=self.cfg.num_workers > 0)
+
+    def val_dataloader(self) -> DataLoader | list:
+        if self.val_set is None:
+            return []
+        return DataLoader(self.val_set, batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers,
+                          shuffle=False)

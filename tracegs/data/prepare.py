@@ -1,0 +1,428 @@
+"""Paired-clip preparation (paper Sec. 4.1 "Training Data"; supplement A.2 and A.4).
+
+For every scene and view set V_b (sparse K = 3, 6, 9 and dense 12, 18, all) a 3DGS is fitted with
+snapshots; the student condition R_s comes from the early snapshots (paper 7k / 17k) of the sparse fits,
+the teacher condition R_d from the final snapshot (paper 30k). Both are rendered along the same clip
+trajectory P, which starts and ends at two reference views taken from V_s (so from every sparse set,
+since the sets are nested). Pseudo-targets come from ground truth, the dense rendering, or a frozen
+restorer applied to R_d (the paper's choice). Frozen encoders run once here: the cache holds codec latents,
+reference tokens and the text embedding, so training never loads them.
+
+Work units and resumability: one PLY per (scene, view set, snapshot) in ``work_dir`` and one safetensors
+shard per (scene, clip) in ``cache_dir``; every file is written atomically, finished units are skipped,
+and ``force`` redoes them. Runs can be sharded by scene (``shard_index`` / ``num_shards``); each shard
+writes its own manifest and ``merge_manifests`` joins them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from rich.progress import Progress
+from safetensors import safe_open
+from torchmetrics.functional.image import peak_signal_noise_ratio
+
+from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
+from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.splits import SceneSplit, make_split, view_set_key
+from tracegs.data.synthetic import GT_PLY, benchmark_scene_names, generate_benchmark, render_images
+from tracegs.io import atomic_write, save_safetensors_atomic, write_json_atomic
+from tracegs.restorer.build import Backbone
+from tracegs.splat.cameras import Camera
+from tracegs.splat.config import TrajectoryConfig
+from tracegs.splat.fit import View, fit_gaussians
+from tracegs.splat.gaussians import GaussianModel
+from tracegs.splat.ply import load_ply, save_ply
+from tracegs.splat.trajectory import round_trajectory
+
+PSEUDO_SOURCES = ("gt", "restorer", "dense")
+MANIFEST = "manifest.json"
+MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
+
+
+class PrepareError(ValueError):
+    """The preparation configuration or input data cannot be used."""
+
+
+def condition_key(views: int | None, snapshot: int | None = None) -> str:
+    """Cache key of a rendered condition: ``s{K}_it{snapshot}`` (student) or ``d{V}`` (final snapshot)."""
+    return f"s{view_set_key(views)}_it{snapshot}" if snapshot is not None else f"d{view_set_key(views)}"
+
+
+@dataclass
+class ScenePlan:
+    """A validated scene: its data, split and the fits it needs (view-set key -> snapshot iterations)."""
+
+    scene: Scene
+    split: SceneSplit
+    fits: dict[str, list[int]]
+
+
+def _view_counts(cfg: PrepareConfig) -> list[int | None]:
+    return list(cfg.student_views) + list(cfg.dense_views)
+
+
+def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> ScenePlan:
+    """Load and split a scene, and list the fits; raises before anything is written on bad input."""
+    scene = load_scene(source, name)
+    split = make_split(len(scene), _view_counts(cfg), source.test_every, split_dir=scene.root,
+                       test_indices=test_indices_for(source, scene))
+    final = cfg.fit.iterations
+    fits: dict[str, list[int]] = {}
+    for count in _view_counts(cfg):
+        snapshots = set(fits.get(view_set_key(count), [])) | {final}
+        if count in cfg.student_views:
+            snapshots |= set(cfg.student_snapshots)
+        fits[view_set_key(count)] = sorted(snapshots)
+    if cfg.pseudo_target == "gt" and not (scene.root / GT_PLY).is_file():
+        raise PrepareError(f"{scene.root / GT_PLY}: prepare.pseudo_target='gt' needs a ground-truth scene "
+                           "(only synthetic scenes have one); use 'restorer' or 'dense'")
+    return ScenePlan(scene, split, fits)
+
+
+def validate_config(cfg: PrepareConfig) -> None:
+    if cfg.pseudo_target not in PSEUDO_SOURCES:
+        raise PrepareError(f"prepare.pseudo_target={cfg.pseudo_target!r} must be one of {PSEUDO_SOURCES}")
+    if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):
+        raise PrepareError(f"prepare.pseudo_adapter={cfg.pseudo_adapter!r}: adapter file not found")
+    bad = [s for s in cfg.student_snapshots if not 0 < s < cfg.fit.iterations]
+    if bad:
+        raise PrepareError(f"prepare.student_snapshots {bad} must lie in (0, fit.iterations={cfg.fit.iterations})")
+    if not 0 <= cfg.shard_index < cfg.num_shards:
+        raise PrepareError(f"prepare.shard_index={cfg.shard_index} must lie in [0, num_shards={cfg.num_shards})")
+    if cfg.frames_per_clip < 3:
+        raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
+    if not cfg.student_views:
+        raise PrepareError("prepare.student_views is empty")
+
+
+def shard_scenes(names: list[str], shard_index: int, num_shards: int) -> list[str]:
+    """The scenes of one shard: every ``num_shards``-th scene starting at ``shard_index``."""
+    return names[shard_index::num_shards]
+
+
+def scene_seed(seed: int, name: str) -> int:
+    """A stable per-scene seed (Python's ``hash`` is salted per process, so use a digest)."""
+    return int.from_bytes(hashlib.sha256(f"{seed}:{name}".encode()).digest()[:4], "little")
+
+
+def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int]) -> dict[int, Path]:
+    return {it: work_dir / scene / f"fit_{key}" / f"it{it:06d}.ply" for it in snapshots}
+
+
+def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig, work_dir: Path, progress: bool) -> bool:
+    """Fit 3DGS to one view set and save its snapshots as PLY; skipped when they all exist. True if fitted."""
+    paths = fit_unit_paths(work_dir, plan.scene.name, key, plan.fits[key])
+    if not cfg.force and all(p.is_file() for p in paths.values()):
+        return False
+    scene = plan.scene
+    indices = plan.split.view_sets[key]
+    views = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
+    # Initialise from the SfM points this view set would triangulate itself (seen by >= 2 of its views),
+    # so sparse fits do not inherit geometry from views they never saw; too few -> random (3DGS fallback).
+    points, colors = scene.points_seen_by(indices)
+    init = GaussianModel.from_points(points, colors) if len(points) >= MIN_INIT_POINTS else None
+    snapshots = fit_gaussians(views, cfg.fit, init, plan.fits[key], progress=progress)
+    for iteration, path in paths.items():
+        with atomic_write(path) as tmp:
+            save_ply(snapshots[iteration], tmp)
+    return True
+
+
+def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
+    """Clip trajectories as deployment renders them (supplement A.5): per round a fresh ellipse around the
+    training cameras, one clip per reference pair bridging from reference a along the ellipse to b.
+
+    References come from the smallest sparse set, so they lie in every V_s (and every V_d). Pairs chain
+    around it ((v0, v1), (v1, v2), ..., (vK, v0)); odd rounds run the chain backwards.
+    """
+    scene, split = plan.scene, plan.split
+    anchors = split.views(min(cfg.student_views))
+    if len(anchors) < 2:
+        raise PrepareError(f"{scene.name}: the smallest sparse view set has one view; clips need two references")
+    chain = list(zip(anchors, anchors[1:] + anchors[:1]))
+    train_cameras = [scene.cameras[i] for i in split.train]
+    trajectory = TrajectoryConfig(frames_per_clip=cfg.frames_per_clip)
+    generator = torch.Generator().manual_seed(scene_seed(cfg.seed, scene.name))
+    clips: list[dict] = []
+    round_index = 0
+    while len(clips) < cfg.clips_per_scene:
+        pairs = chain if round_index % 2 == 0 else [(b, a) for a, b in chain]
+        refs = [(scene.cameras[a], scene.cameras[b]) for a, b in pairs]
+        cameras = round_trajectory(train_cameras, refs, round_index, trajectory, generator)
+        clips += [{"refs": list(p), "cameras": c} for p, c in zip(pairs, cameras)]
+        round_index += 1
+    return clips[: cfg.clips_per_scene]
+
+
+def normalised_ground_truth(scene: Scene, source: SceneSourceConfig) -> GaussianModel:
+    """The stored ground-truth Gaussians moved into the scene's normalised frame (x' = (x - c) / r)."""
+    model = load_ply(scene.root / GT_PLY)
+    if source.normalize:
+        with torch.no_grad():
+            model.means.copy_((model.means - scene.world_offset) / scene.world_scale)
+            model.log_scales.sub_(math.log(scene.world_scale))
+    return model
+
+
+def to_uint8(frames: torch.Tensor) -> torch.Tensor:
+    return (frames.clamp(0, 1) * 255.0).round().to(torch.uint8)
+
+
+def psnr_on_path(frames: torch.Tensor, reference: torch.Tensor) -> float:
+    """PSNR on the trajectory frames, excluding the two reference frames at the clip ends."""
+    return float(peak_signal_noise_ratio(frames[1:-1], reference[1:-1], data_range=1.0))
+
+
+def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target: torch.Tensor,
+                ref_images: torch.Tensor, caption: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+    """Codec latents of every condition and the target, reference tokens, text embedding (all frozen)."""
+    keys = list(conditions)
+    with torch.no_grad():
+        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target]))
+        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None])
+        text = backbone.text_encoder.encode([caption])
+    out = {f"latent/{k}": latents[i].to(dtype) for i, k in enumerate(keys)}
+    out["latent/target"] = latents[-1].to(dtype)
+    out["ref_2d"], out["ref_3d"], out["text"] = ref_2d[0].to(dtype), ref_3d[0].to(dtype), text[0].to(dtype)
+    return out
+
+
+def shard_is_valid(path: Path) -> bool:
+    """A shard exists and its header and data are readable (atomic writes make partial files impossible,
+    but a disk can still corrupt them)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return "latent/target" in f.keys()
+    except Exception:  # safetensors raises SafetensorError / OSError subclasses on damaged files
+        return False
+
+
+def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
+    """The frozen pseudo-target generator (supplement A.4): backbone + the pretrained adapter phi_pre."""
+    from tracegs.restorer.adapters import load_adapter
+    from tracegs.restorer.sampler import RestorationPipeline
+
+    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False)
+    return RestorationPipeline(backbone, adapter="pseudo_target")
+
+
+def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, GaussianModel],
+                 gt_model: GaussianModel | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
+                 background: list[float], path: Path) -> dict[str, float]:
+    """Render, encode and save one paired clip; returns PSNR vs ground truth of every condition."""
+    cameras: list[Camera] = clip["cameras"]
+    conditions = {key: torch.stack(render_images(model, cameras, background)) for key, model in models.items()}
+    ground_truth = torch.stack(render_images(gt_model, cameras, background)) if gt_model is not None else None
+    a, b = clip["refs"]
+    ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
+    caption = plan.scene.caption or cfg.caption
+    dense = conditions[condition_key(dense_target_views(cfg))]
+    if cfg.pseudo_target == "gt":
+        target = ground_truth
+    elif cfg.pseudo_target == "dense":
+        target = dense
+    else:
+        target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, str(path)))[0]
+        target = target.clamp(0, 1)
+    tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
+    for key, frames in conditions.items():
+        tensors[f"frames/{key}"] = to_uint8(frames)
+    tensors["frames/target"] = to_uint8(target)
+    tensors["frames/ref"] = to_uint8(ref_images)
+    if ground_truth is not None:
+        tensors["frames/gt"] = to_uint8(ground_truth)
+    tensors["poses"] = torch.stack([c.world_to_camera for c in cameras]).float()
+    tensors["intrinsics"] = torch.stack([c.K for c in cameras]).float()
+    psnr = {}
+    if ground_truth is not None:
+        psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
+    metadata = {"scene": plan.scene.name, "clip": str(index), "caption": caption, "refs": json.dumps([a, b]),
+                "pseudo_target": cfg.pseudo_target, "psnr_vs_gt": json.dumps(psnr)}
+    save_safetensors_atomic(tensors, path, metadata)
+    return psnr
+
+
+def dense_target_views(cfg: PrepareConfig) -> int | None:
+    """The densest configured view set (None = all), whose R_d feeds the pseudo-target generator."""
+    return None if None in cfg.dense_views else max(cfg.dense_views)
+
+
+def read_shard_psnr(path: Path) -> dict[str, float]:
+    with safe_open(str(path), framework="pt") as f:
+        return json.loads(f.metadata().get("psnr_vs_gt", "{}"))
+
+
+def contact_sheet(shard: Path, out: Path, student: str, dense: str) -> None:
+    """PNG with one row per frame of a clip: R_s | R_d | target (| ground truth when known)."""
+    with safe_open(str(shard), framework="pt") as f:
+        columns = [f.get_tensor(f"frames/{k}") for k in (student, dense, "target")]
+        if "frames/gt" in f.keys():
+            columns.append(f.get_tensor("frames/gt"))
+    rows = torch.cat([torch.cat([c[i] for c in columns], dim=2) for i in range(columns[0].shape[0])], dim=1)
+    with atomic_write(out) as tmp:
+        Image.fromarray(rows.permute(1, 2, 0).numpy()).save(tmp, format="PNG")
+
+
+def remove_stale_temporaries(directory: Path) -> None:
+    """Delete temporaries a killed run left behind (``atomic_write`` names them ``.<name>.*.tmp``)."""
+    if directory.is_dir():
+        for tmp in directory.rglob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
+
+
+def prepare_scene(plan: ScenePlan, source: SceneSourceConfig, cfg: PrepareConfig, backbone: Backbone, pipeline,
+                  background: list[float], progress: Progress) -> dict:
+    """All work units of one scene; returns its manifest entry."""
+    name = plan.scene.name
+    cache_dir, work_dir = Path(cfg.cache_dir), Path(cfg.work_dir)
+    for directory in (cache_dir / name, work_dir / name):
+        remove_stale_temporaries(directory)
+    fit_task = progress.add_task(f"{name}: fits", total=len(plan.fits))
+    for key in plan.fits:
+        fit_view_set(plan, key, cfg, work_dir, progress=False)
+        progress.advance(fit_task)
+    clips = clip_cameras(plan, cfg)
+    shard_paths = [cache_dir / name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
+    todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p)]
+    clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
+    if todo:
+        models = {}
+        for key, snapshots in plan.fits.items():
+            paths = fit_unit_paths(work_dir, name, key, snapshots)
+            models[condition_key(None if key == "all" else int(key))] = load_ply(paths[cfg.fit.iterations])
+            views = None if key == "all" else int(key)
+            if views in cfg.student_views:
+                for snapshot in cfg.student_snapshots:
+                    models[condition_key(views, snapshot)] = load_ply(paths[snapshot])
+        gt_model = normalised_ground_truth(plan.scene, source) if (plan.scene.root / GT_PLY).is_file() else None
+        for c in todo:
+            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, background, shard_paths[c])
+            progress.advance(clip_task)
+    scene_file = cache_dir / name / "scene.json"
+    scene_info = {
+        "name": name,
+        "caption": plan.scene.caption or cfg.caption,
+        "image_names": plan.scene.image_names,
+        "split": plan.split.to_dict(),
+        "intrinsics": [c.K.tolist() for c in plan.scene.cameras],
+        "world_to_camera": [c.world_to_camera.tolist() for c in plan.scene.cameras],
+        "size": [plan.scene.cameras[0].height, plan.scene.cameras[0].width],
+        "clip_refs": [clip["refs"] for clip in clips],
+    }
+    write_if_changed(scene_info, scene_file)
+    student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
+    sheet = cache_dir / name / "contact_sheet.png"
+    if cfg.contact_sheet and (cfg.force or todo or not sheet.is_file()):
+        contact_sheet(shard_paths[0], sheet, student, condition_key(dense_target_views(cfg)))
+    psnr: dict[str, list[float]] = {}
+    for path in shard_paths:
+        for key, value in read_shard_psnr(path).items():
+            psnr.setdefault(key, []).append(value)
+    return {
+        "scene_file": str(scene_file.relative_to(cache_dir)),
+        "caption": scene_info["caption"],
+        "clips": [str(p.relative_to(cache_dir)) for p in shard_paths],
+        "psnr_vs_gt": {k: float(np.mean(v)) for k, v in psnr.items()},
+    }
+
+
+def write_if_changed(data: dict, path: Path) -> None:
+    """Atomic JSON write that leaves an identical file untouched (a rerun with no work changes nothing)."""
+    if path.is_file():
+        try:
+            if json.loads(path.read_text()) == json.loads(json.dumps(data)):
+                return
+        except ValueError:
+            pass
+    write_json_atomic(data, path)
+
+
+def manifest_header(cfg: PrepareConfig, backbone: Backbone) -> dict:
+    return {
+        "version": 1,
+        "student_views": list(cfg.student_views),
+        "student_snapshots": list(cfg.student_snapshots),
+        "teacher_views": sorted({view_set_key(v) for v in _view_counts(cfg)}, key=_view_order),
+        "final_snapshot": cfg.fit.iterations,
+        "frames_per_clip": cfg.frames_per_clip,
+        "pseudo_target": cfg.pseudo_target,
+        "backbone": backbone.cfg.name,
+    }
+
+
+def _view_order(key: str) -> float:
+    return math.inf if key == "all" else float(key)
+
+
+def shard_manifest_path(cache_dir: Path, shard_index: int, num_shards: int) -> Path:
+    if num_shards == 1:
+        return cache_dir / MANIFEST
+    return cache_dir / f"manifest_shard{shard_index:03d}_of{num_shards:03d}.json"
+
+
+def merge_manifests(cache_dir: str | Path) -> Path:
+    """Join the per-shard manifests of a sharded run into ``manifest.json``; settings must agree."""
+    cache_dir = Path(cache_dir)
+    parts = sorted(cache_dir.glob("manifest_shard*_of*.json"))
+    if not parts:
+        raise FileNotFoundError(f"{cache_dir}: no shard manifests (manifest_shard*_of*.json) to merge")
+    merged: dict | None = None
+    for part in parts:
+        data = json.loads(part.read_text())
+        header = {k: v for k, v in data.items() if k != "scenes"}
+        if merged is None:
+            merged = {**header, "scenes": {}}
+        elif header != {k: v for k, v in merged.items() if k != "scenes"}:
+            raise PrepareError(f"{part}: settings differ from {parts[0].name}; shards of different runs")
+        merged["scenes"].update(data["scenes"])
+    merged["scenes"] = dict(sorted(merged["scenes"].items()))
+    out = cache_dir / MANIFEST
+    write_if_changed(merged, out)
+    return out
+
+
+def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Backbone,
+                synthetic: SyntheticConfig | None = None, progress: bool = True) -> Path:
+    """Prepare the paired-clip cache and return the path of this shard's manifest.
+
+    With ``synthetic`` given, the benchmark is generated first (idempotent) and, unless ``source.scenes``
+    names scenes, its training seeds are prepared. Every scene of the shard is loaded and split before
+    anything is written, so bad input fails without side effects.
+    """
+    validate_config(prepare)
+    if synthetic is not None:
+        generate_benchmark(synthetic, progress=progress)
+        names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, "train")
+        background = list(synthetic.background)
+    else:
+        names = list_scenes(source)
+        background = [0.0, 0.0, 0.0]
+    names = shard_scenes(names, prepare.shard_index, prepare.num_shards)
+    if not names:
+        raise PrepareError(f"{source.root}: no scenes for shard {prepare.shard_index}/{prepare.num_shards}")
+    plans = []
+    for name in names:
+        try:
+            plans.append(plan_scene(source, prepare, name))
+        except (SceneFormatError, ValueError) as error:
+            raise PrepareError(f"scene {name}: {error}") from error
+    pipeline = restorer_pipeline(backbone, prepare) if prepare.pseudo_target == "restorer" else None
+    cache_dir = Path(prepare.cache_dir)
+    entries = {}
+    with Progress(disable=not progress) as bar:
+        task = bar.add_task("prepare scenes", total=len(plans))
+        for plan in plans:
+            entries[plan.scene.name] = prepare_scene(plan, source, prepare, backbone, pipeline, background, bar)
+            bar.advance(task)
+    manifest = {**manifest_header(prepare, backbone), "scenes": entries}
+    path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
+    write_if_changed(manifest, path)
+    return path

@@ -10,6 +10,7 @@ The sparse-only cold starts do not depend on the restorer, so they are fitted on
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import lightning as L
@@ -20,12 +21,26 @@ from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.evaluate import SceneUnit, load_unit
 from tracegs.deploy.refine import refine, render_views
-from tracegs.deploy.restorers import ClipRestorer
+from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
 
 RestorerFactory = Callable[[L.LightningModule], ClipRestorer]
+
+
+def module_restorer_factory(backbone, adapter: str | None, clip_batch: int = 4,
+                            steps: int | None = None) -> RestorerFactory:
+    """A factory restoring with the module's *own* transformer (``pl_module.transformer``, shared, not
+    copied) and the frozen codec / encoders / schedule of ``backbone`` (``restorer.build.Backbone``).
+    ``adapter`` names the LoRA adapter to deploy (``"student"`` in Stage 2; None = the bare base)."""
+    from tracegs.restorer.sampler import RestorationPipeline
+
+    def factory(pl_module: L.LightningModule) -> ClipRestorer:
+        live = dataclasses.replace(backbone, transformer=pl_module.transformer)
+        return DiffusionRestorer(RestorationPipeline(live, adapter=adapter), clip_batch, steps=steps)
+
+    return factory
 
 
 class DeploymentRefinement(L.Callback):

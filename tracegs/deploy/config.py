@@ -1,7 +1,7 @@
 """Hyperparameters of deployment (supplement A.5) and evaluation (supplement B). Embedded-scale defaults.
 
 Paper scale: ``total_iters=30000``, ``repair_iters=[7000, 17000, 27000]``, ``lambda_reg=1``,
-``frames_per_clip=49``; the restorer runs its full M = 50-step schedule (``backbone.schedule.deploy_steps``)
+``trajectory.frames_per_clip=49``, ``max_clips_per_round=None``, ``clip_batch=1``; the restorer runs its full M = 50-step schedule (``backbone.schedule.deploy_steps``)
 with the backbone's guidance scale, so neither is repeated here.
 """
 
@@ -22,6 +22,9 @@ class RefinementConfig:
     repair_iters: list[int] = field(default_factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
     lambda_reg: float = 1.0  # peak of the half-sine w_reg
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    # Clips restored per round: None = one per reference pair of the chained captured views (K clips, the
+    # paper's protocol); the embedded default samples 2 per round to keep CPU deployment within minutes.
+    max_clips_per_round: int | None = 2
     clip_batch: int = 4  # clips restored per sampler call (memory knob only; paper scale: 1)
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
     steps: int | None = None
@@ -39,6 +42,8 @@ class RefinementConfig:
             )
         if self.steps is not None and self.steps < 1:
             raise ValueError(f"refinement.steps must be >= 1 or null (full schedule), got {self.steps}")
+        if self.max_clips_per_round is not None and self.max_clips_per_round < 1:
+            raise ValueError(f"refinement.max_clips_per_round must be >= 1 or null, got {self.max_clips_per_round}")
         if self.clip_batch < 1:
             raise ValueError(f"refinement.clip_batch must be >= 1, got {self.clip_batch}")
 

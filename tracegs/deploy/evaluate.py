@@ -23,7 +23,8 @@ from torch import Tensor
 
 from tracegs.data.colmap import Scene, load_scene, test_indices_for
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.splits import make_split
+from tracegs.data.prepare import MIN_INIT_POINTS, scene_seed
+from tracegs.data.splits import make_split, view_set_key
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
@@ -64,11 +65,14 @@ def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
 
 
 def initial_model(scene: Scene, views: Sequence[int]) -> GaussianModel:
-    """3DGS initialisation from the SfM points that V_s itself observes (no leak from other views)."""
+    """3DGS initialisation exactly as ``prepare`` made the sparse fits of the training data: the SfM points
+    V_s itself observes (no leak from other views), else random Gaussians in the normalised unit ball."""
     points, colors = scene.points_seen_by(list(views))
-    if len(points) < 4:  # too few tracks among K views: fall back to the scene's full point cloud
-        points, colors = scene.points, scene.colors
-    return GaussianModel.from_points(points, colors)
+    if len(points) >= MIN_INIT_POINTS:
+        return GaussianModel.from_points(points, colors)
+    key = f"{scene.name}/{view_set_key(len(views))}"
+    generator = torch.Generator().manual_seed(scene_seed(0, key))
+    return GaussianModel.random(max(len(scene.points), 1000), radius=1.0, generator=generator)
 
 
 def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
@@ -102,8 +106,7 @@ class SceneUnit:
     test_images: Tensor  # [T,3,H,W] ground truth of the held-out test views
 
     def cold_start(self, refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig) -> GaussianFitter:
-        return cold_start(self.captured, initial_model(self.scene, self.captured_ids), self.scene.extent(),
-                          refine_cfg, fit_cfg)
+        return cold_start(self.captured, initial_model(self.scene, self.captured_ids), refine_cfg, fit_cfg)
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:

@@ -10,10 +10,11 @@ L = L_sparse + w_reg(j) L_pseudo (Eq. supp-refinement-objective); captured views
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -23,7 +24,7 @@ from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
-from tracegs.splat.fit import GaussianFitter, View
+from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render
 from tracegs.splat.trajectory import round_trajectory
@@ -52,17 +53,6 @@ class RepairRound:
     pseudo: list[View]  # replaces every earlier pseudo view
 
 
-def reference_index(camera: Camera, captured: Sequence[View], tol: float = 1e-4) -> int:
-    """Which captured view a clip end sits at (trajectory clips start/end exactly at reference views)."""
-    centres = torch.stack([v.camera.center for v in captured])
-    dist = (centres - camera.center).norm(dim=-1)
-    best = int(dist.argmin())
-    scale = float(centres.std(dim=0).norm().clamp_min(1.0))
-    if float(dist[best]) > tol * scale:
-        raise ValueError(f"clip end is {float(dist[best]):.3g} away from every captured view: not a reference view")
-    return best
-
-
 @torch.no_grad()
 def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Tensor,
                  sh_degree: int | None) -> Tensor:
@@ -71,23 +61,34 @@ def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Te
                        ).clamp(0, 1)
 
 
+def reference_pairs(num_views: int, max_clips: int | None, generator: torch.Generator) -> list[tuple[int, int]]:
+    """Reference-view pairs of one round: the captured views chained in capture order and closed into a
+    loop ((v0, v1), ..., (v_{K-1}, v0)), so the round's clips cover the whole ellipse; with ``max_clips``
+    a random subset per round (rounds then cover different arcs)."""
+    if num_views < 2:
+        raise ValueError(f"deployment clips need two reference views, but only {num_views} view is captured")
+    pairs = [(i, (i + 1) % num_views) for i in range(num_views)] if num_views > 2 else [(0, 1), (1, 0)]
+    if max_clips is not None and max_clips < len(pairs):
+        keep = torch.randperm(len(pairs), generator=generator)[:max_clips].sort().values.tolist()
+        pairs = [pairs[i] for i in keep]
+    return pairs
+
+
 def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
                        fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
     """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
     whose two ends are observed reference views (their captured images become the clip's references)."""
     cameras = [v.camera for v in captured]
-    clip_cameras = round_trajectory(cameras, None, round_index, cfg.trajectory, generator)
+    pairs = reference_pairs(len(captured), cfg.max_clips_per_round, generator)
+    clip_cameras = round_trajectory(cameras, [(cameras[a], cameras[b]) for a, b in pairs], round_index,
+                                    cfg.trajectory, generator)
     background = torch.tensor(fit_cfg.background, dtype=torch.float32)
-    clips = []
-    for cams in clip_cameras:
-        ref_a, ref_b = reference_index(cams[0], captured), reference_index(cams[-1], captured)
-        clips.append(Clip(
-            frames=render_views(fitter.model, cams, background, fitter.active_sh_degree),
-            cameras=list(cams),
-            references=torch.stack([captured[ref_a].image, captured[ref_b].image]),
-            caption=caption,
-        ))
-    return clips
+    degree = fitter.sh_degree(fitter.iteration)
+    return [
+        Clip(frames=render_views(fitter.model, cams, background, degree), cameras=list(cams),
+             references=torch.stack([captured[a].image, captured[b].image]), caption=caption)
+        for (a, b), cams in zip(pairs, clip_cameras)
+    ]
 
 
 def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer, round_index: int,
@@ -110,8 +111,8 @@ def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: Cli
     return RepairRound(index=round_index, iteration=fitter.iteration, clips=clips, pseudo=pseudo)
 
 
-def cold_start(captured: Sequence[View], init: GaussianModel, scene_extent: float, cfg: RefinementConfig,
-               fit_cfg: GaussianFitConfig, progress: bool = False) -> GaussianFitter:
+def cold_start(captured: Sequence[View], init: GaussianModel, cfg: RefinementConfig, fit_cfg: GaussianFitConfig,
+               progress: bool = False) -> GaussianFitter:
     """The sparse-only cold start G <- 3DGS(V_s), trained up to the first repair iteration.
 
     Identical for every method, so evaluation fits it once per (scene, K) and branches it (``refine``
@@ -119,9 +120,20 @@ def cold_start(captured: Sequence[View], init: GaussianModel, scene_extent: floa
     cfg.validate()
     fit_cfg = copy.deepcopy(fit_cfg)
     fit_cfg.iterations = cfg.total_iters  # schedules (lr decay, densification) span the whole J
-    fitter = GaussianFitter(init.clone(), fit_cfg, scene_extent)
-    fitter.train_until(cfg.repair_iters[0], list(captured), progress=progress)
+    # Scene extent from V_s alone, as the sparse fits of the training data were made (``fit_gaussians``).
+    fitter = GaussianFitter(init.clone(), fit_cfg, camera_extent([v.camera for v in captured]))
+    with _seeded_global_rng(cfg.seed):
+        fitter.train_until(cfg.repair_iters[0], list(captured), progress=progress)
     return fitter
+
+
+@contextlib.contextmanager
+def _seeded_global_rng(seed: int) -> Iterator[None]:
+    """gsplat's densification samples split positions from torch's global RNG; seed it for this run only,
+    so every method branched from one cold start sees the same randomness whatever ran before."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
 
 
 def refine(cold: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer | None, cfg: RefinementConfig,
@@ -137,10 +149,21 @@ def refine(cold: GaussianFitter, captured: Sequence[View], restorer: ClipRestore
                          f"iteration {cfg.repair_iters[0]}")
     fitter = copy.deepcopy(cold)
     captured = list(captured)
-    if restorer is None:
-        fitter.train_until(cfg.total_iters, captured, progress=progress)
-        return fitter.model
-    generator = torch.Generator().manual_seed(cfg.seed if seed is None else seed)
+    seed = cfg.seed if seed is None else seed
+    with _seeded_global_rng(seed + 1):
+        if restorer is None:
+            fitter.train_until(cfg.total_iters, captured, progress=progress)
+        else:
+            _repair_and_train(fitter, captured, restorer, cfg, fit_cfg, caption, seed, on_round, progress)
+    return fitter.model
+
+
+def _repair_and_train(fitter: GaussianFitter, captured: list[View], restorer: ClipRestorer, cfg: RefinementConfig,
+                      fit_cfg: GaussianFitConfig, caption: str, seed: int,
+                      on_round: Callable[[RepairRound], None] | None, progress: bool) -> None:
+    """The N_r repair rounds, each followed by optimisation with L_sparse + w_reg(j) L_pseudo up to the
+    next repair iteration (or J)."""
+    generator = torch.Generator().manual_seed(seed)
     weight = functools.partial(pseudo_weight, first_repair=cfg.repair_iters[0], total=cfg.total_iters,
                                lambda_reg=cfg.lambda_reg)
     ends = list(cfg.repair_iters[1:]) + [cfg.total_iters]
@@ -150,13 +173,12 @@ def refine(cold: GaussianFitter, captured: Sequence[View], restorer: ClipRestore
             on_round(current)
         # Replace, never accumulate: only this round's restorations are pseudo-observations.
         fitter.train_until(end, captured, pseudo=current.pseudo, pseudo_weight=weight, progress=progress)
-    return fitter.model
 
 
 def restore_refine(captured: Sequence[View], restorer: ClipRestorer | None, cfg: RefinementConfig,
-                   fit_cfg: GaussianFitConfig, init: GaussianModel, scene_extent: float, caption: str = "",
+                   fit_cfg: GaussianFitConfig, init: GaussianModel, caption: str = "",
                    seed: int | None = None, on_round: Callable[[RepairRound], None] | None = None,
                    progress: bool = False) -> GaussianModel:
     """Algorithm 1 (bottom) end to end: cold start from V_s, then N_r repair rounds up to J."""
-    cold = cold_start(captured, init, scene_extent, cfg, fit_cfg, progress=progress)
+    cold = cold_start(captured, init, cfg, fit_cfg, progress=progress)
     return refine(cold, captured, restorer, cfg, fit_cfg, caption, seed, on_round, progress)

@@ -121,3 +121,15 @@ def test_stage2_without_stage1_adapter_fails_clearly(stages):
     with pytest.raises(FileNotFoundError, match="stage.init_adapter"):
         train_stage(config(tmp, cache, "stage2", 1, "missing", base_weights=str(baseline),
                            init_adapter=str(tmp / "nope.safetensors")))
+
+
+def test_config_accepts_a_matching_dictconfig_and_rejects_bad_fields():
+    from omegaconf import OmegaConf
+
+    from tracegs.training.run import as_train_config
+
+    node = OmegaConf.create({"stage": {"name": "stage1", "max_steps": 7}, "loss": {"lambda_align": 0.5}})
+    cfg = as_train_config(node)
+    assert isinstance(cfg, TrainConfig) and cfg.stage.max_steps == 7 and cfg.loss.lambda_align == 0.5
+    with pytest.raises(ValueError, match="stage.memory_mode"):
+        as_train_config(OmegaConf.create({"stage": {"memory_mode": "fast"}}))

@@ -88,21 +88,15 @@ class DeploymentRefinement(L.Callback):
                     self._units.append((unit, unit.cold_start(self.refine_cfg, self.fit_cfg)))
         return self._units
 
-    @torch.no_grad()
     def run(self, pl_module: L.LightningModule) -> dict[str, float]:
         """Deploy once with the module's current weights; returns the logged values."""
         was_training = pl_module.training
         pl_module.eval()
+        # Lightning validates under inference mode, but 3DGS optimisation needs autograd, and tensors made
+        # in inference mode cannot be saved for backward: leave it for the whole deployment.
         try:
-            restorer = self.restorer_factory(pl_module)
-            background = torch.tensor(self.fit_cfg.background, dtype=torch.float32)
-            per_k: dict[int, list[dict]] = {k: [] for k in self.views}
-            for unit, cold in self._prepared_units():
-                with torch.enable_grad():  # 3DGS optimisation needs autograd even inside validation
-                    model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
-                                   caption=unit.scene.caption or "")
-                renders = render_views(model, unit.test_cameras, background, None)
-                per_k[unit.views].append(mean_metrics(self.metrics.per_view(renders, unit.test_images)))
+            with torch.inference_mode(False), torch.enable_grad():
+                per_k = self._deploy(self.restorer_factory(pl_module))
         finally:
             pl_module.train(was_training)
         logged = {}
@@ -112,6 +106,16 @@ class DeploymentRefinement(L.Callback):
                 if mean[name] is not None:
                     logged[f"{self.prefix}/{name}_k{k}"] = mean[name]
         return logged
+
+    def _deploy(self, restorer: ClipRestorer) -> dict[int, list[dict]]:
+        background = torch.tensor(self.fit_cfg.background, dtype=torch.float32)
+        per_k: dict[int, list[dict]] = {k: [] for k in self.views}
+        for unit, cold in self._prepared_units():
+            model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
+                           caption=unit.scene.caption or "")
+            renders = render_views(model, unit.test_cameras, background, None)
+            per_k[unit.views].append(mean_metrics(self.metrics.per_view(renders, unit.test_images)))
+        return per_k
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.sanity_checking or not self._due(trainer):

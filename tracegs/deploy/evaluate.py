@@ -23,8 +23,8 @@ from torch import Tensor
 
 from tracegs.data.colmap import Scene, load_scene, test_indices_for
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.prepare import MIN_INIT_POINTS, scene_seed
-from tracegs.data.splits import make_split, view_set_key
+from tracegs.data.prepare import MIN_INIT_POINTS
+from tracegs.data.splits import make_split
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
@@ -42,6 +42,7 @@ from tracegs.io import atomic_write, write_json_atomic
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View
+from tracegs.splat.fit import initial_model as random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
 from tracegs.splat.trajectory import bridge_poses
@@ -64,15 +65,14 @@ def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
     return Path(out_dir) / "units" / scene / f"views_{views}.json"
 
 
-def initial_model(scene: Scene, views: Sequence[int]) -> GaussianModel:
+def initial_model(scene: Scene, captured_ids: Sequence[int], captured: Sequence[View],
+                  fit_cfg: GaussianFitConfig) -> GaussianModel:
     """3DGS initialisation exactly as ``prepare`` made the sparse fits of the training data: the SfM points
-    V_s itself observes (no leak from other views), else random Gaussians in the normalised unit ball."""
-    points, colors = scene.points_seen_by(list(views))
+    V_s itself observes (no leak from other views), else random Gaussians where the cameras look."""
+    points, colors = scene.points_seen_by(list(captured_ids))
     if len(points) >= MIN_INIT_POINTS:
         return GaussianModel.from_points(points, colors)
-    key = f"{scene.name}/{view_set_key(len(views))}"
-    generator = torch.Generator().manual_seed(scene_seed(0, key))
-    return GaussianModel.random(max(len(scene.points), 1000), radius=1.0, generator=generator)
+    return random_initial_model(captured, fit_cfg)
 
 
 def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
@@ -106,7 +106,8 @@ class SceneUnit:
     test_images: Tensor  # [T,3,H,W] ground truth of the held-out test views
 
     def cold_start(self, refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig) -> GaussianFitter:
-        return cold_start(self.captured, initial_model(self.scene, self.captured_ids), refine_cfg, fit_cfg)
+        init = initial_model(self.scene, self.captured_ids, self.captured, fit_cfg)
+        return cold_start(self.captured, init, refine_cfg, fit_cfg)
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
@@ -171,7 +172,8 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
     frames = torch.stack([c.frames for c in clips])
     refs = torch.stack([c.references for c in clips])
     return {
-        method: per_step_psnr(restorer.pipeline, frames, refs, [caption] * len(clips), truth, seed=refine_cfg.seed)
+        method: per_step_psnr(restorer.pipeline, frames, refs, [caption] * len(clips), truth, seed=refine_cfg.seed,
+                              steps=restorer.steps)
         for method, restorer in restorers.items() if isinstance(restorer, DiffusionRestorer)
     }
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import kornia
 import torch
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import reset_opa
+from gsplat.strategy.ops import remove, reset_opa
 from rich.progress import Progress
 from torch import Tensor
 
@@ -153,13 +153,26 @@ class GaussianFitter:
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
         if self.cfg.densification.enabled and all(info["means2d"].grad is not None for info in infos):
-            self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, _merge_infos(infos))
+            # gsplat's split draws from the global RNG; seed it from the fitter's generator so a run (and a
+            # deep-copied branch of it) is reproducible without disturbing anyone else's random stream.
+            seed = int(torch.randint(2**62, (), generator=self.generator))
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step,
+                                                 _merge_infos(infos))
             dens = self.cfg.densification
             if step > 0 and step % dens.reset_every == 0 and step < dens.refine_stop_iter:
                 # gsplat 1.5.3 writes `step % reset_every == 0 & step > 0`, which Python chains into a
                 # condition that is never true, so its opacity reset never runs; apply it here (idempotent if a
                 # fixed gsplat also resets).
                 reset_opa(params, self.optimizers, self.strategy_state, value=dens.prune_opa * 2.0)
+            excess = len(params["means"]) - dens.max_gaussians
+            if excess > 0:
+                # A budget that gsplat's strategy does not have: drop the least opaque Gaussians.
+                weakest = params["opacities"].detach().argsort()[:excess]
+                mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=weakest.device)
+                mask[weakest] = True
+                remove(params, self.optimizers, self.strategy_state, mask)
             self.model.load_parameter_dict(params)
         self.iteration += 1
         return loss.item()

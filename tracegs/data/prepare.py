@@ -32,7 +32,14 @@ from torchmetrics.functional.image import peak_signal_noise_ratio
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, make_split, view_set_key
-from tracegs.data.synthetic import GT_PLY, benchmark_scene_names, generate_benchmark, render_images
+from tracegs.data.synthetic import (
+    GT_PLY,
+    benchmark_scene_names,
+    generate_benchmark,
+    ground_truth_model,
+    render_images,
+    scene_background,
+)
 from tracegs.io import atomic_write, save_safetensors_atomic, write_json_atomic
 from tracegs.restorer.build import Backbone
 from tracegs.splat.cameras import Camera
@@ -162,16 +169,6 @@ def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
     return clips[: cfg.clips_per_scene]
 
 
-def normalised_ground_truth(scene: Scene, source: SceneSourceConfig) -> GaussianModel:
-    """The stored ground-truth Gaussians moved into the scene's normalised frame (x' = (x - c) / r)."""
-    model = load_ply(scene.root / GT_PLY)
-    if source.normalize:
-        with torch.no_grad():
-            model.means.copy_((model.means - scene.world_offset) / scene.world_scale)
-            model.log_scales.sub_(math.log(scene.world_scale))
-    return model
-
-
 def to_uint8(frames: torch.Tensor) -> torch.Tensor:
     return (frames.clamp(0, 1) * 255.0).round().to(torch.uint8)
 
@@ -216,11 +213,14 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
 
 def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, GaussianModel],
                  gt_model: GaussianModel | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                 background: list[float], path: Path) -> dict[str, float]:
+                 path: Path) -> dict[str, float]:
     """Render, encode and save one paired clip; returns PSNR vs ground truth of every condition."""
     cameras: list[Camera] = clip["cameras"]
-    conditions = {key: torch.stack(render_images(model, cameras, background)) for key, model in models.items()}
-    ground_truth = torch.stack(render_images(gt_model, cameras, background)) if gt_model is not None else None
+    # Reconstructions render on the background they were fitted with, ground truth on its own.
+    conditions = {key: torch.stack(render_images(model, cameras, cfg.fit.background)) for key, model in models.items()}
+    ground_truth = None
+    if gt_model is not None:
+        ground_truth = torch.stack(render_images(gt_model, cameras, scene_background(plan.scene)))
     a, b = clip["refs"]
     ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
     caption = plan.scene.caption or cfg.caption
@@ -278,8 +278,7 @@ def remove_stale_temporaries(directory: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def prepare_scene(plan: ScenePlan, source: SceneSourceConfig, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                  background: list[float], progress: Progress) -> dict:
+def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline, progress: Progress) -> dict:
     """All work units of one scene; returns its manifest entry."""
     name = plan.scene.name
     cache_dir, work_dir = Path(cfg.cache_dir), Path(cfg.work_dir)
@@ -302,9 +301,9 @@ def prepare_scene(plan: ScenePlan, source: SceneSourceConfig, cfg: PrepareConfig
             if views in cfg.student_views:
                 for snapshot in cfg.student_snapshots:
                     models[condition_key(views, snapshot)] = load_ply(paths[snapshot])
-        gt_model = normalised_ground_truth(plan.scene, source) if (plan.scene.root / GT_PLY).is_file() else None
+        gt_model = ground_truth_model(plan.scene) if (plan.scene.root / GT_PLY).is_file() else None
         for c in todo:
-            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, background, shard_paths[c])
+            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, shard_paths[c])
             progress.advance(clip_task)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
@@ -401,10 +400,8 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     if synthetic is not None:
         generate_benchmark(synthetic, progress=progress)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, "train")
-        background = list(synthetic.background)
     else:
         names = list_scenes(source)
-        background = [0.0, 0.0, 0.0]
     names = shard_scenes(names, prepare.shard_index, prepare.num_shards)
     if not names:
         raise PrepareError(f"{source.root}: no scenes for shard {prepare.shard_index}/{prepare.num_shards}")
@@ -420,7 +417,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     with Progress(disable=not progress) as bar:
         task = bar.add_task("prepare scenes", total=len(plans))
         for plan in plans:
-            entries[plan.scene.name] = prepare_scene(plan, source, prepare, backbone, pipeline, background, bar)
+            entries[plan.scene.name] = prepare_scene(plan, prepare, backbone, pipeline, bar)
             bar.advance(task)
     manifest = {**manifest_header(prepare, backbone), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)

@@ -23,7 +23,7 @@ import torch
 from PIL import Image
 from rich.progress import Progress
 
-from tracegs.data.colmap import write_colmap_model
+from tracegs.data.colmap import Scene, write_colmap_model
 from tracegs.data.config import SyntheticConfig
 from tracegs.splat.cameras import Camera
 from tracegs.splat.gaussians import NUM_SH_REST, SH_C0, GaussianModel, rgb_to_sh_dc
@@ -227,12 +227,27 @@ def render_with_depth(model: GaussianModel, cameras: list[Camera],
     return out
 
 
-def render_ground_truth(scene_dir: Path, cameras: list[Camera], background: list[float]) -> list[torch.Tensor]:
-    """Ground truth of a synthetic scene at arbitrary poses (in the scene's stored world frame)."""
-    path = Path(scene_dir) / GT_PLY
+def ground_truth_model(scene: Scene) -> GaussianModel:
+    """The scene's true Gaussians in the frame its cameras use (the loader's normalisation applied)."""
+    path = scene.root / GT_PLY
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no ground-truth scene (only synthetic scenes have one)")
-    return render_images(load_ply(path), cameras, background)
+    model = load_ply(path)
+    with torch.no_grad():
+        model.means.copy_((model.means - scene.world_offset) / scene.world_scale)
+        model.log_scales.sub_(math.log(scene.world_scale))
+    return model
+
+
+def scene_background(scene: Scene) -> list[float]:
+    """Background colour the ground truth was rendered with (black when the scene does not say)."""
+    info = scene.root / "scene.json"
+    return json.loads(info.read_text()).get("background", [0.0, 0.0, 0.0]) if info.is_file() else [0.0, 0.0, 0.0]
+
+
+def render_ground_truth(scene: Scene, cameras: list[Camera]) -> torch.Tensor:
+    """Ground truth [F,3,H,W] in [0,1] of a synthetic scene at arbitrary poses (e.g. trajectory frames)."""
+    return torch.stack(render_images(ground_truth_model(scene), cameras, scene_background(scene)))
 
 
 def observations(cameras: list[Camera], depths: list[torch.Tensor],
@@ -271,11 +286,15 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
     cameras = camera_path(cfg, style, seed)
     rendered = render_with_depth(model, cameras, cfg.background)
     images = [image for image, _ in rendered]
-    rng = torch.Generator().manual_seed(seed)
-    chosen = torch.randperm(len(model), generator=rng)[: cfg.init_points]
+    # SfM-like points: Gaussian centres that at least two images observe (what COLMAP could triangulate),
+    # subsampled; their tracks let each view set initialise from the points its own views see.
+    all_tracks = observations(cameras, [depth for _, depth in rendered], model.means.detach())
+    candidates = torch.tensor([p for p, track in enumerate(all_tracks) if len(track) >= 2], dtype=torch.long)
+    order = torch.randperm(len(candidates), generator=torch.Generator().manual_seed(seed))
+    chosen = candidates[order[: cfg.init_points]].sort().values
     points = model.means.detach()[chosen]
     colors = (model.sh_dc.detach()[chosen, 0] * SH_C0 + 0.5).clamp(0, 1)
-    tracks = observations(cameras, [depth for _, depth in rendered], points)
+    tracks = [all_tracks[p] for p in chosen.tolist()]
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
@@ -287,7 +306,8 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
         write_colmap_model(tmp / "sparse" / "0", cameras, names, points.numpy(), colors.numpy(), tracks)
         save_ply(model, tmp / GT_PLY)
         (tmp / "caption.txt").write_text(caption + "\n")
-        (tmp / "scene.json").write_text(json.dumps({"seed": seed, "style": style, "num_gaussians": len(model)}))
+        (tmp / "scene.json").write_text(json.dumps({"seed": seed, "style": style, "num_gaussians": len(model),
+                                                       "background": list(cfg.background)}))
         if target.exists():
             shutil.rmtree(target)
         os.replace(tmp, target)

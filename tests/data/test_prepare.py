@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 from safetensors import safe_open
 from scene_builders import all_files, tiny_configs, write_scene
 
@@ -130,3 +131,39 @@ def test_bad_input_fails_clearly_and_writes_nothing(tmp_path, backbone, damage):
     with pytest.raises(expected[0], match=expected[1]):
         run_prepare(prepare, source, backbone, progress=False)
     assert not (tmp_path / "cache").exists() and not (tmp_path / "work").exists()
+
+
+@pytest.mark.parametrize("source_kind", ["dense", "restorer"])
+def test_pseudo_target_sources(tmp_path, prepared, source_kind):
+    """The dense rendering as target, or a frozen restorer (adapter file) applied to R_d as in the paper."""
+    from tracegs.restorer.adapters import add_adapter, save_adapter
+    from tracegs.restorer.build import build_backbone
+    from tracegs.restorer.config import BackboneConfig
+
+    _, synthetic, source, fitted, _ = prepared
+    backbone = build_backbone(BackboneConfig())  # fresh: loading an adapter changes the backbone
+    adapter = None
+    if source_kind == "restorer":
+        add_adapter(backbone.transformer, "pretrained", backbone.cfg.lora)
+        adapter = str(tmp_path / "pretrained.safetensors")
+        save_adapter(backbone.transformer, "pretrained", adapter)
+    # Same work_dir: the fits are reused, only the clips are rendered and encoded again.
+    prepare = replace(fitted, cache_dir=str(tmp_path / "cache"), pseudo_target=source_kind, pseudo_adapter=adapter)
+    manifest = json.loads(run_prepare(prepare, source, backbone, synthetic, progress=False).read_text())
+    assert manifest["pseudo_target"] == source_kind
+    with safe_open(str(tmp_path / "cache" / manifest["scenes"]["scene_000"]["clips"][0]), framework="pt") as f:
+        target, dense = f.get_tensor("frames/target"), f.get_tensor("frames/dall")
+        assert f.metadata()["pseudo_target"] == source_kind
+    if source_kind == "dense":
+        assert torch.equal(target, dense)
+    else:
+        assert target.shape == dense.shape and not torch.equal(target, dense)
+
+
+def test_restorer_source_needs_its_adapter_file(tmp_path, prepared, backbone):
+    _, synthetic, source, fitted, _ = prepared
+    prepare = replace(fitted, cache_dir=str(tmp_path / "cache"), pseudo_target="restorer",
+                      pseudo_adapter=str(tmp_path / "missing.safetensors"))
+    with pytest.raises(PrepareError, match="missing.safetensors"):
+        run_prepare(prepare, source, backbone, synthetic, progress=False)
+    assert not (tmp_path / "cache").exists()

@@ -54,6 +54,7 @@ class GaussianFitConfig:
     backend: str = "auto"
     seed: int = 0
     init_num_points: int = 2000
+    keep_freed_cpu_memory: bool = True  # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     densification: DensificationConfig = field(default_factory=DensificationConfig)
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
 import math
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -77,6 +79,25 @@ class _ViewSampler:
         return self.queue.pop()
 
 
+def keep_freed_cpu_memory() -> None:
+    """Ask glibc to keep freed memory instead of returning it to the kernel.
+
+    Every optimisation step allocates and frees tens of MB of temporaries; by default glibc maps and unmaps
+    them each time, and the resulting page faults cost ~20% of a CPU step at the embedded scale (measured:
+    ~2200 faults and 5 ms of system time per step). Holding on to the freed pages (the process keeps its peak
+    footprint) is what torch's CUDA caching allocator does on GPU. No-op outside glibc.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_trim_threshold, m_mmap_threshold = -1, -3
+    libc.mallopt(m_mmap_threshold, 1 << 30)
+    libc.mallopt(m_trim_threshold, (1 << 31) - 1)
+
+
 class GaussianFitter:
     """Runtime state of one 3DGS optimisation (model, Adam optimisers, densification state, iteration).
 
@@ -111,6 +132,8 @@ class GaussianFitter:
         self.captured_sampler = _ViewSampler(self.generator)
         self.pseudo_sampler = _ViewSampler(self.generator)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=model.means.device)
+        if cfg.keep_freed_cpu_memory and model.means.device.type == "cpu":
+            keep_freed_cpu_memory()
 
     def _initial_lr(self, name: str) -> float:
         return self.means_lr(0) if name == "means" else getattr(self.cfg, self.PARAMETER_LRS[name])

@@ -92,18 +92,23 @@ def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_pat
     assert unit_file.stat().st_mtime_ns != stamp
 
 
-def test_sharded_evaluation_merges(scene_root, tmp_path):
+def test_sharded_and_parallel_evaluation_agree(scene_root, tmp_path):
     source = SceneSourceConfig(root=str(scene_root))
     fit_cfg, refine_cfg = _configs()
     name = scene_name(SEED)
     for shard in (0, 1):
-        cfg = EvaluationConfig(out_dir=str(tmp_path), methods=["3dgs"], views=[3, 4], shard_index=shard,
-                               num_shards=2, save_media=False, progress=False)
+        cfg = EvaluationConfig(out_dir=str(tmp_path / "sharded"), methods=["3dgs"], views=[3, 4],
+                               shard_index=shard, num_shards=2, save_media=False, progress=False)
         units = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
         assert list(units) == [f"{name}/views_{3 + shard}"]
-    assert not (tmp_path / "results.json").exists()
-    merged = merge_results(tmp_path, views=[3, 4], methods=["3dgs"])
-    assert set(merged["3dgs"]) == {"3", "4"}
+    assert not (tmp_path / "sharded" / "results.json").exists()
+    merged = merge_results(tmp_path / "sharded", views=[3, 4], methods=["3dgs"])
+    # the same two units in one run, evaluated by two forked worker processes
+    cfg = EvaluationConfig(out_dir=str(tmp_path / "parallel"), methods=["3dgs"], views=[3, 4], workers=2,
+                           save_media=False, progress=False)
+    parallel = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
+    for k in ("3", "4"):
+        assert parallel["3dgs"][k]["psnr"] == pytest.approx(merged["3dgs"][k]["psnr"], abs=1e-4)
 
 
 class _TinyRestorerModule(L.LightningModule):

@@ -59,6 +59,8 @@ class EvaluationConfig:
     # Sharding (Hydra multirun / SLURM array): this job evaluates every num_shards-th (scene, views) unit.
     shard_index: int = 0
     num_shards: int = 1
+    # Units evaluated in parallel by forked CPU processes (1 intra-op thread each); GPU runs use 1.
+    workers: int = 2
     lpips: bool = True
     lpips_convention: str = "3dgs"  # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
     per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists

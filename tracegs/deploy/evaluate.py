@@ -13,7 +13,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Callable, Mapping, Sequence
+import multiprocessing
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -196,6 +197,56 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     return {"grid": str(grid), "video": str(video)}
 
 
+@dataclass
+class _UnitJob:
+    """Everything one evaluation unit needs; handed to worker processes by fork, never pickled."""
+
+    cfg: EvaluationConfig
+    source: SceneSourceConfig
+    refine_cfg: RefinementConfig
+    fit_cfg: GaussianFitConfig
+    restorers: Mapping[str, ClipRestorer | None]
+    metrics: ImageMetrics
+    gt_renderer: GroundTruthRenderer | None
+    fingerprint: str
+
+    def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
+        scene_name, views = key
+        unit = load_unit(load_scene(self.source, scene_name), views, self.source)
+        record = evaluate_unit(unit, self.restorers, self.cfg, self.refine_cfg, self.fit_cfg, self.metrics,
+                               self.gt_renderer, progress)
+        record["fingerprint"] = self.fingerprint
+        record["variant"] = self.cfg.variant
+        write_json_atomic(record, unit_path(self.cfg.out_dir, scene_name, views))
+        return record
+
+
+_FORKED_JOB: _UnitJob | None = None  # set in the parent just before forking the worker pool
+
+
+def _run_forked(key: tuple[str, int]) -> tuple[tuple[str, int], dict]:
+    # Tiny tensors: one intra-op thread per worker, the workers themselves use the cores.
+    torch.set_num_threads(1)
+    return key, _FORKED_JOB.run(key)
+
+
+def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
+               progress: Progress) -> Iterator[tuple[tuple[str, int], dict]]:
+    """Run units serially, or in ``workers`` forked processes (CPU only: the units are independent and
+    3DGS optimisation of tiny scenes is dominated by per-op overhead that threads cannot spread)."""
+    if workers <= 1 or len(keys) <= 1:
+        for key in keys:
+            yield key, job.run(key, progress if job.cfg.progress else None)
+        return
+    global _FORKED_JOB
+    _FORKED_JOB = job
+    try:
+        with multiprocessing.get_context("fork").Pool(min(workers, len(keys))) as pool:
+            yield from pool.imap_unordered(_run_forked, keys)
+    finally:
+        _FORKED_JOB = None
+
+
 def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
              fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],
              scenes: Sequence[str] | None = None, gt_renderer: GroundTruthRenderer | None = None) -> dict:
@@ -209,35 +260,31 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
         raise ValueError(f"evaluation.methods has unknown methods {unknown}; choose from {list(METHODS)}")
     if cfg.lpips_convention not in LPIPS_CONVENTIONS:
         raise ValueError(f"evaluation.lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}")
+    if cfg.workers < 1:
+        raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
     scenes = list(cfg.scenes if cfg.scenes is not None else (scenes or []))
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     refine_cfg.validate()
-    metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention)
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
-    fingerprint = _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods, cfg.lpips_convention)
-    units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)
+    job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
+                   ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,
+                   _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods, cfg.lpips_convention))
     done: dict[tuple[str, int], dict] = {}
+    todo = []
+    for key in evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards):
+        path = unit_path(cfg.out_dir, *key)
+        previous = json.loads(path.read_text()) if path.is_file() and not cfg.force else {}
+        if previous.get("fingerprint") == job.fingerprint:
+            done[key] = previous
+        else:
+            todo.append(key)
+    # Forked workers must not inherit a CUDA context; GPU runs go one unit at a time.
+    workers = 1 if torch.cuda.is_available() else cfg.workers
     with Progress(disable=not cfg.progress) as progress:
-        overall = progress.add_task("evaluation units", total=len(units))
-        loaded: dict[str, Scene] = {}
-        for scene_name, views in units:
-            path = unit_path(cfg.out_dir, scene_name, views)
-            if path.is_file() and not cfg.force:
-                previous = json.loads(path.read_text())
-                if previous.get("fingerprint") == fingerprint:
-                    done[(scene_name, views)] = previous
-                    progress.advance(overall)
-                    continue
-            if scene_name not in loaded:
-                loaded[scene_name] = load_scene(source, scene_name)
-            unit = load_unit(loaded[scene_name], views, source)
-            record = evaluate_unit(unit, restorers, cfg, refine_cfg, fit_cfg, metrics, gt_renderer,
-                                   progress if cfg.progress else None)
-            record["fingerprint"] = fingerprint
-            record["variant"] = cfg.variant
-            write_json_atomic(record, path)
-            done[(scene_name, views)] = record
+        overall = progress.add_task("evaluation units", total=len(todo))
+        for key, record in _run_units(job, todo, workers, progress):
+            done[key] = record
             progress.advance(overall)
     if cfg.num_shards == 1:
         return merge_results(cfg.out_dir, scenes=scenes, views=cfg.views, methods=cfg.methods)

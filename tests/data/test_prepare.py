@@ -18,7 +18,7 @@ from safetensors import safe_open
 from scene_builders import all_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare, shard_is_valid
+from tracegs.data.prepare import PrepareError, fit_unit_paths, merge_manifests, run_prepare, shard_is_valid
 
 
 def test_prepare_builds_the_cache_from_nothing(prepared):
@@ -74,7 +74,7 @@ def test_killed_run_completes_on_rerun(tmp_path, prepared, backbone):
     process = subprocess.Popen([sys.executable, "-c", script, str(Path(__file__).parent), str(generated),
                                 str(tmp_path)], env=env, stderr=subprocess.PIPE, text=True)
     # Kill once the first fit unit (both snapshots of the 3-view fit) is complete, before the others.
-    first_fit = tmp_path / "work" / "scene_000" / "fit_3" / "it000016.ply"
+    first_fit = fit_unit_paths(tmp_path / "work", "scene_000", "3", [8, 16], prepare.fit)[16]
     deadline = time.monotonic() + 120
     while not first_fit.is_file() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -167,3 +167,17 @@ def test_restorer_source_needs_its_adapter_file(tmp_path, prepared, backbone):
     with pytest.raises(PrepareError, match="missing.safetensors"):
         run_prepare(prepare, source, backbone, synthetic, progress=False)
     assert not (tmp_path / "cache").exists()
+
+
+def test_changed_settings_are_not_mistaken_for_finished_work(tmp_path, prepared, backbone):
+    """Shards made with other settings (here: another pseudo-target source) are redone, fits are reused."""
+    _, synthetic, source, fitted, _ = prepared
+    cache = tmp_path / "cache"
+    dense = replace(fitted, cache_dir=str(cache), pseudo_target="dense")
+    run_prepare(dense, source, backbone, synthetic, progress=False)
+    shard = cache / "scene_000" / "clip_000.safetensors"
+    fits = {p: p.stat().st_mtime_ns for p in Path(fitted.work_dir).rglob("*.ply")}
+    run_prepare(replace(dense, pseudo_target="gt"), source, backbone, synthetic, progress=False)
+    with safe_open(str(shard), framework="pt") as f:
+        assert f.metadata()["pseudo_target"] == "gt"
+    assert {p: p.stat().st_mtime_ns for p in Path(fitted.work_dir).rglob("*.ply")} == fits

@@ -23,7 +23,9 @@ class SyntheticConfig:
     width: int = 72
     fov_x_deg: float = 70.0
     # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
-    path_styles: list[str] = field(default_factory=lambda: ["orbit", "forward"])
+    # Default orbit only: the clip / deployment trajectories are 360-degree ellipses, which leave a
+    # forward-facing capture's coverage, so dense fits there are no better than sparse ones (measured).
+    path_styles: list[str] = field(default_factory=lambda: ["orbit"])
     orbit_arc_deg: float = 300.0  # an open arc, like a walk-around video; a closed ring would wrap
     num_objects: int = 4
     gaussians_per_unit_area: float = 250.0  # density of surface Gaussians on the textured shapes

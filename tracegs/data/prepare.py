@@ -19,14 +19,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
 from rich.progress import Progress
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
@@ -43,7 +43,7 @@ from tracegs.data.synthetic import (
 from tracegs.io import atomic_write, save_safetensors_atomic, write_json_atomic
 from tracegs.restorer.build import Backbone
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import TrajectoryConfig
+from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
@@ -120,13 +120,28 @@ def scene_seed(seed: int, name: str) -> int:
     return int.from_bytes(hashlib.sha256(f"{seed}:{name}".encode()).digest()[:4], "little")
 
 
-def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int]) -> dict[int, Path]:
-    return {it: work_dir / scene / f"fit_{key}" / f"it{it:06d}.ply" for it in snapshots}
+def settings_digest(settings: object) -> str:
+    """Short digest of the settings a work unit depends on: changed settings mean a different unit."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:10]
+
+
+def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int], fit: GaussianFitConfig
+                   ) -> dict[int, Path]:
+    """PLY per snapshot of one (scene, view set) fit, in a directory named by the fit settings."""
+    unit = work_dir / scene / f"fit_{key}_{settings_digest(asdict(fit))}"
+    return {it: unit / f"it{it:06d}.ply" for it in snapshots}
+
+
+def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
+    """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata)."""
+    relevant = {k: v for k, v in asdict(cfg).items()
+                if k not in ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet")}
+    return settings_digest({"prepare": relevant, "backbone": asdict(backbone.cfg)})
 
 
 def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig, work_dir: Path, progress: bool) -> bool:
     """Fit 3DGS to one view set and save its snapshots as PLY; skipped when they all exist. True if fitted."""
-    paths = fit_unit_paths(work_dir, plan.scene.name, key, plan.fits[key])
+    paths = fit_unit_paths(work_dir, plan.scene.name, key, plan.fits[key], cfg.fit)
     if not cfg.force and all(p.is_file() for p in paths.values()):
         return False
     scene = plan.scene
@@ -192,13 +207,17 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
     return out
 
 
-def shard_is_valid(path: Path) -> bool:
-    """A shard exists and its header and data are readable (atomic writes make partial files impossible,
-    but a disk can still corrupt them)."""
+def shard_is_valid(path: Path, settings: str | None = None) -> bool:
+    """A shard exists, its header is readable and (if given) it was made with ``settings``.
+
+    Atomic writes make partial files impossible, but a disk can still damage them, and a shard made
+    with other settings is not a finished unit of this run.
+    """
     try:
         with safe_open(str(path), framework="pt") as f:
-            return "latent/target" in f.keys()
-    except Exception:  # safetensors raises SafetensorError / OSError subclasses on damaged files
+            made_with = (f.metadata() or {}).get("settings")
+            return "latent/target" in f.keys() and (settings is None or made_with == settings)
+    except (SafetensorError, OSError):
         return False
 
 
@@ -213,7 +232,7 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
 
 def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, GaussianModel],
                  gt_model: GaussianModel | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                 path: Path) -> dict[str, float]:
+                 path: Path, settings: str) -> dict[str, float]:
     """Render, encode and save one paired clip; returns PSNR vs ground truth of every condition."""
     cameras: list[Camera] = clip["cameras"]
     # Reconstructions render on the background they were fitted with, ground truth on its own.
@@ -245,7 +264,7 @@ def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, Gaus
     if ground_truth is not None:
         psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
     metadata = {"scene": plan.scene.name, "clip": str(index), "caption": caption, "refs": json.dumps([a, b]),
-                "pseudo_target": cfg.pseudo_target, "psnr_vs_gt": json.dumps(psnr)}
+                "pseudo_target": cfg.pseudo_target, "psnr_vs_gt": json.dumps(psnr), "settings": settings}
     save_safetensors_atomic(tensors, path, metadata)
     return psnr
 
@@ -290,12 +309,13 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         progress.advance(fit_task)
     clips = clip_cameras(plan, cfg)
     shard_paths = [cache_dir / name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
-    todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p)]
+    settings = clip_settings(cfg, backbone)
+    todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     if todo:
         models = {}
         for key, snapshots in plan.fits.items():
-            paths = fit_unit_paths(work_dir, name, key, snapshots)
+            paths = fit_unit_paths(work_dir, name, key, snapshots, cfg.fit)
             models[condition_key(None if key == "all" else int(key))] = load_ply(paths[cfg.fit.iterations])
             views = None if key == "all" else int(key)
             if views in cfg.student_views:
@@ -303,7 +323,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
                     models[condition_key(views, snapshot)] = load_ply(paths[snapshot])
         gt_model = ground_truth_model(plan.scene) if (plan.scene.root / GT_PLY).is_file() else None
         for c in todo:
-            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, shard_paths[c])
+            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, shard_paths[c], settings)
             progress.advance(clip_task)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {

@@ -116,7 +116,8 @@ class GaussianFitter:
         self.iteration = 0
         params = model.parameter_dict()
         self.optimizers = {
-            name: torch.optim.Adam([param], lr=self._initial_lr(name), eps=1e-15) for name, param in params.items()
+            name: torch.optim.Adam([param], lr=self._initial_lr(name), eps=1e-15, fused=True)
+            for name, param in params.items()
         }
         dens = cfg.densification
         # gsplat's DefaultStrategy runs on CPU tensors (only its rasterizer needs CUDA).

@@ -104,3 +104,32 @@ def test_corrupt_shard_names_the_file(prepared, tmp_path):
     shard.write_bytes(b"\xff" * 64)
     with pytest.raises(CacheError, match="clip_001.safetensors: corrupt shard"):
         module(cache)
+
+
+def test_lightning_redraws_dropout_each_epoch(prepared):
+    """Inside a real Trainer the sampler's epoch advances, so a clip's dropout flag is redrawn per epoch."""
+    import lightning as L
+
+    seen: list[tuple[int, int, bool]] = []
+
+    class Recorder(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.weight = torch.nn.Parameter(torch.zeros(()))
+
+        def training_step(self, batch, batch_idx):
+            for clip, dropped in zip(batch["clip"].tolist(), batch["text_dropped"].tolist()):
+                seen.append((self.current_epoch, clip, dropped))
+            return (self.weight * batch["target"].mean()).square()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.0)
+
+    dm = PairedClipDataModule(DataModuleConfig(cache_dir=str(prepared[0] / "cache"), student_views=[3],
+                                               student_snapshots=[8], batch_size=1, caption_dropout=0.5))
+    trainer = L.Trainer(max_epochs=6, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(Recorder(), datamodule=dm)
+    per_epoch = [sorted((c, d) for e, c, d in seen if e == epoch) for epoch in range(6)]
+    assert all(len(p) == 2 for p in per_epoch)
+    assert len({tuple(p) for p in per_epoch}) > 1

@@ -27,7 +27,7 @@ import lightning as L
 import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.prepare import MANIFEST, condition_key
@@ -114,26 +114,22 @@ class PairedClipDataset(Dataset):
         }
 
 
-class EpochSampler(Sampler):
-    """Shuffled indices paired with a per-draw seed derived from (seed, epoch, index).
+class EpochSampler(DistributedSampler):
+    """Indices of this rank (shuffled per epoch), each paired with a draw seed from (seed, epoch, index).
 
-    Lightning calls ``set_epoch`` on the sampler each epoch, so the student view count, snapshot and
-    caption-dropout flag are redrawn every epoch yet reproducible.
+    Lightning calls ``set_epoch`` every epoch, so the student view count, snapshot and caption-dropout flag
+    are redrawn each epoch yet reproducible. Being a ``DistributedSampler`` itself, it also partitions the
+    clips across DDP ranks, and Lightning does not wrap it (a wrapper would hide ``set_epoch`` from it).
     """
 
-    def __init__(self, length: int, seed: int, shuffle: bool = True):
-        self.length, self.seed, self.shuffle, self.epoch = length, seed, shuffle, 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
-
-    def __len__(self) -> int:
-        return self.length
+    def __init__(self, dataset: Dataset, seed: int, shuffle: bool = True):
+        distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+        replicas = torch.distributed.get_world_size() if distributed else 1
+        rank = torch.distributed.get_rank() if distributed else 0
+        super().__init__(dataset, num_replicas=replicas, rank=rank, shuffle=shuffle, seed=seed)
 
     def __iter__(self) -> Iterator[tuple[int, int]]:
-        generator = torch.Generator().manual_seed(self.seed * 7919 + self.epoch)
-        order = torch.randperm(self.length, generator=generator) if self.shuffle else torch.arange(self.length)
-        for index in order.tolist():
+        for index in super().__iter__():
             yield index, (self.seed * 1_000_003 + self.epoch) * 1_000_033 + index
 
 
@@ -174,7 +170,7 @@ class PairedClipDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(self.train_set, batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers,
-                          sampler=EpochSampler(len(self.train_set), self.cfg.seed), drop_last=False,
+                          sampler=EpochSampler(self.train_set, self.cfg.seed), drop_last=False,
                           persistent_workers=self.cfg.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader | list:

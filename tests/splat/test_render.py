@@ -187,3 +187,31 @@ def test_gsplat_backend_matches_torch_backend():
         cosine = torch.nn.functional.cosine_similarity(ours_g.flatten(), theirs_g.flatten(), dim=0)
         assert cosine > 0.95
     assert render(model, camera, background).info.get("means2d") is not None  # "auto" picks gsplat on CUDA
+
+
+def test_occluded_pairs_are_dropped_without_changing_the_result(monkeypatch):
+    from tracegs.splat import rasterize
+
+    model = random_scene(400, seed=6)
+    with torch.no_grad():
+        model.opacity_logits.add_(5.0)  # nearly opaque: deep pixels saturate, later splats are hidden
+        model.log_scales.add_(0.5)
+    camera = ring_cameras(3)[2]
+    dropped = []
+    forward = rasterize._TileComposite.forward
+
+    def spying_forward(ctx, *args):
+        result = forward(ctx, *args)
+        dropped.append(args[0].shape[1] - (args[0].shape[1] if ctx.kept is None else len(ctx.kept)))
+        return result
+
+    monkeypatch.setattr(rasterize._TileComposite, "forward", staticmethod(spying_forward))
+    monkeypatch.setattr(rasterize, "COMPACT_BELOW", 1.01)  # compact whenever anything is hidden
+    tiled = render(model, camera, backend="torch")
+    dense = render(model, camera, backend="dense")
+    assert dropped[0] > 0
+    assert (tiled.image - dense.image).abs().max() < 1e-4
+    grads_tiled = torch.autograd.grad(tiled.image.sum(), [model.means, model.opacity_logits, model.sh_dc])
+    grads_dense = torch.autograd.grad(dense.image.sum(), [model.means, model.opacity_logits, model.sh_dc])
+    for g_t, g_d in zip(grads_tiled, grads_dense):
+        assert torch.allclose(g_t, g_d, atol=1e-3 * g_d.abs().max().item())

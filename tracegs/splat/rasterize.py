@@ -145,10 +145,12 @@ class _TileComposite(torch.autograd.Function):
         alpha, opacities, transmittance, weights, features, final = ctx.saved_tensors
         bins = ctx.bins
         colour_grad = torch.zeros_like(weights)  # h_k [S,P]
-        grad_features = torch.empty_like(features)
+        grad_features = torch.zeros_like(features)
         for channel in range(features.shape[1]):
+            if not grad_out[:, :, channel].any():  # e.g. the depth channel when no loss uses depth
+                continue
             per_pair = grad_out[:, :, channel].T.contiguous().index_select(1, bins.tile)
-            colour_grad.add_(per_pair * features[:, channel])
+            colour_grad.addcmul_(per_pair, features[:, channel])
             grad_features[:, channel] = (per_pair * weights).sum(dim=0)
         inclusive, totals = _segment_prefix(weights * colour_grad, bins)
         behind = (totals + final * grad_final).index_select(1, bins.tile) - inclusive

@@ -57,6 +57,9 @@ class StageConfig:
     init_adapter: str | None = None
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
     checkpoint_every_n_steps: int = 50
+    # Step checkpoints kept besides last.ckpt: 1 = the latest, 0 = none, -1 = all (paper-scale adapter +
+    # AdamW state is ~0.8 GB per checkpoint). Without a monitored metric Lightning allows only these.
+    keep_checkpoints: int = 1
     # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
     resume_from: str | None = "last"
 
@@ -65,6 +68,8 @@ class StageConfig:
             raise ValueError(f"stage.name must be one of {STAGE_NAMES}, got {self.name!r}")
         if self.memory_mode not in MEMORY_MODES:
             raise ValueError(f"stage.memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}")
+        if self.keep_checkpoints not in (-1, 0, 1):
+            raise ValueError(f"stage.keep_checkpoints must be -1, 0 or 1, got {self.keep_checkpoints}")
         if self.rollout_steps < 1:
             raise ValueError(f"stage.rollout_steps must be >= 1, got {self.rollout_steps}")
 

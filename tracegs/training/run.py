@@ -97,7 +97,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         filename="step{step:06d}",
         auto_insert_metric_name=False,
         every_n_train_steps=cfg.stage.checkpoint_every_n_steps,
-        save_top_k=-1,
+        save_top_k=cfg.stage.keep_checkpoints,
         save_last=True,
     )
     return L.Trainer(

@@ -243,6 +243,10 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
     try:
         with multiprocessing.get_context("fork").Pool(min(workers, len(keys))) as pool:
             yield from pool.imap_unordered(_run_forked, keys)
+            # Let the workers exit on their own: the pool's __exit__ would SIGTERM them, and pycolmap's
+            # signal handler then prints a stack trace for every worker.
+            pool.close()
+            pool.join()
     finally:
         _FORKED_JOB = None
 

@@ -19,12 +19,13 @@ from tracegs.data.config import SceneSourceConfig, SyntheticConfig
 from tracegs.data.synthetic import generate_scene, ground_truth_model, render_ground_truth, scene_name
 from tracegs.deploy.callback import DeploymentRefinement, module_restorer_factory
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.deploy.evaluate import evaluate, merge_results, unit_path
+from tracegs.deploy.evaluate import deploy_scenes, evaluate, merge_results, unit_path
 from tracegs.deploy.restorers import DiffusionRestorer, GroundTruthRestorer
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig, TrajectoryConfig
+from tracegs.splat.ply import load_ply
 
 SEED = 100
 
@@ -148,3 +149,16 @@ def test_callback_deploys_the_module_restorer_and_logs(scene_root, backbone, tmp
     # the logger received the deployment metrics too
     logged = (Path(trainer.logger.log_dir) / "metrics.csv").read_text().splitlines()[0]
     assert "deploy/psnr_k3" in logged
+
+
+def test_deploy_scenes_writes_refined_ply_once(scene_root, tmp_path):
+    source = SceneSourceConfig(root=str(scene_root))
+    fit_cfg, refine_cfg = _configs()
+    cfg = EvaluationConfig(views=[3], progress=False)
+    oracle = GroundTruthRestorer(ground_truth_model(load_scene(source, scene_name(SEED))))
+    (path,) = deploy_scenes(cfg, source, refine_cfg, fit_cfg, oracle, [scene_name(SEED)], tmp_path)
+    assert path == tmp_path / scene_name(SEED) / "views_3.ply"
+    assert len(load_ply(path)) > 0
+    stamp = path.stat().st_mtime_ns
+    deploy_scenes(cfg, source, refine_cfg, fit_cfg, oracle, [scene_name(SEED)], tmp_path)
+    assert path.stat().st_mtime_ns == stamp  # finished scenes are kept

@@ -46,7 +46,9 @@ class RestorerTrainingModule(L.LightningModule):
         self.automatic_optimization = False
         # Checkpoints hold only trainable weights; ``on_load_checkpoint`` checks the key set itself.
         self.strict_loading = False
-        self.transformer = transformer
+        # build_backbone returns the restorer in eval mode; Lightning keeps submodule modes, so switch here
+        # (train mode is what enables diffusers' gradient checkpointing at paper scale).
+        self.transformer = transformer.train()
         self.schedule = schedule
         self.optimizer_cfg = optimizer
         self.seed = seed

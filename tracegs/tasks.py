@@ -113,7 +113,7 @@ def build_restorer(cfg: DictConfig, with_student: bool):
         adapters.load_adapter(backbone.transformer, adapter, student, trainable=False)
         identity.append(f"student={_digest(student)}")
     pipeline = RestorationPipeline(backbone, adapter=adapter)
-    return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity))
+    return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity), steps=cfg.deploy.steps)
 
 
 def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
@@ -142,20 +142,9 @@ def ground_truth_renderer(cfg: DictConfig):
     """Renders ground truth at any pose where the scene is known (the synthetic benchmark), else None."""
     if cfg.data.source.preset != "synthetic":
         return None
-    from tracegs.data.prepare import normalised_ground_truth
-    from tracegs.splat.render import render
+    from tracegs.data.synthetic import render_ground_truth
 
-    source = section(cfg.data.source)
-    background = torch.tensor(list(cfg.data.synthetic.background), dtype=torch.float32)
-    models: dict = {}
-
-    @torch.no_grad()
-    def render_truth(scene, cameras):
-        if scene.name not in models:
-            models[scene.name] = normalised_ground_truth(scene, source)
-        return torch.stack([render(models[scene.name], c, background=background).image for c in cameras])
-
-    return render_truth
+    return render_ground_truth
 
 
 # --------------------------------------------------------------------------------- deploy / evaluate

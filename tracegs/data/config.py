@@ -21,13 +21,13 @@ class SyntheticConfig:
     num_views: int = 32
     height: int = 48
     width: int = 72
-    fov_x_deg: float = 70.0
+    fov_x_deg: float = 50.0  # narrow enough that 9 views leave gaps 12+ views fill (privileged gap)
     # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
     # Default orbit only: the clip / deployment trajectories are 360-degree ellipses, which leave a
     # forward-facing capture's coverage, so dense fits there are no better than sparse ones (measured).
     path_styles: list[str] = field(default_factory=lambda: ["orbit"])
     orbit_arc_deg: float = 300.0  # an open arc, like a walk-around video; a closed ring would wrap
-    num_objects: int = 4
+    num_objects: int = 6
     gaussians_per_unit_area: float = 250.0  # density of surface Gaussians on the textured shapes
     init_points: int = 1500  # SfM-like points written to points3D (subsampled Gaussian centres)
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])

@@ -232,8 +232,8 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
 
 def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, GaussianModel],
                  gt_model: GaussianModel | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                 path: Path, settings: str) -> dict[str, float]:
-    """Render, encode and save one paired clip; returns PSNR vs ground truth of every condition."""
+                 path: Path, settings: str) -> None:
+    """Render, encode and save one paired clip (with each condition's PSNR vs ground truth in its metadata)."""
     cameras: list[Camera] = clip["cameras"]
     # Reconstructions render on the background they were fitted with, ground truth on its own.
     conditions = {key: torch.stack(render_images(model, cameras, cfg.fit.background)) for key, model in models.items()}
@@ -249,7 +249,7 @@ def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, Gaus
     elif cfg.pseudo_target == "dense":
         target = dense
     else:
-        target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, str(path)))[0]
+        target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
         target = target.clamp(0, 1)
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():
@@ -266,7 +266,6 @@ def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, Gaus
     metadata = {"scene": plan.scene.name, "clip": str(index), "caption": caption, "refs": json.dumps([a, b]),
                 "pseudo_target": cfg.pseudo_target, "psnr_vs_gt": json.dumps(psnr), "settings": settings}
     save_safetensors_atomic(tensors, path, metadata)
-    return psnr
 
 
 def dense_target_views(cfg: PrepareConfig) -> int | None:

@@ -323,10 +323,14 @@ def generate_benchmark(cfg: SyntheticConfig, force: bool = False, progress: bool
     if overlap:
         raise ValueError(f"synthetic.train_seeds and synthetic.test_seeds overlap: {sorted(overlap)}")
     seeds = list(cfg.train_seeds) + list(cfg.test_seeds)
+    root = Path(cfg.root)
+    if root.is_dir():  # half-assembled scenes of a killed run (generate_scene builds in ".<name>.*")
+        for stale in root.glob(".scene_*"):
+            shutil.rmtree(stale, ignore_errors=True)
     paths = []
     with Progress(disable=not progress) as bar:
         task = bar.add_task("synthetic scenes", total=len(seeds))
         for seed in seeds:
-            paths.append(generate_scene(seed, cfg, Path(cfg.root), force=force))
+            paths.append(generate_scene(seed, cfg, root, force=force))
             bar.advance(task)
     return paths

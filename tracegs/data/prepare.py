@@ -19,6 +19,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -139,11 +141,14 @@ def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     return settings_digest({"prepare": relevant, "backbone": asdict(backbone.cfg)})
 
 
-def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig, work_dir: Path, progress: bool) -> bool:
-    """Fit 3DGS to one view set and save its snapshots as PLY; skipped when they all exist. True if fitted."""
-    paths = fit_unit_paths(work_dir, plan.scene.name, key, plan.fits[key], cfg.fit)
-    if not cfg.force and all(p.is_file() for p in paths.values()):
-        return False
+def fit_done(plan: ScenePlan, key: str, cfg: PrepareConfig) -> bool:
+    paths = fit_unit_paths(Path(cfg.work_dir), plan.scene.name, key, plan.fits[key], cfg.fit)
+    return all(p.is_file() for p in paths.values())
+
+
+def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig) -> None:
+    """Fit 3DGS to one view set and save its snapshots as PLY (one resumable work unit)."""
+    paths = fit_unit_paths(Path(cfg.work_dir), plan.scene.name, key, plan.fits[key], cfg.fit)
     scene = plan.scene
     indices = plan.split.view_sets[key]
     views = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
@@ -151,11 +156,10 @@ def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig, work_dir: Path, 
     # so sparse fits do not inherit geometry from views they never saw; too few -> random (3DGS fallback).
     points, colors = scene.points_seen_by(indices)
     init = GaussianModel.from_points(points, colors) if len(points) >= MIN_INIT_POINTS else None
-    snapshots = fit_gaussians(views, cfg.fit, init, plan.fits[key], progress=progress)
+    snapshots = fit_gaussians(views, cfg.fit, init, plan.fits[key], progress=False)
     for iteration, path in paths.items():
         with atomic_write(path) as tmp:
             save_ply(snapshots[iteration], tmp)
-    return True
 
 
 def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
@@ -296,16 +300,35 @@ def remove_stale_temporaries(directory: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
+def _one_thread_worker() -> None:
+    # Each fit process gets one intra-op thread: on CPU, parallel fits use the cores far better than
+    # multi-threaded kernels on these small tensors (measured 23 ms/iteration with 1 thread, 35 with 2).
+    torch.set_num_threads(1)
+
+
+def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, progress: Progress) -> None:
+    """Run every unfinished (scene, view set) fit, in ``cfg.fit_workers`` processes when > 1."""
+    units = [(plan, key) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
+    task = progress.add_task("3DGS fits", total=len(units))
+    if cfg.fit_workers <= 1 or len(units) <= 1:
+        for plan, key in units:
+            fit_view_set(plan, key, cfg)
+            progress.advance(task)
+        return
+    # "spawn": fresh interpreters, so no OpenMP / thread state is inherited through fork.
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(min(cfg.fit_workers, len(units)), mp_context=context,
+                             initializer=_one_thread_worker) as pool:
+        futures = [pool.submit(fit_view_set, plan, key, cfg) for plan, key in units]
+        for future in as_completed(futures):
+            future.result()  # re-raises a worker's error here
+            progress.advance(task)
+
+
 def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline, progress: Progress) -> dict:
-    """All work units of one scene; returns its manifest entry."""
+    """The clips, scene file and contact sheet of one scene (its fits done); returns its manifest entry."""
     name = plan.scene.name
     cache_dir, work_dir = Path(cfg.cache_dir), Path(cfg.work_dir)
-    for directory in (cache_dir / name, work_dir / name):
-        remove_stale_temporaries(directory)
-    fit_task = progress.add_task(f"{name}: fits", total=len(plan.fits))
-    for key in plan.fits:
-        fit_view_set(plan, key, cfg, work_dir, progress=False)
-        progress.advance(fit_task)
     clips = clip_cameras(plan, cfg)
     shard_paths = [cache_dir / name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
@@ -432,9 +455,13 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
             raise PrepareError(f"scene {name}: {error}") from error
     pipeline = restorer_pipeline(backbone, prepare) if prepare.pseudo_target == "restorer" else None
     cache_dir = Path(prepare.cache_dir)
+    for plan in plans:
+        for directory in (cache_dir / plan.scene.name, Path(prepare.work_dir) / plan.scene.name):
+            remove_stale_temporaries(directory)
     entries = {}
     with Progress(disable=not progress) as bar:
-        task = bar.add_task("prepare scenes", total=len(plans))
+        fit_all(plans, prepare, bar)
+        task = bar.add_task("paired clips", total=len(plans))
         for plan in plans:
             entries[plan.scene.name] = prepare_scene(plan, prepare, backbone, pipeline, bar)
             bar.advance(task)

@@ -53,7 +53,7 @@ def tiny_configs(tmp: Path) -> tuple[SyntheticConfig, SceneSourceConfig, Prepare
     prepare = PrepareConfig(cache_dir=str(tmp / "cache"), work_dir=str(tmp / "work"), student_views=[3],
                             dense_views=[6, None], student_snapshots=[8],
                             fit=GaussianFitConfig(iterations=16, snapshot_iters=[8, 16]),
-                            clips_per_scene=2, frames_per_clip=5, fit_workers=1)
+                            clips_per_scene=2, frames_per_clip=5, workers=1)
     return synthetic, source, prepare
 
 

@@ -186,7 +186,7 @@ def test_changed_settings_are_not_mistaken_for_finished_work(tmp_path, prepared,
 def test_parallel_fit_workers_give_the_same_fits(tmp_path, prepared, backbone):
     """Fits in two worker processes (one thread each) equal the in-process fits byte for byte."""
     _, synthetic, source, fitted, _ = prepared
-    parallel = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), fit_workers=2)
+    parallel = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), workers=2)
     run_prepare(parallel, source, backbone, synthetic, progress=False)
     serial_files = sorted(Path(fitted.work_dir).rglob("*.ply"))
     parallel_files = sorted((tmp_path / "work").rglob("*.ply"))

@@ -62,7 +62,7 @@ class PrepareConfig:
     student_snapshots: list[int] = field(default_factory=lambda: [140, 340])  # paper: 7000, 17000
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
-    fit_workers: int = 2  # parallel fit processes (one thread each); 1 = in-process. Paper: 1 per GPU
+    workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
     clips_per_scene: int = 8  # paper: 150
     # Clips follow the deployment trajectories (splat TrajectoryConfig defaults: ellipse + bridges).
     frames_per_clip: int = 9  # paper: 49

@@ -20,7 +20,7 @@ import hashlib
 import json
 import math
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -234,16 +234,11 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
     return RestorationPipeline(backbone, adapter="pseudo_target")
 
 
-def prepare_clip(plan: ScenePlan, clip: dict, index: int, models: dict[str, GaussianModel],
-                 gt_model: GaussianModel | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                 path: Path, settings: str) -> None:
-    """Render, encode and save one paired clip (with each condition's PSNR vs ground truth in its metadata)."""
+def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
+              ground_truth: torch.Tensor | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
+              path: Path, settings: str) -> None:
+    """Pseudo-target, encoding and shard of one rendered clip (each condition's PSNR vs GT in its metadata)."""
     cameras: list[Camera] = clip["cameras"]
-    # Reconstructions render on the background they were fitted with, ground truth on its own.
-    conditions = {key: torch.stack(render_images(model, cameras, cfg.fit.background)) for key, model in models.items()}
-    ground_truth = None
-    if gt_model is not None:
-        ground_truth = torch.stack(render_images(gt_model, cameras, scene_background(plan.scene)))
     a, b = clip["refs"]
     ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
     caption = plan.scene.caption or cfg.caption
@@ -301,52 +296,84 @@ def remove_stale_temporaries(directory: Path) -> None:
 
 
 def _one_thread_worker() -> None:
-    # Each fit process gets one intra-op thread: on CPU, parallel fits use the cores far better than
+    # Each worker process gets one intra-op thread: on CPU, parallel fits use the cores far better than
     # multi-threaded kernels on these small tensors (measured 23 ms/iteration with 1 thread, 35 with 2).
     torch.set_num_threads(1)
 
 
-def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, progress: Progress) -> None:
-    """Run every unfinished (scene, view set) fit, in ``cfg.fit_workers`` processes when > 1."""
-    units = [(plan, key) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
-    task = progress.add_task("3DGS fits", total=len(units))
-    if cfg.fit_workers <= 1 or len(units) <= 1:
-        for plan, key in units:
-            fit_view_set(plan, key, cfg)
-            progress.advance(task)
+def worker_pool(cfg: PrepareConfig) -> ProcessPoolExecutor | None:
+    """Processes for the fits and the clip renders (``cfg.workers`` > 1), else None (in-process).
+
+    "spawn" gives fresh interpreters, so no OpenMP / thread state is inherited through fork.
+    """
+    if cfg.workers <= 1:
+        return None
+    return ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_one_thread_worker)
+
+
+def run_units(pool: ProcessPoolExecutor | None, function, arguments: list[tuple]):
+    """``function(*args)`` for each tuple, in the pool when there is one; yields results in order."""
+    if pool is None:
+        for args in arguments:
+            yield function(*args)
         return
-    # "spawn": fresh interpreters, so no OpenMP / thread state is inherited through fork.
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(min(cfg.fit_workers, len(units)), mp_context=context,
-                             initializer=_one_thread_worker) as pool:
-        futures = [pool.submit(fit_view_set, plan, key, cfg) for plan, key in units]
-        for future in as_completed(futures):
-            future.result()  # re-raises a worker's error here
-            progress.advance(task)
+    futures = [pool.submit(function, *args) for args in arguments]
+    for future in futures:
+        yield future.result()  # re-raises a worker's error here
 
 
-def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline, progress: Progress) -> dict:
+def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecutor | None,
+            progress: Progress) -> None:
+    """Run every unfinished (scene, view set) fit."""
+    units = [(plan, key, cfg) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
+    task = progress.add_task("3DGS fits", total=len(units))
+    for _ in run_units(pool, fit_view_set, units):
+        progress.advance(task)
+
+
+def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, Path]:
+    """PLY of every cached condition: ``s{K}_it{snap}`` for the student snapshots, ``d{V}`` for final fits."""
+    paths: dict[str, Path] = {}
+    for key, snapshots in plan.fits.items():
+        unit = fit_unit_paths(Path(cfg.work_dir), plan.scene.name, key, snapshots, cfg.fit)
+        views = None if key == "all" else int(key)
+        paths[condition_key(views)] = unit[cfg.fit.iterations]
+        if views in cfg.student_views:
+            for snapshot in cfg.student_snapshots:
+                paths[condition_key(views, snapshot)] = unit[snapshot]
+    return paths
+
+
+def render_clip(plan: ScenePlan, cameras: list[Camera], paths: dict[str, Path],
+                cfg: PrepareConfig) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """Frames [F,3,H,W] of every condition along one clip, and of ground truth when the scene has it."""
+    # Reconstructions render on the background they were fitted with, ground truth on its own.
+    conditions = {key: torch.stack(render_images(load_ply(path), cameras, cfg.fit.background))
+                  for key, path in paths.items()}
+    ground_truth = None
+    if (plan.scene.root / GT_PLY).is_file():
+        ground_truth = torch.stack(render_images(ground_truth_model(plan.scene), cameras,
+                                                 scene_background(plan.scene)))
+    return conditions, ground_truth
+
+
+def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline,
+                  pool: ProcessPoolExecutor | None, progress: Progress) -> dict:
     """The clips, scene file and contact sheet of one scene (its fits done); returns its manifest entry."""
     name = plan.scene.name
-    cache_dir, work_dir = Path(cfg.cache_dir), Path(cfg.work_dir)
+    cache_dir = Path(cfg.cache_dir)
     clips = clip_cameras(plan, cfg)
     shard_paths = [cache_dir / name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
     todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
-    if todo:
-        models = {}
-        for key, snapshots in plan.fits.items():
-            paths = fit_unit_paths(work_dir, name, key, snapshots, cfg.fit)
-            models[condition_key(None if key == "all" else int(key))] = load_ply(paths[cfg.fit.iterations])
-            views = None if key == "all" else int(key)
-            if views in cfg.student_views:
-                for snapshot in cfg.student_snapshots:
-                    models[condition_key(views, snapshot)] = load_ply(paths[snapshot])
-        gt_model = ground_truth_model(plan.scene) if (plan.scene.root / GT_PLY).is_file() else None
-        for c in todo:
-            prepare_clip(plan, clips[c], c, models, gt_model, cfg, backbone, pipeline, shard_paths[c], settings)
-            progress.advance(clip_task)
+    # Rendering runs in the worker processes; the frozen encoders (paper scale: GPU) stay in this one.
+    paths = condition_paths(plan, cfg)
+    rendered = run_units(pool, render_clip, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
+    for c, (conditions, ground_truth) in zip(todo, rendered):
+        save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c], settings)
+        progress.advance(clip_task)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
@@ -459,12 +486,17 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
         for directory in (cache_dir / plan.scene.name, Path(prepare.work_dir) / plan.scene.name):
             remove_stale_temporaries(directory)
     entries = {}
-    with Progress(disable=not progress) as bar:
-        fit_all(plans, prepare, bar)
-        task = bar.add_task("paired clips", total=len(plans))
-        for plan in plans:
-            entries[plan.scene.name] = prepare_scene(plan, prepare, backbone, pipeline, bar)
-            bar.advance(task)
+    pool = worker_pool(prepare)
+    try:
+        with Progress(disable=not progress) as bar:
+            fit_all(plans, prepare, pool, bar)
+            task = bar.add_task("paired clips", total=len(plans))
+            for plan in plans:
+                entries[plan.scene.name] = prepare_scene(plan, prepare, backbone, pipeline, pool, bar)
+                bar.advance(task)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     manifest = {**manifest_header(prepare, backbone), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
     write_if_changed(manifest, path)

@@ -30,7 +30,7 @@ def section(node: DictConfig) -> Any:
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
     """Generate the synthetic benchmark if selected, then build the paired-clip cache (issue: data)."""
-    from tracegs.data.prepare import merge_manifests, run_prepare
+    from tracegs.data.prepare import run_prepare
     from tracegs.restorer.build import build_backbone
 
     backbone = build_backbone(section(cfg.backbone))
@@ -38,8 +38,6 @@ def prepare(cfg: DictConfig) -> Path:
     prepare_cfg = section(cfg.data.prepare)
     prepare_cfg.fit = section(cfg.splat)  # one 3DGS optimiser config (splat group) for preparation and deployment
     manifest = run_prepare(prepare_cfg, section(cfg.data.source), backbone, synthetic)
-    if cfg.data.prepare.num_shards == 1:
-        manifest = merge_manifests(cfg.data.prepare.cache_dir)
     log.info("paired-clip cache: %s", manifest)
     return manifest
 

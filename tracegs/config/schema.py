@@ -70,11 +70,11 @@ class ExperimentConfig:
     description: str = ""
     # Per-scale training budgets that the ``stage`` group files read (supplement A.4); keeping them here
     # lets ``experiment=paper stage=stage1`` and ``experiment=paper stage=stage2`` each pick their own.
-    baseline_steps: int = 400  # variant A is trained only at the embedded scale (paper: pretrained GSFixer)
+    baseline_steps: int = 500  # variant A is trained only at the embedded scale (paper: pretrained GSFixer)
     baseline_lr: float = 1e-3
-    stage1_steps: int = 150  # paper: 500
-    stage2_steps: int = 150  # paper: 2000
-    stage2_warmup_steps: int = 10  # paper: 100
+    stage1_steps: int = 80  # paper: 500
+    stage2_steps: int = 40  # paper: 2000
+    stage2_warmup_steps: int = 4  # paper: 100
     adapter_lr: float = 1e-3  # paper: 1e-5
     batch_size: int = 4  # per device; paper: 2
 

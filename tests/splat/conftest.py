@@ -39,13 +39,3 @@ def random_scene(n: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> G
 @pytest.fixture
 def camera() -> Camera:
     return ring_cameras(1)[0]
-
-
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Run each splatting test on one intra-op thread: results are then bitwise reproducible, and on a shared
-    2-core machine OpenMP's 2-thread barriers wait for a descheduled peer (measured >10x slow-downs)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)

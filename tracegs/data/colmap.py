@@ -6,9 +6,6 @@ section 6), so it is imported inside the functions that need it, after PIL and t
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -17,6 +14,7 @@ import torch
 from PIL import Image
 
 from tracegs.data.config import SceneSourceConfig
+from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
@@ -252,14 +250,5 @@ def write_colmap_model(
             track.add_element(image_index + 1, point2d_index)
         color = np.clip(np.asarray(colors[p]) * 255.0 if colors is not None else np.zeros(3), 0, 255)
         reconstruction.add_point3D(np.asarray(points[p], dtype=np.float64), track, color.astype(np.uint8))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
-        reconstruction.write(str(tmp))
-        if path.exists():
-            shutil.rmtree(path)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+    with atomic_directory(path) as staging:
+        reconstruction.write(str(staging))

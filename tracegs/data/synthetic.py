@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +23,7 @@ from rich.progress import Progress
 
 from tracegs.data.colmap import Scene, write_colmap_model
 from tracegs.data.config import SyntheticConfig
+from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 from tracegs.splat.gaussians import NUM_SH_REST, SH_C0, GaussianModel, rgb_to_sh_dc
 from tracegs.splat.ply import load_ply, save_ply
@@ -295,9 +294,7 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
     points = model.means.detach()[chosen]
     colors = (model.sh_dc.detach()[chosen, 0] * SH_C0 + 0.5).clamp(0, 1)
     tracks = [all_tracks[p] for p in chosen.tolist()]
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    try:
+    with atomic_directory(target) as tmp:
         names = [f"frame_{i:05d}.png" for i in range(len(cameras))]
         (tmp / "images").mkdir()
         for name, image in zip(names, images):
@@ -308,12 +305,6 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
         (tmp / "caption.txt").write_text(caption + "\n")
         (tmp / "scene.json").write_text(json.dumps({"seed": seed, "style": style, "num_gaussians": len(model),
                                                        "background": list(cfg.background)}))
-        if target.exists():
-            shutil.rmtree(target)
-        os.replace(tmp, target)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return target
 
 

@@ -11,10 +11,7 @@ only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard
 from __future__ import annotations
 
 import copy
-import os
-import shutil
 import signal
-import tempfile
 from pathlib import Path
 
 import lightning as L
@@ -25,6 +22,7 @@ from lightning.pytorch.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.data.datamodule import PairedClipDataModule
+from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.config import TrainConfig
@@ -143,31 +141,14 @@ def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path)
     """Write the stage's product atomically and return its path."""
     product = output_dir / PRODUCTS[stage]
     if stage == "baseline":
-        _save_pretrained_atomic(module.transformer, product)
+        # A diffusers directory is several files: the directory is the atomic unit.
+        with atomic_directory(product) as staging:
+            module.transformer.save_pretrained(staging)
     elif stage == "stage1":
         module.save_adapter(product)
     else:
         module.save_student(product)
     return product
-
-
-def _save_pretrained_atomic(model, directory: Path) -> None:
-    # A diffusers directory is several files, so the atomic unit is the directory: write a sibling
-    # temp directory, then swap it in with renames.
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
-    try:
-        model.save_pretrained(staging)
-        if directory.exists():
-            retired = Path(tempfile.mkdtemp(prefix=f".{directory.name}.old.", dir=directory.parent))
-            os.replace(directory, retired / directory.name)
-            os.replace(staging, directory)
-            shutil.rmtree(retired)
-        else:
-            os.replace(staging, directory)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
 
 
 def as_train_config(cfg) -> TrainConfig:

@@ -14,5 +14,6 @@ BIN=.venv/bin
 "$BIN/tracegs-train" stage=baseline "$@"
 "$BIN/tracegs-train" stage=stage1 "$@"
 "$BIN/tracegs-train" -m "$launcher" stage=stage2 ablation=B,C,D,E,F-,F "$@"
-"$BIN/tracegs-evaluate" -m "$launcher" ablation=A,B,C,D,E,F-,F "$@"
+# Each variant is scored by the method that stands for it (A: baseline restorer, B..F: their student).
+"$BIN/tracegs-evaluate" -m "$launcher" ablation=A,B,C,D,E,F-,F 'evaluation.methods=[${ablation.method}]' "$@"
 "$BIN/tracegs-report" report.kind=ablation "$@"

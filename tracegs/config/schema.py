@@ -87,6 +87,9 @@ class AblationConfig:
     description: str = "TRACE-GS: all-view privileged teacher, on-policy, lambda_ret 0.15"
     # Variant A evaluates the frozen baseline restorer and trains nothing.
     train_stage2: bool = True
+    # The evaluation method that stands for this variant in Table 3 ("baseline" for A, else "tracegs");
+    # a sweep evaluates only it: 'evaluation.methods=[${ablation.method}]'.
+    method: str = "tracegs"
 
 
 @dataclass

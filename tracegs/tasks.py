@@ -191,7 +191,9 @@ def report(cfg: DictConfig) -> Path:
     if kind == "ablation":
         inputs = list(cfg.report.inputs) or [str(Path(cfg.paths.experiment_dir) / "eval" / v)
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
-        return write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
+        table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
+        print(table.read_text())
+        return table
     raise ValueError(f"report.kind must be 'main', 'prepare' or 'ablation', got {kind!r}")
 
 

@@ -35,9 +35,7 @@ def prepare(cfg: DictConfig) -> Path:
 
     backbone = build_backbone(section(cfg.backbone))
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
-    prepare_cfg = section(cfg.data.prepare)
-    prepare_cfg.fit = section(cfg.splat)  # one 3DGS optimiser config (splat group) for preparation and deployment
-    manifest = run_prepare(prepare_cfg, section(cfg.data.source), backbone, synthetic)
+    manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
     log.info("paired-clip cache: %s", manifest)
     return manifest
 
@@ -155,7 +153,7 @@ def evaluate(cfg: DictConfig) -> dict:
         section(cfg.evaluation),
         section(cfg.data.source),
         section(cfg.deploy),
-        section(cfg.splat),
+        section(cfg.data.prepare.fit),
         build_restorers(cfg, methods),
         scenes=test_scenes(cfg),
         gt_renderer=ground_truth_renderer(cfg),
@@ -171,7 +169,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = build_restorers(cfg, [method])[method]
     return deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                         section(cfg.splat), restorer, test_scenes(cfg), cfg.run_dir)
+                         section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
 
 
 # ------------------------------------------------------------------------------------------- report

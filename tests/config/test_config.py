@@ -157,6 +157,7 @@ def test_cli_prints_resolved_paper_config():
     assert cfg.stage.max_steps == 2000 and cfg.optimizer.warmup_steps == 100
     assert cfg.experiment.stage1_steps == 500
     assert cfg.backbone.transformer.num_layers == 42
+    assert cfg.data.prepare.fit.iterations == 30000  # the splat group reaches preparation and deployment
 
 
 def test_cli_reports_bad_combination_in_one_line(tmp_path):

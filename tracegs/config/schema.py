@@ -15,7 +15,6 @@ from hydra.core.config_store import ConfigStore
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
 from tracegs.restorer.config import BackboneConfig
-from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
     LossConfig,
     OptimizerConfig,
@@ -120,7 +119,6 @@ class TraceGSConfig:
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-    splat: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     ablation: AblationConfig = field(default_factory=AblationConfig)
     deploy: RefinementConfig = field(default_factory=RefinementConfig)

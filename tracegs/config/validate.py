@@ -56,15 +56,15 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.frames_per_clip",
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
-    fit = cfg.splat  # the one 3DGS optimiser config, used by preparation and deployment
-    snapshots = _check_increasing(fit.snapshot_iters, "splat.snapshot_iters")
+    fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
+    snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
     _require(
         snapshots and snapshots[-1] <= fit.iterations,
-        "splat.snapshot_iters",
+        "data.prepare.fit.snapshot_iters",
         f"snapshots {snapshots} must lie inside the fit budget of {fit.iterations} iterations",
     )
     missing = sorted(set(prepare.student_snapshots) - set(snapshots))
-    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among splat.snapshot_iters {snapshots}")
+    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among data.prepare.fit.snapshot_iters {snapshots}")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
     dense_counts = [v for v in prepare.dense_views if v is not None]
     _check_increasing(dense_counts, "data.prepare.dense_views")
@@ -126,7 +126,8 @@ def _validate_backbone(cfg: DictConfig) -> None:
         "backbone.schedule.kind",
         f"must be 'rectified_flow' or 'vpred_ddim', got {backbone.schedule.kind!r}",
     )
-    # The codec's spatial factor times the patch size must tile the rendered frames exactly.
+    # The codec's spatial factor times the patch size must tile the rendered frames exactly (the CogVideoX
+    # VAE compresses 8x spatially, supplement A.1; the embedded codec by its block size).
     factor = (8 if backbone.codec.kind == "cogvideox" else backbone.codec.block_size) * backbone.transformer.patch_size
     height, width = cfg.data.synthetic.height, cfg.data.synthetic.width
     if cfg.data.source.preset != "synthetic" and cfg.data.source.height is not None:

@@ -84,6 +84,32 @@ def test_epochs_redraw_but_stay_reproducible(prepared):
     assert list(sampler) == epoch0 and epoch0 != epoch1
 
 
+def test_loader_resumes_inside_an_epoch_where_its_state_says(prepared, tmp_path):
+    """A checkpointed loader position brings back the rest of that epoch, then whole epochs again."""
+    cache = two_scene_cache(prepared, tmp_path)  # 4 clips: 2 batches per epoch
+
+    def clips(batches) -> list[tuple[str, ...]]:
+        return [tuple(f"{s}/{c}" for s, c in zip(b["scene"], b["clip"].tolist())) for b in batches]
+
+    loader = module(cache).train_dataloader()
+    loader.sampler.set_epoch(3)
+    uninterrupted = clips(loader)
+    iterator = iter(loader)
+    first = next(iterator)
+    state = loader.state_dict()
+    assert state == {"batches": 1}
+
+    restarted = module(cache).train_dataloader()
+    restarted.load_state_dict(state)
+    restarted.sampler.set_epoch(3)
+    assert clips([first]) + clips(restarted) == uninterrupted
+    assert clips(restarted) == uninterrupted  # the skip applies to the resumed epoch only
+    finished = module(cache).train_dataloader()
+    finished.load_state_dict({"batches": 2})  # saved after an epoch's last batch: next epoch starts whole
+    finished.sampler.set_epoch(3)
+    assert clips(finished) == uninterrupted
+
+
 def test_split_by_scene(prepared, tmp_path):
     cache = two_scene_cache(prepared, tmp_path)
     dm = module(cache, val_scenes=["scene_001"])

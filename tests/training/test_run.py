@@ -104,14 +104,20 @@ def test_stages_chain_and_log_every_term(stages):
     assert (tmp / "stage1" / "checkpoints" / "last.ckpt").is_file()
 
 
-def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages):
+@pytest.mark.parametrize("interrupt_at", [2, 3], ids=["epoch-boundary", "mid-epoch"])
+def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages, interrupt_at):
     tmp, cache, baseline, stage1 = stages
     extra = dict(base_weights=str(baseline), init_adapter=str(stage1))
-    full = train_stage(config(tmp, cache, "stage2", 4, "full", **extra))
-    assert {"train/traj", "train/ret", "train/loss"} <= logged_columns(tmp / "full")
-    # interrupted after 2 steps (an epoch boundary: 4 clips, batch 2), then rerun to 4: resumes from last.ckpt
-    train_stage(config(tmp, cache, "stage2", 2, "interrupted", **extra))
-    resumed = train_stage(config(tmp, cache, "stage2", 4, "interrupted", **extra))
+    full_dir = tmp / "full"
+    full = full_dir / "student_adapter.safetensors"
+    if not full.is_file():
+        train_stage(config(tmp, cache, "stage2", 4, "full", **extra))
+    assert {"train/traj", "train/ret", "train/loss"} <= logged_columns(full_dir)
+    # 4 clips in batches of 2 make 2 steps an epoch: stopping after step 2 ends an epoch, after step 3 it
+    # leaves epoch 1 half done, and the rerun to 4 steps resumes from last.ckpt at the next unseen batch.
+    out = f"interrupted_{interrupt_at}"
+    train_stage(config(tmp, cache, "stage2", interrupt_at, out, **extra))
+    resumed = train_stage(config(tmp, cache, "stage2", 4, out, **extra))
     a, b = load_file(str(full)), load_file(str(resumed))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 

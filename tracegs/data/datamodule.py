@@ -127,10 +127,45 @@ class EpochSampler(DistributedSampler):
         replicas = torch.distributed.get_world_size() if distributed else 1
         rank = torch.distributed.get_rank() if distributed else 0
         super().__init__(dataset, num_replicas=replicas, rank=rank, shuffle=shuffle, seed=seed)
+        self.skip = 0  # leading samples of this epoch's order to leave out once (mid-epoch resume)
 
     def __iter__(self) -> Iterator[tuple[int, int]]:
-        for index in super().__iter__():
-            yield index, (self.seed * 1_000_003 + self.epoch) * 1_000_033 + index
+        skip, self.skip = self.skip, 0
+        for position, index in enumerate(super().__iter__()):
+            if position >= skip:
+                yield index, (self.seed * 1_000_003 + self.epoch) * 1_000_033 + index
+
+
+class ResumableDataLoader(DataLoader):
+    """A ``DataLoader`` over an ``EpochSampler`` whose position inside an epoch survives a checkpoint.
+
+    Lightning stores ``state_dict()`` of every loader that has one in its checkpoints and hands it back
+    through ``load_state_dict`` before the resumed epoch is iterated. Without it a run resumed mid-epoch
+    would start that epoch over and train on different batches than the uninterrupted run. Written here
+    because torch's DataLoader keeps no position and torchdata's StatefulDataLoader would add a dependency
+    for what is a counter: the sampler's order is a pure function of (seed, epoch), so the position is
+    the whole state. Lightning does not prefetch from sized loaders, so batches handed out equal batches
+    trained on when a checkpoint is written.
+    """
+
+    def __init__(self, dataset: Dataset, sampler: EpochSampler, **kwargs):
+        super().__init__(dataset, sampler=sampler, **kwargs)
+        self._batches_yielded = 0
+        self._resume_at = 0
+
+    def __iter__(self):
+        self._batches_yielded, self._resume_at = self._resume_at, 0
+        self.sampler.skip = self._batches_yielded * self.batch_size
+        for batch in super().__iter__():
+            self._batches_yielded += 1
+            yield batch
+
+    def state_dict(self) -> dict[str, int]:
+        return {"batches": self._batches_yielded}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        # A checkpoint written after an epoch's last batch resumes at the start of the next epoch.
+        self._resume_at = state["batches"] if state["batches"] < len(self) else 0
 
 
 class PairedClipDataModule(L.LightningDataModule):
@@ -169,9 +204,9 @@ class PairedClipDataModule(L.LightningDataModule):
         self.val_set = dataset(list(cfg.val_scenes)) if cfg.val_scenes else None
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.train_set, batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers,
-                          sampler=EpochSampler(self.train_set, self.cfg.seed), drop_last=False,
-                          persistent_workers=self.cfg.num_workers > 0)
+        return ResumableDataLoader(self.train_set, EpochSampler(self.train_set, self.cfg.seed),
+                                   batch_size=self.cfg.batch_size, num_workers=self.cfg.num_workers,
+                                   drop_last=False, persistent_workers=self.cfg.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader | list:
         if self.val_set is None:

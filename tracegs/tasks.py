@@ -79,8 +79,8 @@ def _digest(path: Path) -> str:
     return sha.hexdigest()[:16]
 
 
-def build_restorer(cfg: DictConfig, with_student: bool):
-    """The deployed restorer: variant A's weights, plus the selected variant's student adapter if asked."""
+def build_restorer(cfg: DictConfig, student_adapter: str | None):
+    """The deployed restorer: variant A's weights, plus a student adapter (None = variant A itself)."""
     from tracegs.deploy.restorers import DiffusionRestorer
     from tracegs.restorer import adapters
     from tracegs.restorer.build import build_backbone
@@ -98,12 +98,12 @@ def build_restorer(cfg: DictConfig, with_student: bool):
                 if backbone_cfg.transformer.pretrained_path else "base=random-init"]
     backbone = build_backbone(backbone_cfg, device="cuda" if torch.cuda.is_available() else "cpu")
     adapter = None
-    if with_student:
-        student = Path(cfg.artifacts.student_adapter)
+    if student_adapter is not None:
+        student = Path(student_adapter)
         if not student.is_file():
             raise FileNotFoundError(
                 f"artifacts.student_adapter: no student adapter at {student} "
-                f"(run tracegs-train stage=stage2 ablation={cfg.ablation.name})"
+                f"(run tracegs-train stage=stage2 ablation={student.parent.name})"
             )
         adapter = "student"
         adapters.load_adapter(backbone.transformer, adapter, student, trainable=False)
@@ -114,8 +114,8 @@ def build_restorer(cfg: DictConfig, with_student: bool):
 
 def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
     """Method name -> restorer (None = plain 3DGS, no restoration)."""
-    builders = {"3dgs": lambda: None, "baseline": lambda: build_restorer(cfg, False),
-                "tracegs": lambda: build_restorer(cfg, True)}
+    builders = {"3dgs": lambda: None, "baseline": lambda: build_restorer(cfg, None),
+                "tracegs": lambda: build_restorer(cfg, cfg.artifacts.student_adapter)}
     return {m: builders[m]() for m in methods}
 
 
@@ -148,18 +148,33 @@ def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     from tracegs.deploy.evaluate import evaluate as run_evaluation
 
-    methods = list(cfg.evaluation.methods)
+    restorers = build_restorers(cfg, list(cfg.evaluation.methods))
     results = run_evaluation(
         section(cfg.evaluation),
         section(cfg.data.source),
         section(cfg.deploy),
         section(cfg.data.prepare.fit),
-        build_restorers(cfg, methods),
+        restorers,
         scenes=test_scenes(cfg),
         gt_renderer=ground_truth_renderer(cfg),
     )
+    if cfg.evaluation.held_out_cache is not None:
+        held_out_quality(cfg, restorers)
     log.info("evaluation written to %s", cfg.evaluation.out_dir)
     return results
+
+
+def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
+    """Score each diffusion restorer against its input R_s on the held-out clips (eval/clips.py)."""
+    from tracegs.eval.clips import clip_restoration_psnr
+    from tracegs.eval.report import write_held_out_report
+
+    pipelines = {method: r.pipeline for method, r in restorers.items() if r is not None}
+    quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                    progress=cfg.evaluation.progress)
+    table = write_held_out_report(quality, cfg.evaluation.out_dir)
+    log.info("held-out clip quality: %s", table)
+    return table
 
 
 def deploy(cfg: DictConfig) -> list[Path]:
@@ -180,6 +195,8 @@ def report(cfg: DictConfig) -> Path:
     from tracegs.eval.report import write_ablation_report
 
     kind = cfg.report.kind
+    if kind == "per_step":
+        return per_step_report(cfg)
     if kind == "prepare":
         return merge_manifests(cfg.data.prepare.cache_dir)
     if kind == "main":
@@ -192,7 +209,31 @@ def report(cfg: DictConfig) -> Path:
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
         print(table.read_text())
         return table
-    raise ValueError(f"report.kind must be 'main', 'prepare' or 'ablation', got {kind!r}")
+    raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation' or 'per_step', got {kind!r}")
+
+
+def per_step_report(cfg: DictConfig) -> Path:
+    """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the held-out clips."""
+    from tracegs.eval.clips import held_out_per_step_curves
+    from tracegs.eval.report import plot_per_step_quality
+    from tracegs.io import write_json_atomic
+
+    if cfg.evaluation.held_out_cache is None:
+        raise ValueError("evaluation.held_out_cache: report.kind=per_step needs a prepared held-out cache "
+                         "(tracegs-prepare data.prepare.split=test)")
+    variants = list(cfg.report.inputs) or ["A", "E", "F"]
+    stage2 = Path(cfg.paths.experiment_dir) / "stage2"
+    pipelines = {variant: build_restorer(cfg, None if variant == "A" else
+                                         str(stage2 / variant / "student_adapter.safetensors")).pipeline
+                 for variant in variants}
+    curves = held_out_per_step_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                      progress=cfg.evaluation.progress)
+    out = Path(cfg.report.output_dir)
+    write_json_atomic(curves, out / "per_step_variants.json")
+    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png")
+    for variant, curve in curves.items():
+        print(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+    return figure
 
 
 # --------------------------------------------------------------------------------------------- demo
@@ -204,12 +245,16 @@ def peak_rss_gib() -> float:
     return max(own, children) / scale
 
 
+# The held-out cache: the benchmark's test scenes prepared like the training clips, read only by evaluation.
+HELD_OUT = ("data.prepare.split=test", "evaluation.held_out_cache=${data.prepare.cache_dir}")
+
 DEMO_STEPS = (
     ("prepare", ()),
+    ("prepare", HELD_OUT[:1]),
     ("train", ("stage=baseline",)),
     ("train", ("stage=stage1",)),
     ("train", ("stage=stage2", "ablation=F")),
-    ("evaluate", ("ablation=F",)),
+    ("evaluate", ("ablation=F", *HELD_OUT)),
 )
 
 
@@ -227,6 +272,7 @@ def demo(cfg: DictConfig) -> Path:
     user_overrides = list(HydraConfig.get().overrides.task)
     tasks = {"prepare": prepare, "train": train, "evaluate": evaluate}
     results: dict = {}
+    held_out_table = None
     for index, (name, extra) in enumerate(DEMO_STEPS, 1):
         step_cfg = compose(config_name=name, overrides=[*user_overrides, *extra])
         validate(step_cfg)
@@ -235,11 +281,15 @@ def demo(cfg: DictConfig) -> Path:
         outcome = tasks[name](step_cfg)
         if name == "evaluate":
             results = outcome
+            held_out_table = Path(step_cfg.evaluation.out_dir) / "held_out_clips.md"
     results["wall_s"] = round(time.perf_counter() - start, 1)
     results["peak_rss_gib"] = round(peak_rss_gib(), 3)
     out_dir = Path(cfg.run_dir)
     write_json_atomic(results, out_dir / "results.json")
     print_results_table(results)
+    if held_out_table is not None:
+        print("\nRestoration of held-out clips (is the output closer to ground truth than its input R_s?)\n")
+        print(held_out_table.read_text())
     print(f"\ntracegs-demo: finished in {results['wall_s']:.0f} s, peak RSS {results['peak_rss_gib']:.2f} GiB")
     print(f"tracegs-demo: all outputs under {Path(cfg.paths.experiment_dir).resolve()}")
     print(f"tracegs-demo: results table in {out_dir.resolve() / 'results.json'}")

@@ -126,6 +126,10 @@ def test_wrong_type_names_the_field():
         (["deploy.repair_iters=[140,340,700]"], "deploy.repair_iters"),
         (["data.synthetic.test_seeds=[3,100]"], "data.synthetic.test_seeds"),
         (["teacher=v3", "teacher.privileged=true"], "teacher.views"),
+        (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
+        (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
+        (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],
+         "backbone.transformer.prediction"),
     ],
 )
 def test_invalid_combination_names_the_field(overrides, field):

@@ -103,3 +103,15 @@ def test_deployment_schedule_ends():
     assert grid.numel() == 51 and grid[0] == 999 and grid[-1] == -1
     # zero terminal SNR: the first point is pure noise
     assert float(ddim.alpha_bar(grid[:1])) == pytest.approx(0.0, abs=1e-8)
+
+
+def test_training_times_follow_the_configured_power_law():
+    """train_time_power p draws t with density (p + 1) t^p: P(t > 1/2) = 1 - 2^-(p+1); p = 0 is uniform."""
+    draws = {p: RectifiedFlowSchedule(ScheduleConfig(train_time_power=p)).sample_train_t(
+        8192, torch.Generator().manual_seed(0)) for p in (0.0, 6.0)}
+    assert float((draws[0.0] > 0.5).float().mean()) == pytest.approx(0.5, abs=0.02)
+    assert float((draws[6.0] > 0.5).float().mean()) == pytest.approx(1 - 2**-7, abs=0.01)
+    assert float(draws[6.0].min()) >= 0.0 and float(draws[6.0].max()) <= 1.0
+    # the deployment grid does not depend on it
+    assert torch.equal(RectifiedFlowSchedule(ScheduleConfig(train_time_power=6.0)).timesteps(4),
+                       torch.linspace(1.0, 0.0, 5))

@@ -132,7 +132,7 @@ def test_load_transformer_lists_missing_keys(tmp_path):
     kwargs = {
         k: v
         for k, v in transformer_kwargs(cfg).items()
-        if k not in ("ref_2d_dim", "ref_3d_dim", "timestep_scale")
+        if k not in ("ref_2d_dim", "ref_3d_dim", "timestep_scale", "prediction", "clean_min_time")
     }
     CogVideoXTransformer3DModel(**kwargs).save_pretrained(cfg.pretrained_path)
     with pytest.raises(CheckpointMismatchError, match=r"missing keys \[.*ref_attn.*\]"):
@@ -175,3 +175,26 @@ def test_bf16_base_accepts_float32_inputs(backbone, make_inputs):
         out = model(**inputs, return_retrieval=True)
     assert out.velocity.dtype == torch.float32 and out.retrieval.dtype == torch.float32
     assert (out.velocity - reference.velocity).abs().mean() < 0.05 * reference.velocity.abs().mean()
+
+
+@pytest.mark.parametrize("prediction", ["clean", "residual"])
+def test_x0_predictions_return_the_rectified_flow_velocity_of_their_x0(tmp_path, backbone, make_inputs, prediction):
+    """The head's output is x0 (clean) or x0 - cond (residual); the model returns v = (z_t - x0) / max(t, t_min),
+    so an Euler step to t = 0 lands on that x0. Weights saved as one prediction do not load as another."""
+    as_velocity = backbone.transformer
+    as_x0 = create_transformer(TransformerConfig(prediction=prediction))
+    as_x0.load_state_dict(as_velocity.state_dict())
+    as_velocity.save_pretrained(tmp_path / "weights")
+    with pytest.raises(CheckpointMismatchError, match=f"'prediction': \\('velocity', '{prediction}'\\)"):
+        load_transformer(TransformerConfig(pretrained_path=str(tmp_path / "weights"), prediction=prediction))
+    inputs = make_inputs()
+    inputs["timestep"] = torch.tensor([0.7, 0.01])  # the second sits below clean_min_time = 0.05
+    with torch.no_grad():
+        head = as_velocity(**inputs).velocity  # the same head output, read as x0 or x0 - cond
+        velocity = as_x0(**inputs).velocity
+    x0 = head + inputs["cond"] if prediction == "residual" else head
+    denominator = torch.tensor([0.7, 0.05]).reshape(2, 1, 1, 1, 1)
+    torch.testing.assert_close(velocity, (inputs["noisy"] - x0) / denominator)
+    torch.testing.assert_close(inputs["noisy"][:1] - 0.7 * velocity[:1], x0[:1])
+    with pytest.raises(ValueError, match="prediction='noise'"):
+        create_transformer(TransformerConfig(prediction="noise"))

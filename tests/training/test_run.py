@@ -64,11 +64,12 @@ def write_cache(root: Path, clips: int = 4) -> Path:
     return root
 
 
-def config(tmp_path: Path, cache: Path, name: str, steps: int, out: str, **stage) -> TrainConfig:
+def config(tmp_path: Path, cache: Path, name: str, steps: int, out: str, decay: str = "constant",
+           **stage) -> TrainConfig:
     return TrainConfig(
         stage=StageConfig(name=name, max_steps=steps, batch_size=2, rollout_steps=3, checkpoint_every_n_steps=1,
                           **stage),
-        optimizer=OptimizerConfig(lr=3e-3, warmup_steps=2),
+        optimizer=OptimizerConfig(lr=3e-3, warmup_steps=2, decay=decay),
         trainer=TrainerConfig(enable_progress_bar=False, log_every_n_steps=1),
         backbone=BACKBONE,
         data=DataModuleConfig(cache_dir=str(cache), student_views=[3], student_snapshots=[140], caption_dropout=0.0),
@@ -120,6 +121,22 @@ def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages, interrupt_
     resumed = train_stage(config(tmp, cache, "stage2", 4, out, **extra))
     a, b = load_file(str(full)), load_file(str(resumed))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def logged_values(run_dir: Path, column: str) -> list[float]:
+    (metrics,) = (run_dir / "csv").glob("version_*/metrics.csv")
+    with open(metrics) as handle:
+        return [float(row[column]) for row in csv.DictReader(handle) if row.get(column)]
+
+
+def test_learning_rate_warms_up_then_follows_the_configured_decay(stages):
+    tmp, cache, _, _ = stages
+    train_stage(config(tmp, cache, "baseline", 5, "cosine", decay="cosine"))
+    # warm-up over 2 steps, then a cosine from 3e-3 at step 2 to zero at step 5
+    assert logged_values(tmp / "cosine", "train/lr") == pytest.approx([1.5e-3, 3e-3, 3e-3, 2.25e-3, 0.75e-3])
+    assert logged_values(tmp / "baseline", "train/lr") == pytest.approx([1.5e-3, 3e-3])
+    with pytest.raises(ValueError, match="optimizer.decay"):
+        OptimizerConfig(decay="linear")
 
 
 def test_stage2_without_stage1_adapter_fails_clearly(stages):

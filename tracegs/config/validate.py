@@ -56,6 +56,11 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.frames_per_clip",
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
+    _require(
+        prepare.split == "train" or cfg.data.source.preset == "synthetic",
+        "data.prepare.split",
+        f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
+    )
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
     snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
     _require(
@@ -125,6 +130,17 @@ def _validate_backbone(cfg: DictConfig) -> None:
         backbone.schedule.kind in ("rectified_flow", "vpred_ddim"),
         "backbone.schedule.kind",
         f"must be 'rectified_flow' or 'vpred_ddim', got {backbone.schedule.kind!r}",
+    )
+    _require(
+        backbone.schedule.train_time_power >= 0,
+        "backbone.schedule.train_time_power",
+        f"must be >= 0, got {backbone.schedule.train_time_power}",
+    )
+    _require(
+        backbone.transformer.prediction == "velocity" or backbone.schedule.kind == "rectified_flow",
+        "backbone.transformer.prediction",
+        f"'{backbone.transformer.prediction}' converts x0 to a rectified-flow velocity; schedule.kind is "
+        f"{backbone.schedule.kind!r} (use prediction=velocity)",
     )
     # The codec's spatial factor times the patch size must tile the rendered frames exactly (the CogVideoX
     # VAE compresses 8x spatially, supplement A.1; the embedded codec by its block size).

@@ -54,6 +54,9 @@ class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
     cache_dir: str = "data/cache"
+    # Synthetic benchmark only: which seed list to prepare. "test" builds a held-out cache that no stage
+    # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``).
+    split: str = "train"
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
     # Dense view sets; None = all training views. Every student set is also fitted to its final

@@ -110,6 +110,8 @@ def validate_config(cfg: PrepareConfig) -> None:
         raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
     if not cfg.student_views:
         raise PrepareError("prepare.student_views is empty")
+    if cfg.split not in ("train", "test"):
+        raise PrepareError(f"prepare.split={cfg.split!r} must be 'train' or 'test'")
 
 
 def shard_scenes(names: list[str], shard_index: int, num_shards: int) -> list[str]:
@@ -462,7 +464,8 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     """Prepare the paired-clip cache and return the path of this shard's manifest.
 
     With ``synthetic`` given, the benchmark is generated first (idempotent) and, unless ``source.scenes``
-    names scenes, its training seeds are prepared. Every scene of the shard is loaded and split before
+    names scenes, the seeds of its ``prepare.split`` are prepared (``test``: a held-out cache that only
+    evaluation reads). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
     validate_config(prepare)
@@ -480,7 +483,7 @@ def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Ba
                  synthetic: SyntheticConfig | None, progress: bool) -> Path:
     if synthetic is not None:
         generate_benchmark(synthetic, progress=progress)
-        names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, "train")
+        names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
         names = list_scenes(source)
     names = shard_scenes(names, prepare.shard_index, prepare.num_shards)

@@ -56,6 +56,9 @@ class EvaluationConfig:
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     views: list[int] = field(default_factory=lambda: [3, 6, 9])
     scenes: list[str] | None = None  # None = the benchmark's test scenes
+    # A paired-clip cache of held-out scenes with ground truth (``tracegs-prepare data.prepare.split=test``).
+    # When set, each diffusion restorer also restores its clips and is scored against its input R_s.
+    held_out_cache: str | None = None
     # Sharding (Hydra multirun / SLURM array): this job evaluates every num_shards-th (scene, views) unit.
     shard_index: int = 0
     num_shards: int = 1

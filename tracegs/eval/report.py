@@ -169,6 +169,34 @@ def write_ablation_report(inputs: Sequence[str | Path], out_dir: str | Path) -> 
     return write_ablation_table(files, out_dir)["md"]
 
 
+def held_out_table_markdown(quality: Mapping) -> str:
+    """The held-out clip table (``tracegs.eval.clips``): PSNR of the input R_s and of each restorer's output
+    per student condition (K views, 3DGS snapshot), then the mean over conditions."""
+    labels = list(quality["mean"])
+    header = ["R_s condition"] + [
+        "input R_s" if label == "input" else METHOD_LABELS.get(label, label) for label in labels
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    rows = [*quality["conditions"].items(), ("mean", quality["mean"])]
+    for condition, row in rows:
+        lines.append("| " + " | ".join([condition] + [_fmt(row[label], "psnr") for label in labels]) + " |")
+    return (
+        "\n".join(lines)
+        + f"\n\nPSNR (dB) against ground truth on {quality['clips']} held-out clips of "
+        f"{', '.join(quality['scenes'])}; reference frames excluded; scene means, then the mean over scenes.\n"
+    )
+
+
+def write_held_out_report(quality: Mapping, out_dir: str | Path) -> Path:
+    """``held_out_clips.json`` and ``held_out_clips.md`` in ``out_dir``; returns the markdown path."""
+    out_dir = Path(out_dir)
+    write_json_atomic(dict(quality), out_dir / "held_out_clips.json")
+    table = out_dir / "held_out_clips.md"
+    with atomic_write(table) as tmp:
+        tmp.write_text(held_out_table_markdown(quality))
+    return table
+
+
 def print_results_table(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> None:
     """Print the Tables 1/2 layout (markdown) to stdout."""
     print(results_table_markdown(results, views))

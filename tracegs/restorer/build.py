@@ -40,6 +40,8 @@ def transformer_kwargs(cfg: TransformerConfig) -> dict:
         ref_2d_dim=cfg.ref_2d_dim,
         ref_3d_dim=cfg.ref_3d_dim,
         timestep_scale=cfg.timestep_scale,
+        prediction=cfg.prediction,
+        clean_min_time=cfg.clean_min_time,
     )
 
 

@@ -44,6 +44,10 @@ class TransformerConfig:
     # The model embeds ``timestep * timestep_scale``: rectified-flow t in [0, 1] -> 0..1000 like CogVideoX's
     # integer DDPM steps (scale 1). Callers always pass the schedule's native t.
     timestep_scale: float = 1000.0
+    # "velocity" (the output head predicts v, as CogVideoX) or "clean" (it predicts x0 and the model returns
+    # v = (z_t - x0) / max(t, clean_min_time); rectified flow only). See transformer.velocity_from_clean.
+    prediction: str = "velocity"
+    clean_min_time: float = 0.05
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
     dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (peft keeps LoRA factors in float32)
     gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
@@ -104,6 +108,11 @@ class ScheduleConfig:
     kind: str = "rectified_flow"
     num_train_timesteps: int = 1000
     deploy_steps: int = 20  # M
+    # rectified_flow: training times of forward-noised states (baseline L_fm, Stage 1) are drawn with density
+    # proportional to t^p, p >= 0 (0 = uniform). A large p trains mostly at high noise, where the restorer reads
+    # the clip from its condition; conf/backbone/tiny.yaml records the measured choice. The deployment grid
+    # and Stage 2's resampled grids stay uniform.
+    train_time_power: float = 0.0
     # CogVideoX-5B scheduler values (used by vpred_ddim only).
     beta_start: float = 0.00085
     beta_end: float = 0.012

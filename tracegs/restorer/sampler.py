@@ -129,25 +129,48 @@ class RestorationPipeline:
         progress: bool = False,
     ) -> torch.Tensor:
         """frames (B, F, 3, H, W) in [0, 1] -> restored frames of the same shape (defaults from the config)."""
-        bb, cfg = self.backbone, self.backbone.cfg
+        bb = self.backbone
         if len(captions) != frames.shape[0]:
             raise ValueError(f"got {len(captions)} captions for a batch of {frames.shape[0]} clips")
         device = self.device
-        cond = bb.codec.encode(frames.to(device))
         ref_2d, ref_3d = bb.reference_encoder(ref_images.to(device))
-        text = bb.text_encoder.encode(captions).to(device)
+        latents = self.restore_latents(
+            bb.codec.encode(frames.to(device)),
+            ref_2d,
+            ref_3d,
+            bb.text_encoder.encode(captions),
+            seed,
+            steps,
+            guidance_scale,
+            progress,
+        )
+        return bb.codec.decode(latents).to(frames.device)
+
+    @torch.no_grad()
+    def restore_latents(
+        self,
+        cond: torch.Tensor,
+        ref_2d: torch.Tensor,
+        ref_3d: torch.Tensor,
+        text: torch.Tensor,
+        seed: int | None = None,
+        steps: int | None = None,
+        guidance_scale: float | None = None,
+        progress: bool = False,
+    ) -> torch.Tensor:
+        """The same restoration from already encoded inputs (e.g. a prepared cache): clean latents."""
+        cfg, device = self.backbone.cfg, self.device
         generator = torch.Generator().manual_seed(cfg.sampler.seed if seed is None else seed)
-        with using_adapter(bb.transformer, self.adapter):
-            latents = sample(
-                bb.transformer,
-                bb.schedule,
-                cond,
+        with using_adapter(self.backbone.transformer, self.adapter):
+            return sample(
+                self.backbone.transformer,
+                self.backbone.schedule,
+                cond.to(device),
                 ref_2d.to(device),
                 ref_3d.to(device),
-                text,
+                text.to(device),
                 steps or cfg.schedule.deploy_steps,
                 cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale,
                 generator,
                 progress=progress,
             )
-        return bb.codec.decode(latents).to(frames.device)

@@ -82,7 +82,8 @@ class RectifiedFlowSchedule(NoiseSchedule):
         return torch.linspace(1.0, 0.0, m + 1)
 
     def sample_train_t(self, batch, generator=None):
-        return torch.rand(batch, generator=generator)
+        # Density (p + 1) t^p on [0, 1] by inverse CDF (p = train_time_power; 0 = uniform).
+        return torch.rand(batch, generator=generator) ** (1.0 / (1.0 + self.cfg.train_time_power))
 
 
 class VPredictionDDIMSchedule(NoiseSchedule):

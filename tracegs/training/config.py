@@ -26,8 +26,14 @@ class OptimizerConfig:
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
     eps: float = 1e-8
     warmup_steps: int = 0
+    # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
+    decay: str = "constant"
     # Max global L2 norm of the trainable gradients; None disables clipping.
     grad_clip: float | None = 1.0
+
+    def __post_init__(self) -> None:
+        if self.decay not in ("constant", "cosine"):
+            raise ValueError(f"optimizer.decay must be 'constant' or 'cosine', got {self.decay!r}")
 
 
 @dataclass

@@ -11,6 +11,7 @@ uninterrupted run would have drawn at the same step.
 
 from __future__ import annotations
 
+import math
 import time
 from abc import abstractmethod
 
@@ -25,11 +26,15 @@ _RANK_STRIDE = 1_000_003
 _SEED_STRIDE = 7_919_000_017
 
 
-def warmup_factor(step: int, warmup_steps: int) -> float:
-    """Linear learning-rate warm-up: (step + 1) / warmup_steps for the first ``warmup_steps`` steps, then 1."""
-    if warmup_steps <= 0:
+def lr_factor(step: int, warmup_steps: int, decay: str = "constant", total_steps: int | None = None) -> float:
+    """Learning-rate multiplier: linear warm-up, (step + 1) / warmup_steps for the first ``warmup_steps``
+    steps, then 1 ("constant", the paper's Stage 2) or a cosine from 1 to 0 at ``total_steps`` ("cosine")."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    if decay == "constant" or total_steps is None or total_steps <= warmup_steps:
         return 1.0
-    return min(1.0, (step + 1) / warmup_steps)
+    progress = min(1.0, (step - warmup_steps) / (total_steps - warmup_steps))
+    return 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 class RestorerTrainingModule(L.LightningModule):
@@ -97,6 +102,10 @@ class RestorerTrainingModule(L.LightningModule):
     # ----------------------------------------------------------------- Lightning hooks
     def configure_optimizers(self):
         cfg = self.optimizer_cfg
+        # The cosine ends at the Trainer's max_steps; without a Trainer (or a step budget) the rate stays
+        # constant after warm-up. ``_trainer`` because the public property raises when none is attached.
+        trainer = self._trainer
+        total_steps = trainer.max_steps if trainer is not None and trainer.max_steps > 0 else None
         optimizer = torch.optim.AdamW(
             self.trainable_parameters(),
             lr=cfg.lr,
@@ -105,7 +114,7 @@ class RestorerTrainingModule(L.LightningModule):
             weight_decay=cfg.weight_decay,
         )
         scheduler = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: warmup_factor(step, cfg.warmup_steps)
+            optimizer, lambda step: lr_factor(step, cfg.warmup_steps, cfg.decay, total_steps)
         )
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import signal
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -29,6 +30,10 @@ from tracegs.training.config import TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
+
+# Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
+# the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
+warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual optimization")
 
 PRODUCTS = {
     "baseline": "baseline_transformer",

@@ -1,0 +1,50 @@
+"""Held-out clip quality (issue 6 acceptance): the input R_s and each restorer scored against ground truth."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from safetensors.torch import load_file, save_file
+
+from tracegs.data.datamodule import CacheError
+from tracegs.data.prepare import read_shard_psnr
+from tracegs.eval.clips import INPUT, clip_restoration_psnr, held_out_per_step_curves
+from tracegs.restorer.sampler import RestorationPipeline
+
+
+def test_scores_input_and_restorer_per_condition_reproducibly(prepared, backbone):
+    tmp = prepared[0]
+    cache = tmp / "cache"
+    pipeline = RestorationPipeline(backbone)
+    first = clip_restoration_psnr({"untrained": pipeline}, cache, progress=False)
+    again = clip_restoration_psnr({"untrained": pipeline}, cache, progress=False)
+    assert first == again  # seeded noise: the same restorer scores the same
+    assert first["clips"] == 2 and first["scenes"] == ["scene_000"]
+    assert set(first["conditions"]) == {"s3_it8"}
+    row = first["conditions"]["s3_it8"]
+    # The input row is R_s against ground truth, as prepare measured it (up to 8-bit storage).
+    shards = sorted((cache / "scene_000").glob("clip_*.safetensors"))
+    measured = sum(read_shard_psnr(p)["s3_it8"] for p in shards) / len(shards)
+    assert row[INPUT] == pytest.approx(measured, abs=0.2)
+    # An untrained restorer produces noise, far from the rendering it was given.
+    assert row["untrained"] < row[INPUT] - 3.0
+    assert first["mean"] == row
+
+
+def test_needs_ground_truth_frames_and_names_the_shard(prepared, backbone, tmp_path):
+    cache = tmp_path / "cache"
+    shutil.copytree(prepared[0] / "cache", cache)
+    shard = cache / "scene_000" / "clip_001.safetensors"
+    tensors = {k: v for k, v in load_file(str(shard)).items() if k != "frames/gt"}
+    save_file(tensors, str(shard))
+    with pytest.raises(CacheError, match="clip_001.safetensors: no ground-truth frames"):
+        clip_restoration_psnr({"untrained": RestorationPipeline(backbone)}, cache, progress=False)
+
+
+def test_per_step_curves_cover_every_reverse_step_for_each_pipeline(prepared, backbone):
+    pipeline = RestorationPipeline(backbone)
+    curves = held_out_per_step_curves({"E": pipeline, "F": pipeline}, prepared[0] / "cache", progress=False)
+    assert list(curves) == ["E", "F"]
+    assert len(curves["E"]) == backbone.cfg.schedule.deploy_steps
+    assert curves["E"] == curves["F"]  # same clips, conditions and noise for every variant

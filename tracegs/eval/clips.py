@@ -1,0 +1,116 @@
+"""Restoration quality on held-out paired clips: is a restorer's output closer to ground truth than its input?
+
+The clips come from a cache that ``prepare`` built for scenes no restorer was trained on (the benchmark's
+test scenes). For every student condition R_s (K views, snapshot) of every clip the restorer runs its full
+deployment schedule from the cached latents; the decoded output and the input R_s are both scored against the
+clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
+evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from rich.progress import track
+from safetensors import safe_open
+from safetensors.torch import load_file
+from torch import Tensor
+from torchmetrics.functional.image import peak_signal_noise_ratio
+
+from tracegs.data.datamodule import CacheError, read_manifest
+from tracegs.data.prepare import condition_key
+from tracegs.eval.per_step import mean_curves, per_step_psnr
+from tracegs.restorer.sampler import RestorationPipeline
+
+INPUT = "input"  # the row label of the unrestored R_s
+
+
+def _frames(tensors: dict[str, Tensor], key: str) -> Tensor:
+    return tensors[key][1:-1].float() / 255.0
+
+
+def _psnr(frames: Tensor, truth: Tensor) -> float:
+    return float(peak_signal_noise_ratio(frames, truth, data_range=1.0, reduction="none", dim=(1, 2, 3)).mean())
+
+
+def _scene_mean(per_scene: Mapping[str, list[float]]) -> float:
+    return sum(sum(v) / len(v) for v in per_scene.values()) / len(per_scene)
+
+
+def held_out_clips(cache_dir: str | Path) -> tuple[list[str], list[tuple[str, Path]]]:
+    """The student condition keys of a prepared cache and its (scene, shard path) list, in manifest order."""
+    manifest = read_manifest(cache_dir)
+    conditions = [condition_key(k, s) for k in manifest["student_views"] for s in manifest["student_snapshots"]]
+    shards = [(scene, Path(cache_dir) / rel) for scene, entry in manifest["scenes"].items() for rel in entry["clips"]]
+    return conditions, shards
+
+
+def load_clip(path: Path) -> dict[str, Tensor]:
+    """One held-out shard; it must carry ground-truth frames (the synthetic benchmark's do)."""
+    tensors = load_file(str(path))
+    if "frames/gt" not in tensors:
+        raise CacheError(f"{path}: no ground-truth frames; clip quality needs a scene with known ground truth")
+    return tensors
+
+
+@torch.no_grad()
+def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
+                          seed: int = 0, progress: bool = True) -> dict:
+    """PSNR (dB) of R_s and of each pipeline's restoration against ground truth, per student condition.
+
+    Returns ``{"conditions": {cond: {label: psnr}}, "mean": {label: psnr}, "clips": n, "scenes": [...]}``
+    where ``label`` is ``"input"`` or a key of ``pipelines``; ``mean`` averages over conditions.
+    """
+    conditions, shards = held_out_clips(cache_dir)
+    scores: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for index, (scene, path) in enumerate(track(shards, description="held-out clips", disable=not progress)):
+        tensors = load_clip(path)
+        truth = _frames(tensors, "frames/gt")
+        for cond in conditions:
+            scores[cond][INPUT][scene].append(_psnr(_frames(tensors, f"frames/{cond}"), truth))
+        # One batch per clip: every condition of the clip restored together, same seed across restorers.
+        cond_latents = torch.stack([tensors[f"latent/{c}"].float() for c in conditions])
+        batch = len(conditions)
+        for label, pipeline in pipelines.items():
+            latents = pipeline.restore_latents(
+                cond_latents,
+                tensors["ref_2d"].float().expand(batch, -1, -1),
+                tensors["ref_3d"].float().expand(batch, -1, -1),
+                tensors["text"].float().expand(batch, -1, -1),
+                seed=seed + index,
+            )
+            restored = pipeline.backbone.codec.decode(latents).cpu()[:, 1:-1]
+            for cond, frames in zip(conditions, restored):
+                scores[cond][label][scene].append(_psnr(frames, truth))
+    per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
+                     for cond, rows in scores.items()}
+    labels = [INPUT, *pipelines]
+    return {
+        "conditions": per_condition,
+        "mean": {label: sum(row[label] for row in per_condition.values()) / len(per_condition) for label in labels},
+        "clips": len(shards),
+        "scenes": sorted({scene for scene, _ in shards}),
+    }
+
+
+@torch.no_grad()
+def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
+                             seed: int = 0, progress: bool = True) -> dict[str, list[float]]:
+    """Fig. 6 on the held-out clips: each pipeline's per-step PSNR curve (``eval.per_step``), averaged over
+    every clip and student condition. The same clips, conditions and noise seeds go to every pipeline."""
+    conditions, shards = held_out_clips(cache_dir)
+    curves = []
+    for index, (_, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
+        tensors = load_clip(path)
+        frames = torch.stack([tensors[f"frames/{c}"].float() / 255.0 for c in conditions])
+        truth = (tensors["frames/gt"].float() / 255.0).expand(len(conditions), -1, -1, -1, -1)
+        refs = (tensors["frames/ref"].float() / 255.0).expand(len(conditions), -1, -1, -1, -1)
+        with safe_open(str(path), framework="pt") as handle:
+            caption = (handle.metadata() or {}).get("caption", "")
+        curves.append({label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
+                                            seed=seed + index)
+                       for label, pipeline in pipelines.items()})
+    return mean_curves(curves)

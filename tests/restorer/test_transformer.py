@@ -139,6 +139,9 @@ def test_load_transformer_lists_missing_keys(tmp_path):
         load_transformer(cfg)
     with pytest.raises(CheckpointMismatchError, match="num_layers"):
         load_transformer(TransformerConfig(num_layers=3, pretrained_path=cfg.pretrained_path))
+    # a checkpoint that does not say what it predicts is a velocity model
+    with pytest.raises(CheckpointMismatchError, match="'prediction': \\('velocity', 'residual'\\)"):
+        load_transformer(TransformerConfig(prediction="residual", pretrained_path=cfg.pretrained_path))
     with pytest.raises(FileNotFoundError, match="transformer.pretrained_path"):
         load_transformer(TransformerConfig(pretrained_path=str(tmp_path / "absent")))
 

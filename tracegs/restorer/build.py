@@ -60,6 +60,9 @@ def load_transformer(
     weights must cover the model exactly; otherwise the error lists the differing fields / keys."""
     path = require_local_dir(cfg.pretrained_path, "transformer.pretrained_path")
     stored = ReferenceGuidedTransformer.load_config(path)
+    # Checkpoints without the key (plain CogVideoX, or ours from before it existed) predict velocity; reading
+    # them as x0 predictions would silently change what the weights mean.
+    stored.setdefault("prediction", "velocity")
     wanted = transformer_kwargs(cfg)
     differing = {k: (stored[k], v) for k, v in wanted.items() if k in stored and stored[k] != v}
     if differing:

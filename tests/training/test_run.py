@@ -156,3 +156,14 @@ def test_config_accepts_a_matching_dictconfig_and_rejects_bad_fields():
     assert isinstance(cfg, TrainConfig) and cfg.stage.max_steps == 7 and cfg.loss.lambda_align == 0.5
     with pytest.raises(ValueError, match="stage.memory_mode"):
         as_train_config(OmegaConf.create({"stage": {"memory_mode": "fast"}}))
+
+
+def test_resuming_under_another_restorer_configuration_fails_naming_the_field(stages):
+    tmp, cache, _, _ = stages
+    first = config(tmp, cache, "baseline", 1, "reconfigured")
+    train_stage(first)
+    changed = config(tmp, cache, "baseline", 2, "reconfigured")
+    changed.backbone = dataclasses.replace(
+        BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, prediction="residual"))
+    with pytest.raises(ValueError, match="'prediction': \\('velocity', 'residual'\\)"):
+        train_stage(changed)

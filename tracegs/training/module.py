@@ -21,6 +21,9 @@ from torch import Tensor, nn
 
 from tracegs.training.config import OptimizerConfig
 
+# Checkpoint entry holding the restorer's diffusers config, compared on resume.
+MODEL_CONFIG_KEY = "tracegs_transformer_config"
+
 # Large odd multipliers keep the (seed, rank, step) -> generator-seed map collision-free in practice.
 _RANK_STRIDE = 1_000_003
 _SEED_STRIDE = 7_919_000_017
@@ -147,11 +150,20 @@ class RestorerTrainingModule(L.LightningModule):
         ids = {id(p) for p in self.trainable_parameters()}
         return {name for name, p in self.named_parameters() if id(p) in ids}
 
+    def _model_config(self) -> dict:
+        return {k: v for k, v in self.transformer.config.items() if not k.startswith("_")}
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         keep = self._trainable_names()
         checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in keep}
+        checkpoint[MODEL_CONFIG_KEY] = self._model_config()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # Same weight names do not mean the same model: e.g. a velocity head resumed as a residual head.
+        stored, current = checkpoint.get(MODEL_CONFIG_KEY, {}), self._model_config()
+        differing = {k: (v, current[k]) for k, v in stored.items() if k in current and current[k] != v}
+        if differing:
+            raise ValueError(f"checkpoint was written by another restorer configuration (stored, now): {differing}")
         expected, found = self._trainable_names(), set(checkpoint["state_dict"])
         if expected != found:
             missing, unexpected = sorted(expected - found)[:5], sorted(found - expected)[:5]

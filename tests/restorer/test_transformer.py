@@ -201,3 +201,12 @@ def test_x0_predictions_return_the_rectified_flow_velocity_of_their_x0(tmp_path,
     torch.testing.assert_close(inputs["noisy"][:1] - 0.7 * velocity[:1], x0[:1])
     with pytest.raises(ValueError, match="prediction='noise'"):
         create_transformer(TransformerConfig(prediction="noise"))
+
+
+def test_fresh_residual_restorer_returns_its_input_rendering(make_inputs):
+    model = create_transformer(TransformerConfig(prediction="residual"))
+    inputs = make_inputs()
+    with torch.no_grad():
+        velocity = model(**inputs).velocity
+    t = inputs["timestep"].clamp_min(0.05).reshape(-1, 1, 1, 1, 1)
+    torch.testing.assert_close(inputs["noisy"] - t * velocity, inputs["cond"])  # x0 = R before training

@@ -212,6 +212,20 @@ def report(cfg: DictConfig) -> Path:
     raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation' or 'per_step', got {kind!r}")
 
 
+def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` with this run's command-line overrides and ``extra`` (which wins), validated."""
+    from hydra import compose
+    from hydra.core.hydra_config import HydraConfig
+
+    from tracegs.config.validate import validate
+
+    replaced = {override.split("=", 1)[0] for override in extra}
+    user = [o for o in HydraConfig.get().overrides.task if o.split("=", 1)[0] not in replaced]
+    cfg = compose(config_name=config_name, overrides=[*user, *extra])
+    validate(cfg)
+    return cfg
+
+
 def per_step_report(cfg: DictConfig) -> Path:
     """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the held-out clips."""
     from tracegs.eval.clips import held_out_per_step_curves
@@ -221,11 +235,12 @@ def per_step_report(cfg: DictConfig) -> Path:
     if cfg.evaluation.held_out_cache is None:
         raise ValueError("evaluation.held_out_cache: report.kind=per_step needs a prepared held-out cache "
                          "(tracegs-prepare data.prepare.split=test)")
-    variants = list(cfg.report.inputs) or ["A", "E", "F"]
-    stage2 = Path(cfg.paths.experiment_dir) / "stage2"
-    pipelines = {variant: build_restorer(cfg, None if variant == "A" else
-                                         str(stage2 / variant / "student_adapter.safetensors")).pipeline
-                 for variant in variants}
+    pipelines = {}
+    for variant in list(cfg.report.inputs) or ["A", "E", "F"]:
+        # Each variant's own config says which restorer stands for it and where its student adapter is.
+        variant_cfg = compose_run("report", [f"ablation={variant}"])
+        method = variant_cfg.ablation.method
+        pipelines[variant] = build_restorers(variant_cfg, [method])[method].pipeline
     curves = held_out_per_step_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
                                       progress=cfg.evaluation.progress)
     out = Path(cfg.report.output_dir)
@@ -246,36 +261,32 @@ def peak_rss_gib() -> float:
 
 
 # The held-out cache: the benchmark's test scenes prepared like the training clips, read only by evaluation.
-HELD_OUT = ("data.prepare.split=test", "evaluation.held_out_cache=${data.prepare.cache_dir}")
+HELD_OUT_SPLIT = "data.prepare.split=test"
+HELD_OUT_CACHE = "evaluation.held_out_cache=${data.prepare.cache_dir}"
 
 DEMO_STEPS = (
     ("prepare", ()),
-    ("prepare", HELD_OUT[:1]),
+    ("prepare", (HELD_OUT_SPLIT,)),
     ("train", ("stage=baseline",)),
     ("train", ("stage=stage1",)),
     ("train", ("stage=stage2", "ablation=F")),
-    ("evaluate", ("ablation=F", *HELD_OUT)),
+    ("evaluate", ("ablation=F", HELD_OUT_SPLIT, HELD_OUT_CACHE)),
 )
 
 
 def demo(cfg: DictConfig) -> Path:
     """The whole pipeline on the composed experiment: prepare -> A -> Stage 1 -> Stage 2 (F) -> evaluation."""
     import lightning
-    from hydra import compose
-    from hydra.core.hydra_config import HydraConfig
 
-    from tracegs.config.validate import validate
     from tracegs.eval.report import print_results_table
     from tracegs.io import write_json_atomic
 
     start = time.perf_counter()
-    user_overrides = list(HydraConfig.get().overrides.task)
     tasks = {"prepare": prepare, "train": train, "evaluate": evaluate}
     results: dict = {}
     held_out_table = None
     for index, (name, extra) in enumerate(DEMO_STEPS, 1):
-        step_cfg = compose(config_name=name, overrides=[*user_overrides, *extra])
-        validate(step_cfg)
+        step_cfg = compose_run(name, extra)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
         log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))
         outcome = tasks[name](step_cfg)

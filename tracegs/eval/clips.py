@@ -16,7 +16,6 @@ from pathlib import Path
 import torch
 from rich.progress import track
 from safetensors import safe_open
-from safetensors.torch import load_file
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
@@ -28,8 +27,14 @@ from tracegs.restorer.sampler import RestorationPipeline
 INPUT = "input"  # the row label of the unrestored R_s
 
 
+def _pixels(frames: Tensor) -> Tensor:
+    """8-bit cached frames as floats in [0, 1]."""
+    return frames.float() / 255.0
+
+
 def _frames(tensors: dict[str, Tensor], key: str) -> Tensor:
-    return tensors[key][1:-1].float() / 255.0
+    """The trajectory frames of a cached clip (the two reference frames at the ends dropped)."""
+    return _pixels(tensors[key][1:-1])
 
 
 def _psnr(frames: Tensor, truth: Tensor) -> float:
@@ -48,12 +53,14 @@ def held_out_clips(cache_dir: str | Path) -> tuple[list[str], list[tuple[str, Pa
     return conditions, shards
 
 
-def load_clip(path: Path) -> dict[str, Tensor]:
-    """One held-out shard; it must carry ground-truth frames (the synthetic benchmark's do)."""
-    tensors = load_file(str(path))
+def load_clip(path: Path) -> tuple[dict[str, Tensor], dict[str, str]]:
+    """One held-out shard's tensors and metadata, read in one pass; it must carry ground-truth frames."""
+    with safe_open(str(path), framework="pt") as handle:
+        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
+        metadata = handle.metadata() or {}
     if "frames/gt" not in tensors:
         raise CacheError(f"{path}: no ground-truth frames; clip quality needs a scene with known ground truth")
-    return tensors
+    return tensors, metadata
 
 
 @torch.no_grad()
@@ -67,7 +74,7 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     conditions, shards = held_out_clips(cache_dir)
     scores: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for index, (scene, path) in enumerate(track(shards, description="held-out clips", disable=not progress)):
-        tensors = load_clip(path)
+        tensors, _ = load_clip(path)
         truth = _frames(tensors, "frames/gt")
         for cond in conditions:
             scores[cond][INPUT][scene].append(_psnr(_frames(tensors, f"frames/{cond}"), truth))
@@ -104,12 +111,11 @@ def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache
     conditions, shards = held_out_clips(cache_dir)
     curves = []
     for index, (_, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
-        tensors = load_clip(path)
-        frames = torch.stack([tensors[f"frames/{c}"].float() / 255.0 for c in conditions])
-        truth = (tensors["frames/gt"].float() / 255.0).expand(len(conditions), -1, -1, -1, -1)
-        refs = (tensors["frames/ref"].float() / 255.0).expand(len(conditions), -1, -1, -1, -1)
-        with safe_open(str(path), framework="pt") as handle:
-            caption = (handle.metadata() or {}).get("caption", "")
+        tensors, metadata = load_clip(path)
+        frames = torch.stack([_pixels(tensors[f"frames/{c}"]) for c in conditions])
+        truth = _pixels(tensors["frames/gt"]).expand(len(conditions), -1, -1, -1, -1)
+        refs = _pixels(tensors["frames/ref"]).expand(len(conditions), -1, -1, -1, -1)
+        caption = metadata.get("caption", "")
         curves.append({label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
                                             seed=seed + index)
                        for label, pipeline in pipelines.items()})

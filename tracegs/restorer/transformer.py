@@ -23,7 +23,6 @@ from diffusers.models.attention_processor import Attention
 from diffusers.models.transformers.cogvideox_transformer_3d import CogVideoXBlock
 from torch import nn
 
-
 # What the output head predicts. "velocity": v directly (CogVideoX). "clean": the clean latent x0;
 # "residual": x0 minus the conditioning latent (the correction to the rendering). The last two are turned
 # into the rectified-flow velocity v = (z_t - x0) / t inside ``forward`` (see ``velocity_from_clean``).

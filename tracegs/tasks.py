@@ -27,12 +27,95 @@ def section(node: DictConfig) -> Any:
     return OmegaConf.to_object(node)
 
 
+# ------------------------------------------------------------------------------------ run identity
+# Overrides of Stage 2's own settings and of the ablation axes: they describe the run being started, not
+# the earlier runs it builds on (every Table 3 variant clones the one Stage-1 adapter).
+_STAGE_OWN = ("stage", "optimizer")
+_ABLATION_AXES = ("ablation", "teacher", "policy")
+
+
+def _carried(override: str, upstream: str, from_training: bool) -> bool:
+    from tracegs.config.identity import override_key
+
+    root = override_key(override).split(".")[0].split("/")[0]
+    if root == "hydra":
+        return False
+    if from_training and root in _STAGE_OWN:
+        return False
+    return not (upstream in ("baseline", "stage1") and root in (*_STAGE_OWN, *_ABLATION_AXES))
+
+
+def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> DictConfig:
+    """The config of the earlier run whose product ``cfg`` needs: the same command line, its own stage.
+
+    ``kind`` is "baseline", "stage1", "stage2" or "evaluate" (the last two for ``variant``, default the
+    variant of ``cfg.ablation``). The earlier run's folder follows from this config by the run-identity
+    rule (tracegs.config.identity).
+    """
+    from hydra import compose
+
+    from tracegs.config.identity import command_line_overrides, override_key
+
+    from_training = cfg.task == "train"
+    variant = variant or cfg.ablation.name
+    extra = {"evaluate": [f"ablation={variant}"],
+             "stage2": ["stage=stage2", f"ablation={variant}"]}.get(kind, [f"stage={kind}"])
+    replaced = {override_key(o) for o in extra}
+    overrides = [o for o in command_line_overrides()
+                 if _carried(o, kind, from_training) and override_key(o) not in replaced]
+    return compose(config_name="evaluate" if kind == "evaluate" else "train", overrides=[*overrides, *extra])
+
+
+def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
+    """Replace each needed "auto" artifact by the product of the run the identity rule finds for ``cfg``.
+
+    The run's own folders are resolved first and kept, so they stay named by the configuration as given.
+    """
+    from tracegs.config.schema import AUTO
+    from tracegs.training.run import PRODUCTS
+
+    for key in ("run_dir", "evaluation.out_dir"):
+        OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
+    producers = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
+    for artifact in needed:
+        if cfg.artifacts[artifact] != AUTO:
+            continue
+        producer = producers[artifact]
+        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
+
+
+def record_run(cfg: DictConfig, kind: str, folder: str | Path) -> None:
+    """Keep beside a run's products the settings that determine them and the whole resolved config.
+
+    A folder recorded under other settings (an explicit ``run_dir`` or an older version of the code) is
+    refused with the differing keys named, instead of being resumed or overwritten.
+    """
+    import json
+
+    from tracegs.config.identity import differing_keys, scoped_values
+    from tracegs.config.validate import ConfigError
+    from tracegs.io import atomic_write, write_json_atomic
+
+    folder = Path(folder)
+    current = scoped_values(cfg, kind)
+    record = folder / "run_identity.json"
+    if record.is_file():
+        differing = differing_keys(json.loads(record.read_text()), current)
+        if differing:
+            raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
+                              f"({', '.join(differing[:6])} differ): choose another run_dir or remove that folder")
+    write_json_atomic(current, record)
+    with atomic_write(folder / "config.yaml") as tmp:
+        tmp.write_text(OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True))
+
+
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
     """Generate the synthetic benchmark if selected, then build the paired-clip cache (issue: data)."""
     from tracegs.data.prepare import run_prepare
     from tracegs.restorer.build import build_backbone
 
+    record_run(cfg, "prepare", cfg.data.prepare.cache_dir)
     backbone = build_backbone(section(cfg.backbone))
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
     manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
@@ -54,6 +137,9 @@ def train(cfg: DictConfig) -> Path | None:
             f"stage=baseline: experiment={cfg.experiment.name} uses a pretrained baseline restorer "
             "(backbone.transformer.pretrained_path); there is nothing to train"
         )
+    locate_artifacts(cfg, {"baseline": [], "stage1": ["baseline_weights"],
+                           "stage2": ["baseline_weights", "stage1_adapter"]}[cfg.stage.name])
+    record_run(cfg, cfg.stage.name, cfg.run_dir)
     train_cfg = TrainConfig(
         stage=section(cfg.stage),
         optimizer=section(cfg.optimizer),
@@ -114,6 +200,7 @@ def build_restorer(cfg: DictConfig, student_adapter: str | None):
 
 def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
     """Method name -> restorer (None = plain 3DGS, no restoration)."""
+    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
     builders = {"3dgs": lambda: None, "baseline": lambda: build_restorer(cfg, None),
                 "tracegs": lambda: build_restorer(cfg, cfg.artifacts.student_adapter)}
     return {m: builders[m]() for m in methods}
@@ -149,6 +236,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from tracegs.deploy.evaluate import evaluate as run_evaluation
 
     restorers = build_restorers(cfg, list(cfg.evaluation.methods))
+    record_run(cfg, "evaluate", cfg.evaluation.out_dir)
     results = run_evaluation(
         section(cfg.evaluation),
         section(cfg.data.source),
@@ -183,6 +271,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
 
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = build_restorers(cfg, [method])[method]
+    record_run(cfg, "deploy", cfg.run_dir)
     return deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
                          section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
 
@@ -204,7 +293,7 @@ def report(cfg: DictConfig) -> Path:
         merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods))
         return out / "results.json"
     if kind == "ablation":
-        inputs = list(cfg.report.inputs) or [str(Path(cfg.paths.experiment_dir) / "eval" / v)
+        inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", v).evaluation.out_dir
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
         print(table.read_text())

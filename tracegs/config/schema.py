@@ -9,12 +9,15 @@ Cross-field rules that types cannot express live in :mod:`tracegs.config.validat
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 
+from tracegs.config.identity import register_resolvers
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.restorer.config import BackboneConfig
+from tracegs.restorer.config import BackboneConfig, SamplerConfig
+from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
     LossConfig,
     OptimizerConfig,
@@ -37,6 +40,16 @@ class PathsConfig:
     experiment_dir: str = "${paths.runs_dir}/${experiment.name}"
 
 
+def seeded(stream: str) -> Any:
+    """A part's ``seed`` field derived from the root ``seed`` (see :mod:`tracegs.config.identity`)."""
+    return f"${{tracegs.seed:{stream}}}"
+
+
+# The paired-clip cache of a split is named by its run identity, so changed preparation settings or another
+# seed never reuse a cache; training always reads the train split's cache of the same settings.
+CACHE_ROOT = "${paths.data_dir}/cache/${data.name}-${backbone.name}"
+
+
 @dataclass
 class DataConfig:
     """Scene source, synthetic benchmark, paired-clip preparation and the DataModule."""
@@ -44,21 +57,30 @@ class DataConfig:
     name: str = "synthetic"
     source: SceneSourceConfig = field(default_factory=SceneSourceConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
-    prepare: PrepareConfig = field(default_factory=PrepareConfig)
-    datamodule: DataModuleConfig = field(default_factory=DataModuleConfig)
+    prepare: PrepareConfig = field(default_factory=lambda: PrepareConfig(
+        cache_dir=CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
+        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
+        seed=seeded("prepare"), fit=GaussianFitConfig(seed=seeded("fit"))))
+    datamodule: DataModuleConfig = field(default_factory=lambda: DataModuleConfig(
+        cache_dir=CACHE_ROOT + "-train-${tracegs.cache:train}", seed=seeded("datamodule")))
+
+
+AUTO = "auto"
 
 
 @dataclass
 class ArtifactsConfig:
     """Products of earlier stages that later tasks load, at fixed places under the experiment folder."""
 
+    # Each is "auto" (the product of the run that the run-identity rule finds for this configuration, see
+    # tracegs.tasks.locate_artifacts) or an explicit path.
     # Variant A's transformer (a diffusers directory written by ``stage=baseline``). null = the backbone's
     # own ``transformer.pretrained_path`` (paper scale: GSFixer's pretrained restorer is variant A).
-    baseline_weights: str | None = "${paths.experiment_dir}/baseline/baseline_transformer"
+    baseline_weights: str | None = AUTO
     # The aligned Stage-1 adapter every Stage-2 variant clones.
-    stage1_adapter: str = "${paths.experiment_dir}/stage1/stage1_adapter.safetensors"
+    stage1_adapter: str = AUTO
     # The deployed student adapter of the selected ablation variant.
-    student_adapter: str = "${paths.experiment_dir}/stage2/${ablation.name}/student_adapter.safetensors"
+    student_adapter: str = AUTO
 
 
 @dataclass
@@ -105,23 +127,24 @@ class TraceGSConfig:
     """Root of every composed config (prepare, train, deploy, evaluate, report, demo)."""
 
     task: str = "train"
+    # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
     seed: int = 0
-    # Where this task writes its artefacts (also Hydra's run dir). Fixed per stage / variant rather than
+    # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = "${paths.experiment_dir}/${task}"
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
-    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    backbone: BackboneConfig = field(default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
     data: DataConfig = field(default_factory=DataConfig)
-    stage: StageConfig = field(default_factory=StageConfig)
+    stage: StageConfig = field(default_factory=lambda: StageConfig(seed=seeded("training")))
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     ablation: AblationConfig = field(default_factory=AblationConfig)
-    deploy: RefinementConfig = field(default_factory=RefinementConfig)
+    deploy: RefinementConfig = field(default_factory=lambda: RefinementConfig(seed=seeded("deploy")))
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
 
@@ -131,4 +154,5 @@ SCHEMA_NAME = "tracegs_schema"
 
 def register_configs() -> None:
     """Register the root schema so primary configs can list it first in their defaults."""
+    register_resolvers()
     ConfigStore.instance().store(name=SCHEMA_NAME, node=TraceGSConfig)

@@ -1,0 +1,178 @@
+"""Run identity: a run's folder is named by the settings that determine its product.
+
+Every product (a paired-clip cache, a trained restorer or adapter, an evaluation) depends on a known
+part of the configuration, its *scope*. The folder a run writes to is ``<readable>-<digest>``: the
+readable part is the seed and the command-line overrides that fall in the scope, the digest is a hash
+of every scoped value after interpolation. So two runs share a folder only when they would produce the
+same thing, a changed hyperparameter never resumes or overwrites another run, and a later stage finds
+the product it needs by computing the earlier stage's folder with the same rule (``tracegs.tasks``).
+
+Keys that change how a run executes but not what it produces (paths, logging, progress bars,
+parallelism, sharding, checkpoint cadence) are never part of an identity.
+
+One root ``seed`` drives every stochastic part: each part's own ``seed`` field is derived from it with
+:func:`derive_seed` under the part's stream name, so streams differ between parts and between seeds.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+DIGEST_CHARS = 8
+READABLE_MAX_CHARS = 80
+
+# Config sections each product depends on (dotted prefixes of the root config).
+_DATA = ("data.name", "data.source", "data.synthetic", "data.prepare")
+_TRAINING = ("seed", "experiment", "backbone", *_DATA, "data.datamodule", "stage", "optimizer", "trainer")
+SCOPES: dict[str, tuple[str, ...]] = {
+    # The paired-clip cache: scenes, fits, clips, pseudo-targets and the frozen encoders' outputs.
+    "prepare": ("seed", *_DATA, "backbone"),
+    "baseline": _TRAINING,
+    # Stage 1 reads lambda_align and the teacher's view set (the R_d it aligns to), on variant A's weights.
+    "stage1": (*_TRAINING, "loss.lambda_align", "teacher.views", "artifacts.baseline_weights"),
+    "stage2": (*_TRAINING, "loss", "teacher", "policy", "ablation.name", "artifacts.baseline_weights",
+               "artifacts.stage1_adapter"),
+    # Deployment and evaluation depend on everything that selects the restorers they load.
+    "deploy": (*_TRAINING, "loss", "teacher", "policy", "ablation.name", "artifacts", "deploy", "evaluation"),
+}
+SCOPES["evaluate"] = SCOPES["deploy"]
+
+# Execution settings inside scoped sections: they never change a product.
+EXECUTION_KEYS = frozenset({
+    "data.source.root", "data.synthetic.root",
+    "data.prepare.cache_dir", "data.prepare.work_dir", "data.prepare.workers", "data.prepare.shard_index",
+    "data.prepare.num_shards", "data.prepare.force", "data.prepare.contact_sheet",
+    "data.datamodule.cache_dir", "data.datamodule.num_workers",
+    "stage.resume_from", "stage.checkpoint_every_n_steps", "stage.keep_checkpoints", "stage.base_weights",
+    "stage.init_adapter",
+    "trainer.log_every_n_steps", "trainer.loggers", "trainer.enable_progress_bar", "trainer.cpu_threads",
+    "trainer.slurm_requeue_signal",
+    "experiment.description",
+    "evaluation.out_dir", "evaluation.shard_index", "evaluation.num_shards", "evaluation.workers",
+    "evaluation.force", "evaluation.progress", "evaluation.held_out_cache", "evaluation.variant",
+    # Which (scene, views, method) units to compute: each unit is its own file, recorded with its own
+    # settings, so selections of units share one evaluation folder and merge into one results.json.
+    "evaluation.methods", "evaluation.views", "evaluation.scenes",
+})
+# Training reads the train split's cache whatever split a later prepare builds.
+_TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate")
+_IGNORED_PER_KIND = {kind: frozenset({"data.prepare.split"}) for kind in _TRAINING_KINDS}
+
+# Hydra's own overrides and path-like keys never name a run.
+_UNNAMED_OVERRIDE_ROOTS = ("hydra", "paths", "run_dir", "task", "seed")
+# Group choices already spelled by the folder path (``<experiment>/<stage>/<variant>/``).
+_PATH_GROUPS = ("experiment", "stage", "ablation")
+
+
+def derive_seed(root_seed: int, stream: str) -> int:
+    """The seed of one stochastic part: a stable 31-bit hash of (root seed, stream name)."""
+    digest = hashlib.sha256(f"{int(root_seed)}:{stream}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def _leaves(holder: DictConfig, key: str, path: str, skip: frozenset[str]) -> Iterable[tuple[str, Any]]:
+    """(dotted key, resolved value) of every leaf under ``holder[key]``, skipping excluded keys *before*
+    resolving them (an excluded key may interpolate the run's own folder, which would recurse)."""
+    if path in skip:
+        return
+    child = holder._get_node(key)
+    if isinstance(child, DictConfig) and not child._is_none() and not child._is_interpolation():
+        for sub in child.keys():
+            yield from _leaves(child, str(sub), f"{path}.{sub}", skip)
+        return
+    value = holder[key]
+    if isinstance(value, (DictConfig, ListConfig)):
+        value = OmegaConf.to_container(value, resolve=True)
+    yield path, value
+
+
+def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:
+    """The flattened, resolved values that determine the product of a ``kind`` run."""
+    if kind not in SCOPES:
+        raise ValueError(f"unknown run kind {kind!r} (one of {sorted(SCOPES)})")
+    skip = EXECUTION_KEYS | _IGNORED_PER_KIND.get(kind, frozenset())
+    values: dict[str, Any] = {}
+    for key in SCOPES[kind]:
+        parent, _, leaf = key.rpartition(".")
+        holder = OmegaConf.select(cfg, parent, throw_on_missing=True) if parent else cfg
+        values.update(_leaves(holder, leaf, key, skip))
+    return dict(sorted(values.items()))
+
+
+def digest(values: dict[str, Any]) -> str:
+    payload = json.dumps(values, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(payload.encode()).hexdigest()[:DIGEST_CHARS]
+
+
+def override_key(override: str) -> str:
+    """``+loss.lambda_ret=0.3`` -> ``loss.lambda_ret``; ``teacher=v12`` -> ``teacher``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def _in_scope(key: str, kind: str) -> bool:
+    root = re.split(r"[./]", key, maxsplit=1)[0]
+    if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS or key in EXECUTION_KEYS:
+        return False
+    if key in _IGNORED_PER_KIND.get(kind, ()):
+        return False
+    # Debug presets set trainer / stage keys (in scope); naming them keeps a debug run recognisable.
+    # Otherwise: a group choice (``teacher=v12``) or a key inside a scoped section.
+    return key == "debug" or any(key == s or key.startswith(s + ".") or s.startswith(key + ".")
+                                 for s in SCOPES[kind])
+
+
+def readable_name(seed: int, overrides: Sequence[str], kind: str) -> str:
+    """``seed<k>`` followed by the in-scope overrides (their last key component), filesystem-safe."""
+    parts = [f"seed{seed}"]
+    for override in sorted(set(overrides)):
+        key = override_key(override)
+        if "=" not in override or not _in_scope(key, kind):
+            continue
+        value = override.split("=", 1)[1]
+        parts.append(f"{key.rsplit('.', 1)[-1]}={value}")
+    name = re.sub(r"[^A-Za-z0-9._=,+-]", "_", ",".join(parts))
+    return name[:READABLE_MAX_CHARS]
+
+
+def run_name(cfg: DictConfig, kind: str, overrides: Sequence[str] = ()) -> str:
+    """The folder name of a ``kind`` run under ``cfg``: ``<readable>-<digest>``."""
+    if kind == "prepare":
+        return cache_name(cfg, cfg.data.prepare.split, overrides)
+    return f"{readable_name(cfg.seed, overrides, kind)}-{digest(scoped_values(cfg, kind))}"
+
+
+def differing_keys(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
+    """Keys whose values differ between two ``scoped_values`` records (missing counts as different)."""
+    return sorted(k for k in set(recorded) | set(current) if recorded.get(k, "<absent>") != current.get(k, "<absent>"))
+
+
+def cache_name(cfg: DictConfig, split: str, overrides: Sequence[str] = ()) -> str:
+    """The folder name of the paired-clip cache of ``split`` under ``cfg`` (what ``tracegs-prepare
+    data.prepare.split=<split>`` writes), also from a run that prepares another split or none."""
+    values = scoped_values(cfg, "prepare")
+    values["data.prepare.split"] = split
+    named = [o for o in overrides if override_key(o) != "data.prepare.split"]
+    return f"{readable_name(cfg.seed, named, 'prepare')}-{digest(values)}"
+
+
+def command_line_overrides() -> list[str]:
+    """The overrides of the running Hydra job (empty when a config is composed outside a Hydra app)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+def register_resolvers() -> None:
+    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}`` and ``${tracegs.seed:<stream>}`` for the YAML."""
+    OmegaConf.register_new_resolver(
+        "tracegs.run", lambda kind, _root_: run_name(_root_, kind, command_line_overrides()), replace=True)
+    OmegaConf.register_new_resolver(
+        "tracegs.cache", lambda split, _root_: cache_name(_root_, split, command_line_overrides()), replace=True)
+    OmegaConf.register_new_resolver(
+        "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)

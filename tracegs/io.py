@@ -15,6 +15,19 @@ import torch
 from safetensors.torch import save_file
 
 
+def _current_umask() -> int:
+    # The only portable way to read the umask is to set it and put it back.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _with_umask_permissions(path: Path, mode: int) -> None:
+    """``tempfile`` creates private files (0600) and folders (0700); a product takes the permissions any
+    ordinary file would, so colleagues on a shared file system can read what the umask lets them."""
+    os.chmod(path, mode & ~_current_umask())
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success rename it over ``path``.
@@ -29,6 +42,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
+        _with_umask_permissions(tmp, 0o666)
         os.replace(tmp, target)
     finally:
         if tmp.exists():
@@ -46,6 +61,7 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    _with_umask_permissions(staging, 0o777)
     try:
         yield staging
         if target.exists():

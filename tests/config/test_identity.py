@@ -1,0 +1,142 @@
+"""Run identity: a run's folder is its configuration, later stages find their inputs by the same rule,
+and one root seed drives every stochastic part."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+
+from tracegs import tasks
+from tracegs.config.identity import derive_seed, scoped_values
+from tracegs.config.schema import register_configs
+from tracegs.config.validate import ConfigError
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+# Every part that draws random numbers, by its seed field.
+SEED_FIELDS = ("stage.seed", "data.prepare.seed", "data.prepare.fit.seed", "data.datamodule.seed", "deploy.seed",
+               "backbone.sampler.seed")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def hydra_context():
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        yield
+
+
+@pytest.fixture
+def as_hydra_job():
+    """Compose like a Hydra app does for a command line, so the job's overrides are known."""
+    def start(config_name: str, overrides: list[str]):
+        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+        HydraConfig.instance().set_config(cfg)
+        return cfg
+    yield start
+    HydraConfig.instance().cfg = None
+
+
+def run_dir(overrides: list[str], config_name: str = "train") -> str:
+    return str(compose(config_name=config_name, overrides=overrides).run_dir)
+
+
+@pytest.mark.parametrize("changed", [
+    ["loss.lambda_ret=0.3"], ["optimizer.lr=1e-4"], ["teacher=v12"], ["policy=off"], ["seed=1"],
+    ["stage.rollout_steps=3"], ["debug=fdr"], ["debug=limit"], ["data.prepare.clips_per_scene=4"],
+    ["backbone.lora.rank=2"], ["experiment.stage1_steps=10"],
+])
+def test_a_changed_setting_gets_its_own_stage2_folder(changed):
+    assert run_dir(["stage=stage2", *changed]) != run_dir(["stage=stage2"])
+
+
+@pytest.mark.parametrize("unchanged", [
+    ["trainer.log_every_n_steps=1"], ["trainer.enable_progress_bar=false"], ["data.prepare.workers=1"],
+    ["stage.checkpoint_every_n_steps=5"], ["paths.weights_dir=/elsewhere"], ["evaluation.progress=false"],
+])
+def test_execution_settings_keep_the_folder(unchanged):
+    assert run_dir(["stage=stage2", *unchanged]) == run_dir(["stage=stage2"])
+
+
+def test_settings_a_stage_does_not_read_keep_its_folder():
+    # Stage 1 reads neither lambda_ret nor the on/off-policy switch: every Table 3 variant shares it.
+    assert run_dir(["stage=stage1", "loss.lambda_ret=0"]) == run_dir(["stage=stage1"])
+    assert run_dir(["stage=stage1", "policy=off"]) == run_dir(["stage=stage1"])
+    assert run_dir(["stage=stage1", "loss.lambda_align=2"]) != run_dir(["stage=stage1"])
+
+
+def test_sweep_points_never_share_a_folder():
+    points = [[f"seed={s}", f"loss.lambda_ret={r}", f"ablation={v}"]
+              for s in (0, 1, 2) for r in (0.0, 0.15) for v in ("E", "F")]
+    folders = [run_dir(["stage=stage2", *p]) for p in points]
+    assert len(set(folders)) == len(points)
+
+
+def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
+    cfg = as_hydra_job("train", ["stage=stage2", "seed=2", "loss.lambda_ret=0.3", "trainer.log_every_n_steps=1"])
+    name = Path(str(cfg.run_dir)).name
+    assert name.startswith("seed2,lambda_ret=0.3-") and "log_every" not in name
+    assert Path(str(cfg.run_dir)).parent.name == "F"
+
+
+def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
+    cfg = as_hydra_job("train", ["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
+                                 "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    # The earlier stages were run with the experiment's shared settings and their own stage defaults.
+    stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+    baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
+    assert cfg.artifacts.stage1_adapter == str(Path(stage1) / "stage1_adapter.safetensors")
+    assert cfg.stage.init_adapter == cfg.artifacts.stage1_adapter
+    assert cfg.artifacts.baseline_weights == str(Path(baseline) / "baseline_transformer")
+    # The run's own folder keeps the name it had before its inputs were located.
+    assert cfg.run_dir == run_dir(["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
+                                   "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+
+
+def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
+    cfg = as_hydra_job("evaluate", ["ablation=E", "seed=1", "loss.lambda_ret=0.3"])
+    tasks.locate_artifacts(cfg, ["student_adapter"])
+    student = run_dir(["stage=stage2", "ablation=E", "seed=1", "loss.lambda_ret=0.3"])
+    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter.safetensors")
+
+
+def test_training_reads_the_cache_that_prepare_writes():
+    prepared = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
+    trained = compose(config_name="train", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
+    assert trained.data.datamodule.cache_dir == prepared.data.prepare.cache_dir
+    held_out = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4",
+                                                         "data.prepare.split=test"])
+    assert held_out.data.prepare.cache_dir != prepared.data.prepare.cache_dir
+    assert compose(config_name="train", overrides=["seed=5"]).data.datamodule.cache_dir != trained.data.datamodule.cache_dir
+
+
+def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
+    folder = tmp_path / "run"
+    tasks.record_run(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
+    tasks.record_run(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
+                     "stage2", folder)
+    assert OmegaConf.load(folder / "config.yaml").stage.name == "stage2"
+    with pytest.raises(ConfigError, match=r"loss\.lambda_ret"):
+        tasks.record_run(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
+                         "stage2", folder)
+
+
+def test_one_root_seed_derives_a_distinct_stream_for_every_part():
+    per_seed = []
+    for seed in (0, 1):
+        cfg = compose(config_name="train", overrides=[f"seed={seed}"])
+        seeds = [OmegaConf.select(cfg, key) for key in SEED_FIELDS]
+        assert len(set(seeds)) == len(seeds), "two parts share a random stream"
+        per_seed.append(seeds)
+    assert all(a != b for a, b in zip(*per_seed)), "a part ignores the root seed"
+    assert derive_seed(0, "training") == per_seed[0][0]
+
+
+def test_scoped_values_resolve_without_the_run_folder():
+    cfg = compose(config_name="evaluate", overrides=["seed=1"])
+    values = scoped_values(cfg, "evaluate")
+    assert values["seed"] == 1 and "evaluation.out_dir" not in values and "data.prepare.cache_dir" not in values

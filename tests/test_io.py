@@ -1,0 +1,37 @@
+"""Products are written atomically and readable as the umask allows (shared file systems)."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import pytest
+
+from tracegs.io import atomic_directory, save_safetensors_atomic, write_json_atomic
+
+
+@pytest.fixture
+def umask():
+    previous = os.umask(0o022)
+    yield lambda mask: os.umask(mask)
+    os.umask(previous)
+
+
+def mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+@pytest.mark.parametrize(("mask", "file_mode", "dir_mode"), [(0o022, 0o644, 0o755), (0o002, 0o664, 0o775),
+                                                              (0o077, 0o600, 0o700)])
+def test_products_take_the_umask_permissions(tmp_path, umask, mask, file_mode, dir_mode):
+    import torch
+
+    umask(mask)
+    write_json_atomic({"a": 1}, tmp_path / "results.json")
+    save_safetensors_atomic({"w": torch.zeros(2)}, tmp_path / "adapter.safetensors")
+    with atomic_directory(tmp_path / "model") as staging:
+        (staging / "config.json").write_text("{}")
+    assert mode(tmp_path / "results.json") == file_mode
+    assert mode(tmp_path / "adapter.safetensors") == file_mode
+    assert mode(tmp_path / "model") == dir_mode
+    assert mode(tmp_path / "model" / "config.json") == file_mode

@@ -186,7 +186,7 @@ def build_restorer(cfg: DictConfig, student_adapter: str | None):
     adapter = None
     if student_adapter is not None:
         student = Path(student_adapter)
-        if not student.is_file():
+        if not student.exists():
             raise FileNotFoundError(
                 f"artifacts.student_adapter: no student adapter at {student} "
                 f"(run tracegs-train stage=stage2 ablation={student.parent.name})"
@@ -292,13 +292,29 @@ def report(cfg: DictConfig) -> Path:
         out = Path(cfg.evaluation.out_dir)
         merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods))
         return out / "results.json"
+    if kind == "seeds":
+        return seed_report(cfg)
     if kind == "ablation":
         inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", v).evaluation.out_dir
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
         print(table.read_text())
         return table
-    raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation' or 'per_step', got {kind!r}")
+    raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation', 'per_step' or 'seeds', got {kind!r}")
+
+
+def seed_report(cfg: DictConfig) -> Path:
+    """Each figure of several demo runs (one per seed) as mean, sd and range: ``report/seeds.md``."""
+    from tracegs.eval.seeds import seed_spread_markdown
+    from tracegs.io import atomic_write
+
+    if len(cfg.report.inputs) < 2:
+        raise ValueError("report.inputs: report.kind=seeds needs the folders of two or more demo runs")
+    table = Path(cfg.report.output_dir) / "seeds.md"
+    with atomic_write(table) as tmp:
+        tmp.write_text(seed_spread_markdown(list(cfg.report.inputs)))
+    print(table.read_text())
+    return table
 
 
 def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
@@ -364,33 +380,63 @@ DEMO_STEPS = (
 
 
 def demo(cfg: DictConfig) -> Path:
-    """The whole pipeline on the composed experiment: prepare -> A -> Stage 1 -> Stage 2 (F) -> evaluation."""
+    """The whole pipeline on the composed experiment: prepare -> A -> Stage 1 -> Stage 2 (F) -> evaluation.
+
+    The evaluation writes straight into the demo's folder (tables, held-out clips, Fig. 6, grids, videos,
+    refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings) and ``tables.md``.
+    """
     import lightning
 
-    from tracegs.eval.report import print_results_table
-    from tracegs.io import write_json_atomic
+    from tracegs.io import atomic_write, write_json_atomic
+    from tracegs.provenance import describe
 
     start = time.perf_counter()
+    out_dir = Path(cfg.run_dir)
     tasks = {"prepare": prepare, "train": train, "evaluate": evaluate}
-    results: dict = {}
-    held_out_table = None
+    timings: dict[str, float] = {}
     for index, (name, extra) in enumerate(DEMO_STEPS, 1):
+        if name == "evaluate":
+            extra = (*extra, f"evaluation.out_dir={out_dir}")
         step_cfg = compose_run(name, extra)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
         log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))
-        outcome = tasks[name](step_cfg)
-        if name == "evaluate":
-            results = outcome
-            held_out_table = Path(step_cfg.evaluation.out_dir) / "held_out_clips.md"
-    results["wall_s"] = round(time.perf_counter() - start, 1)
-    results["peak_rss_gib"] = round(peak_rss_gib(), 3)
-    out_dir = Path(cfg.run_dir)
-    write_json_atomic(results, out_dir / "results.json")
-    print_results_table(results)
-    if held_out_table is not None:
-        print("\nRestoration of held-out clips (is the output closer to ground truth than its input R_s?)\n")
-        print(held_out_table.read_text())
-    print(f"\ntracegs-demo: finished in {results['wall_s']:.0f} s, peak RSS {results['peak_rss_gib']:.2f} GiB")
-    print(f"tracegs-demo: all outputs under {Path(cfg.paths.experiment_dir).resolve()}")
-    print(f"tracegs-demo: results table in {out_dir.resolve() / 'results.json'}")
+        step_start = time.perf_counter()
+        tasks[name](step_cfg)
+        label = " ".join([name, *(e for e in extra if "=" in e and "$" not in e and "out_dir" not in e)])
+        timings[label] = round(time.perf_counter() - step_start, 1)
+    run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
+           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings}
+    write_json_atomic(run, out_dir / "run.json")
+    with atomic_write(out_dir / "tables.md") as tmp:
+        tmp.write_text(demo_tables_markdown(out_dir, run))
+    print((out_dir / "tables.md").read_text())
+    print(f"tracegs-demo: finished in {run['wall_s']:.0f} s, peak RSS {run['peak_rss_gib']:.2f} GiB")
+    print(f"tracegs-demo: tables, grids, videos, refined PLYs and plots in {out_dir.resolve()}")
     return out_dir
+
+
+def demo_tables_markdown(out_dir: Path, run: dict) -> str:
+    """The demo's tables, ready to paste, headed by the run that produced them."""
+    import json
+
+    from tracegs.eval.report import results_table_markdown
+    from tracegs.eval.seeds import per_step_points
+
+    machine = run["machine"]
+    lines = [f"Commit {run['commit']}, seed {run['seed']}, {machine['cpu']} ({machine['cores']} cores, "
+             f"torch {machine['torch']}): {run['wall_s'] / 60:.1f} min, peak RSS {run['peak_rss_gib']:.2f} GiB.", "",
+             "Deployment on the test scenes:", "",
+             results_table_markdown(json.loads((out_dir / "results.json").read_text()))]
+    held_out = out_dir / "held_out_clips.md"
+    if held_out.is_file():
+        lines += ["Held-out clips (is the restorer's output closer to ground truth than its input R_s?):", "",
+                  held_out.read_text()]
+    per_step = out_dir / "per_step.json"
+    if per_step.is_file():
+        lines += ["Fig. 6, clean-frame prediction along the restorer's own trajectory (PSNR, dB):", "",
+                  "| method | first step | minimum | final |", "|---|---|---|---|"]
+        for method, curve in json.loads(per_step.read_text()).items():
+            points = per_step_points(curve)
+            lines.append(f"| {method} | " + " | ".join(f"{points[p]:.2f}" for p in ("first", "min", "final")) + " |")
+        lines.append("")
+    return "\n".join(lines)

@@ -89,7 +89,7 @@ def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
     # The earlier stages were run with the experiment's shared settings and their own stage defaults.
     stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
     baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
-    assert cfg.artifacts.stage1_adapter == str(Path(stage1) / "stage1_adapter.safetensors")
+    assert cfg.artifacts.stage1_adapter == str(Path(stage1) / "stage1_adapter")
     assert cfg.stage.init_adapter == cfg.artifacts.stage1_adapter
     assert cfg.artifacts.baseline_weights == str(Path(baseline) / "baseline_transformer")
     # The run's own folder keeps the name it had before its inputs were located.
@@ -101,7 +101,7 @@ def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     cfg = as_hydra_job("evaluate", ["ablation=E", "seed=1", "loss.lambda_ret=0.3"])
     tasks.locate_artifacts(cfg, ["student_adapter"])
     student = run_dir(["stage=stage2", "ablation=E", "seed=1", "loss.lambda_ret=0.3"])
-    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter.safetensors")
+    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
 
 
 def test_training_reads_the_cache_that_prepare_writes():

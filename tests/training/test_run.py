@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from training_support import (
     CHANNELS,
     FRAMES,
@@ -24,6 +24,7 @@ from training_support import (
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
+from tracegs.restorer.adapters import read_adapter
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
 from tracegs.training.run import train_stage
@@ -96,7 +97,7 @@ def logged_columns(run_dir: Path) -> set[str]:
 
 def test_stages_chain_and_log_every_term(stages):
     tmp, _, baseline, stage1 = stages
-    assert (baseline / "config.json").is_file() and stage1.is_file()
+    assert (baseline / "config.json").is_file() and (stage1 / "adapter_config.json").is_file()
     assert {"train/fm_student", "train/grad_norm", "train/lr", "train/samples_per_sec"} <= logged_columns(
         tmp / "baseline"
     )
@@ -110,8 +111,8 @@ def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages, interrupt_
     tmp, cache, baseline, stage1 = stages
     extra = dict(base_weights=str(baseline), init_adapter=str(stage1))
     full_dir = tmp / "full"
-    full = full_dir / "student_adapter.safetensors"
-    if not full.is_file():
+    full = full_dir / "student_adapter"
+    if not full.exists():
         train_stage(config(tmp, cache, "stage2", 4, "full", **extra))
     assert {"train/traj", "train/ret", "train/loss"} <= logged_columns(full_dir)
     # 4 clips in batches of 2 make 2 steps an epoch: stopping after step 2 ends an epoch, after step 3 it
@@ -119,8 +120,10 @@ def test_stage2_resumed_at_a_checkpoint_matches_uninterrupted(stages, interrupt_
     out = f"interrupted_{interrupt_at}"
     train_stage(config(tmp, cache, "stage2", interrupt_at, out, **extra))
     resumed = train_stage(config(tmp, cache, "stage2", 4, out, **extra))
-    a, b = load_file(str(full)), load_file(str(resumed))
+    a, b = read_adapter(full)[0], read_adapter(resumed)[0]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    # Bitwise: the saved adapter files are identical, byte for byte.
+    assert (full / "adapter_model.safetensors").read_bytes() == (resumed / "adapter_model.safetensors").read_bytes()
 
 
 def logged_values(run_dir: Path, column: str) -> list[float]:
@@ -167,3 +170,43 @@ def test_resuming_under_another_restorer_configuration_fails_naming_the_field(st
         BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, prediction="residual"))
     with pytest.raises(ValueError, match="'prediction': \\('velocity', 'residual'\\)"):
         train_stage(changed)
+
+
+def test_checkpoints_carry_their_hyperparameters_for_load_from_checkpoint(stages):
+    from tracegs.restorer.adapters import adapter_parameters
+    from tracegs.restorer.build import build_backbone
+    from tracegs.training.stage2 import Stage2DistillationModule
+
+    tmp, cache, baseline, stage1 = stages
+    cfg = config(tmp, cache, "stage2", 2, "reloaded", base_weights=str(baseline), init_adapter=str(stage1))
+    cfg.loss = dataclasses.replace(cfg.loss, lambda_ret=0.25)
+    student = train_stage(cfg)
+    checkpoint = tmp / "reloaded" / "checkpoints" / "last.ckpt"
+    backbone = build_backbone(dataclasses.replace(
+        BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, pretrained_path=str(baseline))))
+    module = Stage2DistillationModule.load_from_checkpoint(
+        checkpoint, transformer=backbone.transformer, schedule=backbone.schedule, weights_only=True)
+    assert module.lambda_ret == 0.25 and module.rollout_steps == 3
+    assert module.optimizer_cfg == cfg.optimizer
+    saved = read_adapter(student)[0]
+    reloaded = adapter_parameters(module.transformer, "student")
+    assert len(reloaded) == len(saved)
+    assert sum(float(p.detach().abs().sum()) for p in reloaded) == pytest.approx(
+        sum(float(t.float().abs().sum()) for t in saved.values()), rel=1e-6)
+
+
+def test_a_saved_student_adapter_loads_with_peft_directly(stages):
+    from peft import PeftModel, get_peft_model_state_dict
+
+    from tracegs.restorer.build import build_backbone
+
+    tmp, cache, baseline, stage1 = stages
+    student = train_stage(config(tmp, cache, "stage2", 1, "for_peft", base_weights=str(baseline),
+                                 init_adapter=str(stage1)))
+    base = build_backbone(dataclasses.replace(
+        BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, pretrained_path=str(baseline)))).transformer
+    model = PeftModel.from_pretrained(base, str(student))
+    loaded = {k.removeprefix("base_model.model."): v for k, v in get_peft_model_state_dict(model).items()}
+    saved = read_adapter(student)[0]
+    assert loaded.keys() == saved.keys() and all(torch.equal(loaded[k], saved[k]) for k in saved)
+    assert any(float(v.abs().sum()) > 0 for k, v in saved.items() if "lora_B" in k)

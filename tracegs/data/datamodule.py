@@ -34,6 +34,11 @@ from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
 
 
+def draw_seed_of(seed: int, epoch: int, index: int) -> int:
+    """The caption-dropout draw of clip ``index`` in ``epoch``: distinct per (seed, epoch, index), and within
+    the 63 bits ``torch.Generator.manual_seed`` takes for any 31-bit root seed."""
+    return ((seed * 1_000_003 + epoch) * 1_000_033 + index) % (2**63 - 1)
+
 class CacheError(ValueError):
     """The prepared cache is missing, inconsistent with the request, or damaged."""
 
@@ -85,7 +90,7 @@ class PairedClipDataset(Dataset):
         return len(self.clips)
 
     def __getitem__(self, item: int | tuple[int, int]) -> dict:
-        index, draw_seed = item if isinstance(item, tuple) else (item, self.seed * 1_000_003 + item)
+        index, draw_seed = item if isinstance(item, tuple) else (item, draw_seed_of(self.seed, 0, item))
         scene, clip, path = self.clips[index]
         generator = torch.Generator().manual_seed(draw_seed)
         views = self.student_views[int(torch.randint(len(self.student_views), (), generator=generator))]
@@ -133,7 +138,7 @@ class EpochSampler(DistributedSampler):
         skip, self.skip = self.skip, 0
         for position, index in enumerate(super().__iter__()):
             if position >= skip:
-                yield index, (self.seed * 1_000_003 + self.epoch) * 1_000_033 + index
+                yield index, draw_seed_of(self.seed, self.epoch, index)
 
 
 class ResumableDataLoader(DataLoader):

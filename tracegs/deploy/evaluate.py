@@ -182,7 +182,8 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
 def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[str, Tensor],
                 models: Mapping[str, GaussianModel], background: Tensor,
                 gt_renderer: GroundTruthRenderer | None) -> dict[str, str]:
-    """Qualitative grid (methods + GT on the first test views) and a video along a test trajectory."""
+    """Qualitative grid (methods + GT on the first test views), a video along a test trajectory, and each
+    method's refined 3DGS as a PLY."""
     media_dir = Path(cfg.out_dir) / "media"
     stem = f"{unit.scene.name}_views{unit.views}"
     shown = min(cfg.grid_views, len(unit.test_cameras))
@@ -194,7 +195,12 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     if gt_renderer is not None:
         frames["GT"] = gt_renderer(unit.scene, path)
     video = save_comparison_video(frames, media_dir / f"{stem}_trajectory", fps=cfg.video_fps)
-    return {"grid": str(grid), "video": str(video)}
+    plys = {}
+    for method, model in models.items():
+        plys[method] = media_dir / f"{stem}_{method}.ply"  # the refined 3DGS, standard PLY layout
+        with atomic_write(plys[method]) as tmp:
+            save_ply(model, tmp)
+    return {"grid": str(grid), "video": str(video), "ply": {m: str(p) for m, p in plys.items()}}
 
 
 @dataclass

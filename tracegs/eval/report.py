@@ -197,11 +197,6 @@ def write_held_out_report(quality: Mapping, out_dir: str | Path) -> Path:
     return table
 
 
-def print_results_table(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> None:
-    """Print the Tables 1/2 layout (markdown) to stdout."""
-    print(results_table_markdown(results, views))
-
-
 # ---------------------------------------------------------------- images and video
 
 

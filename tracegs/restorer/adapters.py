@@ -20,12 +20,16 @@ from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
 from safetensors import safe_open
 
-from tracegs.io import save_safetensors_atomic
+from tracegs.io import atomic_directory, save_safetensors_atomic
 
 from .config import LoraConfig
 
 # diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
 METADATA_KEY = "lora_adapter_metadata"
+# peft's own adapter folder (``PeftModel.from_pretrained`` reads it): a config and prefixed weights.
+PEFT_CONFIG_FILE = "adapter_config.json"
+PEFT_WEIGHTS_FILE = "adapter_model.safetensors"
+PEFT_KEY_PREFIX = "base_model.model."
 
 
 class AdapterFileError(ValueError):
@@ -136,24 +140,46 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
 
 
 def save_adapter(model: torch.nn.Module, name: str, path: str | Path) -> None:
-    """Safetensors in diffusers' ``save_lora_adapter`` layout (peft keys, adapter config in the metadata)."""
+    """Save adapter ``name``: a ``*.safetensors`` path gets diffusers' ``save_lora_adapter`` layout (peft keys,
+    adapter config in the metadata); any other path becomes peft's adapter folder, which
+    ``PeftModel.from_pretrained(transformer, path)`` loads as it is."""
     _require(model, name)
     config = model.peft_config[name].to_dict()
     config = {k: (sorted(v) if isinstance(v, set) else v) for k, v in config.items()}
     tensors = get_peft_model_state_dict(model, adapter_name=name)
-    save_safetensors_atomic(
-        tensors, path, metadata={"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True)}
-    )
+    metadata = {"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True)}
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        save_safetensors_atomic(tensors, path, metadata=metadata)
+        return
+    with atomic_directory(path) as staging:
+        prefixed = {PEFT_KEY_PREFIX + key: value for key, value in tensors.items()}
+        save_safetensors_atomic(prefixed, staging / PEFT_WEIGHTS_FILE, metadata=metadata)
+        (staging / PEFT_CONFIG_FILE).write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+
+
+def read_adapter(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """(peft-keyed tensors, safetensors metadata) of an adapter file or peft adapter folder."""
+    path = Path(path)
+    if path.is_dir():
+        file = path / PEFT_WEIGHTS_FILE
+        if not file.is_file():
+            raise FileNotFoundError(f"adapter folder {path} has no {PEFT_WEIGHTS_FILE}")
+    elif path.is_file():
+        file = path
+    else:
+        raise FileNotFoundError(f"adapter {path} does not exist")
+    with safe_open(str(file), framework="pt") as handle:
+        metadata = handle.metadata() or {}
+        tensors = {key.removeprefix(PEFT_KEY_PREFIX): handle.get_tensor(key) for key in handle.keys()}
+    if METADATA_KEY not in metadata and (path / PEFT_CONFIG_FILE).is_file():
+        metadata[METADATA_KEY] = (path / PEFT_CONFIG_FILE).read_text()
+    return tensors, metadata
 
 
 def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable: bool) -> None:
-    """Load an adapter file as ``name`` (created from the file's config if absent); exact key match required."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"adapter file {path} does not exist")
-    with safe_open(str(path), framework="pt") as handle:
-        metadata = handle.metadata() or {}
-        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
+    """Load an adapter file or folder as ``name`` (created from its config if absent); exact key match required."""
+    tensors, metadata = read_adapter(path)
     if name not in adapter_names(model):
         if METADATA_KEY not in metadata:
             raise AdapterFileError(f"{path}: no '{METADATA_KEY}' metadata to rebuild adapter {name!r}")

@@ -59,7 +59,7 @@ class StageConfig:
     # Stage 1 / 2: variant A's transformer (diffusers directory written by the baseline stage), used as the
     # frozen base; None = backbone.transformer.pretrained_path as configured (paper scale: GSFixer).
     base_weights: str | None = None
-    # Stage 2: Stage-1 adapter safetensors to clone; required for stage2.
+    # Stage 2: the Stage-1 adapter (folder or safetensors file) to clone; required for stage2.
     init_adapter: str | None = None
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
     checkpoint_every_n_steps: int = 50

@@ -11,9 +11,12 @@ uninterrupted run would have drawn at the same step.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 import time
 from abc import abstractmethod
+from pathlib import PurePath
 
 import lightning as L
 import torch
@@ -27,6 +30,13 @@ MODEL_CONFIG_KEY = "tracegs_transformer_config"
 # Large odd multipliers keep the (seed, rank, step) -> generator-seed map collision-free in practice.
 _RANK_STRIDE = 1_000_003
 _SEED_STRIDE = 7_919_000_017
+
+
+def _plain(value):
+    """A constructor argument as a type ``torch.load(weights_only=True)`` accepts."""
+    if dataclasses.is_dataclass(value):
+        return dataclasses.asdict(value)
+    return str(value) if isinstance(value, PurePath) else value
 
 
 def lr_factor(step: int, warmup_steps: int, decay: str = "constant", total_steps: int | None = None) -> float:
@@ -58,8 +68,22 @@ class RestorerTrainingModule(L.LightningModule):
         # (train mode is what enables diffusers' gradient checkpointing at paper scale).
         self.transformer = transformer.train()
         self.schedule = schedule
-        self.optimizer_cfg = optimizer
+        self.optimizer_cfg = optimizer if isinstance(optimizer, OptimizerConfig) else OptimizerConfig(**optimizer)
         self.seed = seed
+        self._save_plain_hyperparameters()
+
+    def _save_plain_hyperparameters(self) -> None:
+        """Record the constructor arguments of the whole class chain, as plain types, in every checkpoint.
+
+        ``load_from_checkpoint(path, transformer=..., schedule=...)`` then rebuilds the module around a
+        restorer built from its config (frozen weights are never in a checkpoint); plain types keep the
+        checkpoint loadable with ``weights_only=True``.
+        """
+        self.save_hyperparameters(ignore=["transformer", "schedule"])
+        plain = {key: _plain(value) for key, value in self.hparams.items()}
+        self.hparams.clear()
+        self.hparams.update(plain)
+        self._hparams_initial = copy.deepcopy(self._hparams)
 
     # ----------------------------------------------------------------- subclass interface
     @abstractmethod

@@ -4,8 +4,8 @@ Outputs under ``cfg.output_dir``: ``checkpoints/`` (resumable Lightning checkpoi
 only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard/`` logs, and the stage's product:
 - baseline: ``baseline_transformer/`` -- a diffusers directory with the full tiny transformer, to be set as
   ``backbone.transformer.pretrained_path`` for Stage 1, Stage 2 and deployment (variant A);
-- stage1: ``stage1_adapter.safetensors`` (the aligned adapter phi);
-- stage2: ``student_adapter.safetensors`` (phi_S, the only thing deployment loads).
+- stage1: ``stage1_adapter/`` (the aligned adapter phi, a peft adapter folder);
+- stage2: ``student_adapter/`` (phi_S, the only thing deployment loads; ``PeftModel.from_pretrained`` reads it).
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual opt
 
 PRODUCTS = {
     "baseline": "baseline_transformer",
-    "stage1": "stage1_adapter.safetensors",
-    "stage2": "student_adapter.safetensors",
+    "stage1": "stage1_adapter",
+    "stage2": "student_adapter",
 }
 
 
@@ -58,8 +58,8 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
             seed=stage.seed,
         )
     if stage.init_adapter is None:
-        raise ValueError("stage.init_adapter must name the Stage-1 adapter safetensors for stage2")
-    if not Path(stage.init_adapter).is_file():
+        raise ValueError("stage.init_adapter must name the Stage-1 adapter for stage2")
+    if not Path(stage.init_adapter).exists():
         raise FileNotFoundError(f"stage.init_adapter: no such file {stage.init_adapter}")
     return Stage2DistillationModule(
         backbone.transformer,

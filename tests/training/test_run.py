@@ -198,13 +198,13 @@ def test_checkpoints_carry_their_hyperparameters_for_load_from_checkpoint(stages
 def test_a_saved_student_adapter_loads_with_peft_directly(stages):
     from peft import PeftModel, get_peft_model_state_dict
 
-    from tracegs.restorer.build import build_backbone
+    from tracegs.restorer.transformer import ReferenceGuidedTransformer
 
     tmp, cache, baseline, stage1 = stages
     student = train_stage(config(tmp, cache, "stage2", 1, "for_peft", base_weights=str(baseline),
                                  init_adapter=str(stage1)))
-    base = build_backbone(dataclasses.replace(
-        BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, pretrained_path=str(baseline)))).transformer
+    # As the README shows: diffusers loads the baseline transformer, peft the student adapter.
+    base = ReferenceGuidedTransformer.from_pretrained(str(baseline))
     model = PeftModel.from_pretrained(base, str(student))
     loaded = {k.removeprefix("base_model.model."): v for k, v in get_peft_model_state_dict(model).items()}
     saved = read_adapter(student)[0]

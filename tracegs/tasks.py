@@ -106,7 +106,8 @@ def build_restorer(cfg: DictConfig, student_adapter: str | None):
                 f"(run tracegs-train stage=stage2 ablation={student.parent.name})"
             )
         adapter = "student"
-        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False)
+        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False, expected=backbone_cfg.lora,
+                              field="artifacts.student_adapter")
         identity.append(f"student={_digest(student)}")
     pipeline = RestorationPipeline(backbone, adapter=adapter)
     return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity), steps=cfg.deploy.steps)

@@ -10,6 +10,7 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import sys
 from collections.abc import Callable
@@ -17,16 +18,55 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
+from tracegs.errors import TraceGSError, one_line, require_writable_dir
 
 # conf/ sits at the repository root (editable install); TRACEGS_CONF points elsewhere if needed.
 CONF_DIR = os.environ.get("TRACEGS_CONF", str(Path(__file__).resolve().parents[2] / "conf"))
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+
+log = logging.getLogger("tracegs")
+
+
+def exit_with_one_line(app: str, error: BaseException) -> None:
+    """Print ``error`` as one line on stderr (and into the run's log files), then exit with code 2."""
+    message = error.args[0] if isinstance(error, KeyError) and error.args else error
+    line = f"tracegs-{app}: error: {one_line(message, limit=2000)}"
+    # The console handler would print the line a second time; the log files keep it for later.
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.emit(log.makeRecord(log.name, logging.ERROR, __file__, 0, line, None, None))
+    print(line, file=sys.stderr)
+    sys.exit(2)
+
+
+class OutputsWritable(Callback):
+    """Hydra callback: check the run (or sweep) folder is a writable directory before Hydra writes into it.
+
+    Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
+    would only see Hydra's own traceback for an output path that is a file or read-only.
+    """
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config.hydra.run.dir, "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config.hydra.sweep.dir, "hydra.sweep.dir", kwargs.get("config_name", "run"))
+
+    @staticmethod
+    def _check(directory: str, field: str, app: str) -> None:
+        try:
+            require_writable_dir(directory, field)
+        except TraceGSError as error:
+            if os.environ.get("TRACEGS_TRACEBACK"):
+                raise
+            exit_with_one_line(app, error)
 
 
 def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
@@ -44,9 +84,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
                     raise
-                message = error.args[0] if isinstance(error, KeyError) and error.args else error
-                print(f"tracegs-{config_name}: error: {message}", file=sys.stderr)
-                sys.exit(2)
+                exit_with_one_line(config_name, error)
 
         register_configs()
         return hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)

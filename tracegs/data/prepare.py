@@ -232,7 +232,9 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
     from tracegs.restorer.adapters import load_adapter
     from tracegs.restorer.sampler import RestorationPipeline
 
-    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False)
+    # phi_pre comes with the pretrained restorer, at its own rank: it is not checked against backbone.lora.
+    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False,
+                 field="data.prepare.pseudo_adapter")
     return RestorationPipeline(backbone, adapter="pseudo_target")
 
 

@@ -73,6 +73,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         on_policy=cfg.policy.on_policy,
         memory_mode=stage.memory_mode,
         seed=stage.seed,
+        lora=cfg.backbone.lora,
     )
 
 

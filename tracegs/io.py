@@ -7,7 +7,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from tracegs.errors import InputFileError, one_line
+from tracegs.errors import InputFileError, NonFiniteError, one_line
 
 
 @contextlib.contextmanager
@@ -66,11 +66,24 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
 def save_safetensors_atomic(
     tensors: dict[str, torch.Tensor], path: str | os.PathLike, metadata: dict[str, str] | None = None
 ) -> None:
-    """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires)."""
+    """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires).
+
+    A tensor holding NaN or infinity is refused (nothing is written): a cache shard or an adapter with
+    non-finite values would poison every run that reads it.
+    """
     payload = {name: t.detach().to("cpu").contiguous() for name, t in tensors.items()}
+    bad = non_finite_keys(payload)
+    if bad:
+        raise NonFiniteError(path, f"non-finite values in tensors {bad[:8]}; the file was not written",
+                             "check the inputs that produced them (images, fits, learning rate)")
     with atomic_write(path) as tmp:
         save_file(payload, str(tmp), metadata=metadata)
         sort_header_metadata(tmp)
+
+
+def non_finite_keys(tensors: Mapping[str, torch.Tensor]) -> list[str]:
+    """Names of the floating-point tensors that hold a NaN or an infinity."""
+    return [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
 
 
 def sort_header_metadata(path: Path) -> None:

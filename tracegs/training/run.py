@@ -17,15 +17,16 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.data.datamodule import PairedClipDataModule
+from tracegs.errors import require_writable_dir
 from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
+from tracegs.training.checkpoints import ConfirmedCheckpoint, require_loadable_checkpoint
 from tracegs.training.config import TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.stage1 import Stage1AlignmentModule
@@ -96,7 +97,7 @@ def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
 
 
 def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
-    checkpoints = ModelCheckpoint(
+    checkpoints = ConfirmedCheckpoint(
         dirpath=output_dir / "checkpoints",
         filename="step{step:06d}",
         auto_insert_metric_name=False,
@@ -137,9 +138,12 @@ def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
         return None
     if resume == "last":
         last = output_dir / "checkpoints" / "last.ckpt"
-        return str(last) if last.is_file() else None
-    if not Path(resume).is_file():
+        if not last.is_file():
+            return None
+        resume = str(last)
+    elif not Path(resume).is_file():
         raise FileNotFoundError(f"stage.resume_from: no such checkpoint {resume}")
+    require_loadable_checkpoint(resume, "stage.resume_from")
     return resume
 
 
@@ -170,6 +174,8 @@ def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
     cfg = copy.deepcopy(as_train_config(cfg))
     output_dir = Path(cfg.output_dir)
+    require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
+    resume = resume_checkpoint(cfg, output_dir)  # checked before any work
     if cfg.trainer.cpu_threads is not None:
         torch.set_num_threads(cfg.trainer.cpu_threads)
     L.seed_everything(cfg.stage.seed, workers=True)
@@ -186,7 +192,7 @@ def train_stage(cfg) -> Path:
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     trainer = build_trainer(cfg, output_dir)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg, output_dir))
+    trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
     product = output_dir / PRODUCTS[cfg.stage.name]
     if trainer.is_global_zero:
         export_product(module, cfg.stage.name, output_dir)

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from scene_builders import write_scene
 
 from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
 from tracegs.restorer import adapters
 from tracegs.restorer.build import create_transformer
 from tracegs.restorer.config import LoraConfig
@@ -22,6 +23,7 @@ from tracegs.restorer.config import LoraConfig
 
 def tiny_backbone_config():
     """The backbone the entry points build by default (conf/backbone/tiny.yaml)."""
+    register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return OmegaConf.to_object(compose(config_name="train").backbone)
 
@@ -51,8 +53,8 @@ def scene_root(tmp: Path) -> Path:
     return tmp / "scenes"
 
 
-PREPARE = ["data=mipnerf360", "data.source.image_dir=images", "data.source.height=24", "data.source.width=36",
-           "data.prepare.pseudo_target=dense", "data.prepare.student_snapshots=[140,340]",
+PREPARE = ["data=mipnerf360", "data.source.image_dir=images", "data.source.height=32", "data.source.width=48",
+           "data.prepare.pseudo_target=dense", "data.prepare.student_snapshots=[140,340]", "data.prepare.frames_per_clip=9",
            "data.datamodule.student_snapshots=[140,340]"]
 
 

@@ -178,7 +178,7 @@ def train_stage(cfg) -> Path:
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work
     if cfg.trainer.cpu_threads is not None:
         torch.set_num_threads(cfg.trainer.cpu_threads)
-    L.seed_everything(cfg.stage.seed, workers=True)
+    L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
     if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
             raise FileNotFoundError(

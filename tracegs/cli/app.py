@@ -46,6 +46,23 @@ def exit_with_one_line(app: str, error: BaseException) -> None:
     sys.exit(2)
 
 
+def log_libraries_through_hydra() -> None:
+    """Send Lightning's and diffusers' messages to Hydra's handlers (console on stdout, the run's log file).
+
+    Lightning and diffusers give their loggers their own stderr handler: their notices would then mix with
+    the one-line error on stderr and never reach the log file.
+    """
+    from diffusers.utils import logging as diffusers_logging
+
+    diffusers_logging.disable_default_handler()
+    diffusers_logging.enable_propagation()
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
+            logger.removeHandler(handler)
+        logger.propagate = True
+
+
 class OutputsWritable(Callback):
     """Hydra callback: check the run (or sweep) folder is a writable directory before Hydra writes into it.
 
@@ -79,6 +96,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                 validate(cfg)
                 import lightning
 
+                log_libraries_through_hydra()
                 lightning.seed_everything(cfg.seed, workers=True, verbose=False)
                 return task(cfg)
             except USER_ERRORS as error:

@@ -80,8 +80,9 @@ def load_transformer(
     # Keys a plain CogVideoX config lacks (reference dims, timestep scale) come from ``cfg``.
     absent = {k: v for k, v in wanted.items() if k not in stored}
     try:
+        # use_safetensors: without it diffusers falls back to unpickling a .bin file.
         model, info = ReferenceGuidedTransformer.from_pretrained(
-            path, torch_dtype=dtype, output_loading_info=True, **absent
+            path, torch_dtype=dtype, output_loading_info=True, use_safetensors=True, **absent
         )
     except (OSError, SafetensorError, ValueError) as error:  # no weights file, or a truncated / garbage one
         raise InputFileError(path, f"cannot load the transformer weights ({one_line(error)})", fix) from error

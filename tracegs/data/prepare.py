@@ -147,8 +147,9 @@ def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int], f
 
 def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata)."""
-    relevant = {k: v for k, v in asdict(cfg).items()
-                if k not in ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet")}
+    # Where and how the work runs (folders, shards, worker processes) does not change a shard's bytes.
+    ignored = ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet", "workers")
+    relevant = {k: v for k, v in asdict(cfg).items() if k not in ignored}
     return settings_digest({"prepare": relevant, "backbone": asdict(backbone.cfg)})
 
 

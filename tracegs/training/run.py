@@ -19,6 +19,7 @@ import lightning as L
 import torch
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.data.datamodule import PairedClipDataModule
@@ -26,7 +27,12 @@ from tracegs.errors import require_writable_dir
 from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
-from tracegs.training.checkpoints import ConfirmedCheckpoint, require_loadable_checkpoint
+from tracegs.training.checkpoints import (
+    CheckpointOnSignal,
+    ConfirmedCheckpoint,
+    require_loadable_checkpoint,
+    stopped_by_signal,
+)
 from tracegs.training.config import TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.stage1 import Stage1AlignmentModule
@@ -117,7 +123,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints],
+        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt")],
         enable_progress_bar=cfg.trainer.enable_progress_bar,
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
@@ -192,7 +198,10 @@ def train_stage(cfg) -> Path:
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     trainer = build_trainer(cfg, output_dir)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+    except SIGTERMException:
+        raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
     product = output_dir / PRODUCTS[cfg.stage.name]
     if trainer.is_global_zero:
         export_product(module, cfg.stage.name, output_dir)

@@ -43,21 +43,21 @@ def one_line(error: BaseException | str, limit: int = 300) -> str:
 
 
 def require_writable_dir(path: str | os.PathLike, field: str) -> Path:
-    """Create ``path`` if needed and check a file can be created in it; raise naming ``field`` otherwise.
+    """Check that ``path`` is, or can be created as, a writable directory; raise naming ``field`` otherwise.
 
-    Checked by creating and removing a probe file, because permission bits do not tell the whole story
-    (read-only mounts, ACLs, root ignoring the bits).
+    Nothing is created: the probe file goes into ``path`` or, when it does not exist yet, into its nearest
+    existing parent (where it would be created). A probe rather than permission bits, because those do not
+    tell the whole story (read-only mounts, ACLs, root ignoring the bits).
     """
     directory = Path(path)
     fix = f"choose another {field} or fix the folder's permissions"
-    existing = next((p for p in (directory, *directory.parents) if p.exists()), None)
-    if existing is not None and not existing.is_dir():
+    existing = next((p for p in (directory, *directory.parents) if p.exists()), Path("."))
+    if not existing.is_dir():
         raise OutputPathError(existing, f"is a file, but {field} needs a directory here", fix)
+    probe = existing / f".write-probe-{os.getpid()}"
     try:
-        directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / f".write-probe-{os.getpid()}"
         probe.touch()
         probe.unlink()
     except OSError as error:
-        raise OutputPathError(directory, f"not writable ({error.strerror or error})", fix) from error
+        raise OutputPathError(existing, f"not writable ({error.strerror or error})", fix) from error
     return directory

@@ -19,6 +19,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from tracegs.console import show
+
 log = logging.getLogger("tracegs")
 
 
@@ -208,7 +210,7 @@ def report(cfg: DictConfig) -> Path:
         inputs = list(cfg.report.inputs) or [str(Path(cfg.paths.experiment_dir) / "eval" / v)
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
-        print(table.read_text())
+        show(table.read_text())
         return table
     raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation' or 'per_step', got {kind!r}")
 
@@ -248,7 +250,7 @@ def per_step_report(cfg: DictConfig) -> Path:
     write_json_atomic(curves, out / "per_step_variants.json")
     figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png")
     for variant, curve in curves.items():
-        print(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+        show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
     return figure
 
 
@@ -300,9 +302,9 @@ def demo(cfg: DictConfig) -> Path:
     write_json_atomic(results, out_dir / "results.json")
     print_results_table(results)
     if held_out_table is not None:
-        print("\nRestoration of held-out clips (is the output closer to ground truth than its input R_s?)\n")
-        print(held_out_table.read_text())
-    print(f"\ntracegs-demo: finished in {results['wall_s']:.0f} s, peak RSS {results['peak_rss_gib']:.2f} GiB")
-    print(f"tracegs-demo: all outputs under {Path(cfg.paths.experiment_dir).resolve()}")
-    print(f"tracegs-demo: results table in {out_dir.resolve() / 'results.json'}")
+        show("\nRestoration of held-out clips (is the output closer to ground truth than its input R_s?)\n")
+        show(held_out_table.read_text())
+    show(f"\ntracegs-demo: finished in {results['wall_s']:.0f} s, peak RSS {results['peak_rss_gib']:.2f} GiB")
+    show(f"tracegs-demo: all outputs under {Path(cfg.paths.experiment_dir).resolve()}")
+    show(f"tracegs-demo: results table in {out_dir.resolve() / 'results.json'}")
     return out_dir

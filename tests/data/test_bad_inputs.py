@@ -132,6 +132,14 @@ def output_folder_is_a_file(tmp: Path):
     return "train", ["stage=stage1", f"paths.runs_dir={runs}"], f"{runs}: is a file"
 
 
+def cache_folder_is_a_file(tmp: Path):
+    scenes = scene_root(tmp)
+    cache = tmp / "cache"
+    cache.write_text("not a folder")
+    return ("prepare", [*PREPARE, f"data.source.root={scenes}", f"data.prepare.cache_dir={cache}"],
+            f"{cache}: is a file, but data.prepare.cache_dir needs a directory")
+
+
 def misspelt_key_added_with_plus(tmp: Path):
     return "train", ["+stage.rollout_stpes=5"], "'stage.rollout_stpes': is not a field of the schema"
 
@@ -141,7 +149,7 @@ CASES: dict[str, Callable[[Path], tuple[str, list[str], str]]] = {
     for f in (truncated_png, empty_png, scene_without_sparse, truncated_stage1_adapter,
               stage1_adapter_of_another_rank, garbage_student_adapter, truncated_baseline_transformer,
               baseline_directory_without_weights, corrupt_checkpoint, pickled_checkpoint, output_folder_is_a_file,
-              misspelt_key_added_with_plus)
+              cache_folder_is_a_file, misspelt_key_added_with_plus)
 }
 
 
@@ -173,7 +181,7 @@ def test_read_only_output_folder_is_named(tmp_path, entry_point):
     finally:
         runs.chmod(0o755)
     assert result.returncode == 2 and len(result.stderr_lines()) == 1
-    assert f"{runs}/embedded/stage1: not writable" in result.stderr_lines()[0]
+    assert f"{runs}: not writable" in result.stderr_lines()[0]
 
 
 def test_the_error_line_reaches_the_run_log(tmp_path, entry_point):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_run import config, write_cache
+from test_run import config, train_baseline_and_stage1
 
 from tracegs.training.run import train_stage
 
@@ -32,9 +32,7 @@ SCRIPT = (
 def uninterrupted(tmp_path_factory):
     """(tmp, stage-2 config maker, student adapter bytes of an uninterrupted run)."""
     tmp = tmp_path_factory.mktemp("faults")
-    cache = write_cache(tmp / "cache")
-    baseline = train_stage(config(tmp, cache, "baseline", 2, "baseline"))
-    stage1 = train_stage(config(tmp, cache, "stage1", 2, "stage1", base_weights=str(baseline)))
+    cache, baseline, stage1 = train_baseline_and_stage1(tmp)
 
     def stage2(out: str):
         return config(tmp, cache, "stage2", STEPS, out, base_weights=str(baseline), init_adapter=str(stage1))

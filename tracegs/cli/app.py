@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
+from tracegs.console import to_log_files
 from tracegs.errors import TraceGSError, one_line, require_writable_dir
 
 # conf/ sits at the repository root (editable install); TRACEGS_CONF points elsewhere if needed.
@@ -31,17 +32,11 @@ CONF_DIR = os.environ.get("TRACEGS_CONF", str(Path(__file__).resolve().parents[2
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
 
-log = logging.getLogger("tracegs")
-
-
 def exit_with_one_line(app: str, error: BaseException) -> None:
     """Print ``error`` as one line on stderr (and into the run's log files), then exit with code 2."""
     message = error.args[0] if isinstance(error, KeyError) and error.args else error
     line = f"tracegs-{app}: error: {one_line(message, limit=2000)}"
-    # The console handler would print the line a second time; the log files keep it for later.
-    for handler in logging.getLogger().handlers:
-        if isinstance(handler, logging.FileHandler):
-            handler.emit(log.makeRecord(log.name, logging.ERROR, __file__, 0, line, None, None))
+    to_log_files(line, logging.ERROR)  # not through the console handler: stderr gets the line exactly once
     print(line, file=sys.stderr)
     sys.exit(2)
 

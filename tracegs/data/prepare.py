@@ -32,6 +32,7 @@ from rich.progress import Progress
 from safetensors import safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
+from tracegs.console import PlainProgress
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, make_split, view_set_key
@@ -43,7 +44,7 @@ from tracegs.data.synthetic import (
     render_images,
     scene_background,
 )
-from tracegs.errors import InputFileError
+from tracegs.errors import InputFileError, require_writable_dir
 from tracegs.io import (
     atomic_write,
     non_finite_keys,
@@ -344,8 +345,10 @@ def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecuto
     """Run every unfinished (scene, view set) fit."""
     units = [(plan, key, cfg) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
     task = progress.add_task("3DGS fits", total=len(units))
-    for _ in run_units(pool, fit_view_set, units):
+    plain = PlainProgress("3DGS fits", len(units))
+    for done, _ in enumerate(run_units(pool, fit_view_set, units), 1):
         progress.advance(task)
+        plain.update(done)
 
 
 def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, Path]:
@@ -387,9 +390,11 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     # Rendering runs in the worker processes; the frozen encoders (paper scale: GPU) stay in this one.
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_clip, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
-    for c, (conditions, ground_truth) in zip(todo, rendered):
+    plain = PlainProgress(f"{name}: clips", len(todo))
+    for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, rendered), 1):
         save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c], settings)
         progress.advance(clip_task)
+        plain.update(done)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
@@ -483,6 +488,10 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     anything is written, so bad input fails without side effects.
     """
     validate_config(prepare)
+    require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir")
+    require_writable_dir(prepare.work_dir, "data.prepare.work_dir")
+    if synthetic is not None:
+        require_writable_dir(synthetic.root, "data.synthetic.root")
     threads = torch.get_num_threads()
     if prepare.workers > 1:
         # The workers take the other cores; oversubscribed intra-op threads are much slower (5x measured).

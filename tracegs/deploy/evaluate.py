@@ -31,7 +31,7 @@ from tracegs.data.splits import make_split
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
-from tracegs.errors import NonFiniteError
+from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.eval.report import (
@@ -285,6 +285,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     refine_cfg.validate()
+    require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
                    ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from tracegs.console import show
 from tracegs.eval.metrics import METRIC_NAMES
 from tracegs.io import atomic_write, write_json_atomic
 
@@ -199,7 +200,7 @@ def write_held_out_report(quality: Mapping, out_dir: str | Path) -> Path:
 
 def print_results_table(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> None:
     """Print the Tables 1/2 layout (markdown) to stdout."""
-    print(results_table_markdown(results, views))
+    show(results_table_markdown(results, views))
 
 
 # ---------------------------------------------------------------- images and video

@@ -22,6 +22,7 @@ from lightning.pytorch.plugins.environments import SLURMEnvironment
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from tracegs.console import interactive
 from tracegs.data.datamodule import PairedClipDataModule
 from tracegs.errors import require_writable_dir
 from tracegs.io import atomic_directory
@@ -35,6 +36,7 @@ from tracegs.training.checkpoints import (
 )
 from tracegs.training.config import TrainConfig
 from tracegs.training.module import RestorerTrainingModule
+from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
 
@@ -123,8 +125,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt")],
-        enable_progress_bar=cfg.trainer.enable_progress_bar,
+        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress()],
+        enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
         overfit_batches=cfg.trainer.overfit_batches,

@@ -50,14 +50,15 @@ def require_writable_dir(path: str | os.PathLike, field: str) -> Path:
     tell the whole story (read-only mounts, ACLs, root ignoring the bits).
     """
     directory = Path(path)
-    fix = f"choose another {field} or fix the folder's permissions"
     existing = next((p for p in (directory, *directory.parents) if p.exists()), Path("."))
     if not existing.is_dir():
-        raise OutputPathError(existing, f"is a file, but {field} needs a directory here", fix)
+        raise OutputPathError(existing, f"is a file, but {field} needs a directory here",
+                              f"move the file away or choose another {field}")
     probe = existing / f".write-probe-{os.getpid()}"
     try:
         probe.touch()
         probe.unlink()
     except OSError as error:
-        raise OutputPathError(existing, f"not writable ({error.strerror or error})", fix) from error
+        raise OutputPathError(existing, f"not writable ({error.strerror or error})",
+                              f"fix the folder's permissions or choose another {field}") from error
     return directory

@@ -123,7 +123,7 @@ def pickled_checkpoint(tmp: Path):
     path = tmp / "pickled.ckpt"
     torch.save({"state_dict": {}, "hyper_parameters": argparse.Namespace(lr=1.0)}, path)
     return ("train", ["stage=stage1", "stage.base_weights=null", f"stage.resume_from={path}"],
-            f"{path}: not a loadable training checkpoint")
+            f"{path}: holds Python objects that safe loading (weights_only) refuses")
 
 
 def output_folder_is_a_file(tmp: Path):

@@ -22,13 +22,15 @@ def require_loadable_checkpoint(path: str | Path, field: str) -> None:
     A truncated file or one that needs pickled code would otherwise fail inside Lightning with a
     traceback; a pickled one is refused here rather than executed.
     """
+    fix = f"delete it to start this stage from scratch, or set {field} to another checkpoint"
     try:
         torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as error:
-        raise InputFileError(
-            path, f"not a loadable training checkpoint ({one_line(error, limit=160)})",
-            f"delete it to start this stage from scratch, or set {field} to another checkpoint",
-        ) from error
+    except pickle.UnpicklingError as error:
+        raise InputFileError(path, "holds Python objects that safe loading (weights_only) refuses: loading them "
+                                   "could run arbitrary code", fix) from error
+    except (RuntimeError, EOFError, OSError, ValueError) as error:
+        first_sentence = one_line(error).split(". ")[0]
+        raise InputFileError(path, f"not a loadable training checkpoint ({first_sentence})", fix) from error
 
 
 class ConfirmedCheckpoint(ModelCheckpoint):

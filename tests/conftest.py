@@ -5,6 +5,13 @@ OpenMP workers made the suite 5-20x slower (measured by the package helpers). Th
 and autouse, so it is in force before any session fixture (e.g. the prepared cache) is built.
 """
 
+import dataclasses
+import importlib
+import os
+import sys
+import traceback
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -15,3 +22,57 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@dataclasses.dataclass
+class EntryPointRun:
+    returncode: int
+    stdout: str
+    stderr: str
+
+    def stderr_lines(self) -> list[str]:
+        return [line for line in self.stderr.splitlines() if line.strip()]
+
+
+def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
+    """Run console script ``tracegs-<app>`` (its Hydra main) with ``args`` in a forked child of this process.
+
+    The child is the real entry point with real stdout / stderr file descriptors and exit code; forking skips
+    the ~7 s of imports a fresh interpreter would spend (the suite runs a table of these).
+    """
+    out, err = cwd / f".{app}.stdout", cwd / f".{app}.stderr"
+    pid = os.fork()
+    if pid == 0:  # child: never returns into pytest
+        code = 1
+        try:
+            os.chdir(cwd)
+            for fd, path in ((1, out), (2, err)):
+                os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+            sys.stdout = open(1, "w", buffering=1, closefd=False)
+            sys.stderr = open(2, "w", buffering=1, closefd=False)
+            for variable in ("TRACEGS_TRACEBACK", "HYDRA_FULL_ERROR"):
+                os.environ.pop(variable, None)
+            from hydra.core.global_hydra import GlobalHydra
+
+            GlobalHydra.instance().clear()
+            sys.argv = [f"tracegs-{app}", *args]
+            importlib.import_module(f"tracegs.cli.{app}").main()
+            code = 0
+        except SystemExit as exit_:
+            code = exit_.code if isinstance(exit_.code, int) else 1
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    run = EntryPointRun(os.waitstatus_to_exitcode(status), out.read_text(), err.read_text())
+    out.unlink()
+    err.unlink()
+    return run
+
+
+@pytest.fixture
+def entry_point():
+    return run_entry_point

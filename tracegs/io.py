@@ -7,12 +7,15 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
+
+from tracegs.errors import InputFileError, NonFiniteError, one_line
 
 
 def _current_umask() -> int:
@@ -79,10 +82,58 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
 def save_safetensors_atomic(
     tensors: dict[str, torch.Tensor], path: str | os.PathLike, metadata: dict[str, str] | None = None
 ) -> None:
-    """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires)."""
+    """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires).
+
+    A tensor holding NaN or infinity is refused (nothing is written): a cache shard or an adapter with
+    non-finite values would poison every run that reads it.
+    """
     payload = {name: t.detach().to("cpu").contiguous() for name, t in tensors.items()}
+    bad = non_finite_keys(payload)
+    if bad:
+        raise NonFiniteError(path, f"non-finite values in tensors {bad[:8]}; the file was not written",
+                             "check the inputs that produced them (images, fits, learning rate)")
     with atomic_write(path) as tmp:
         save_file(payload, str(tmp), metadata=metadata)
+        sort_header_metadata(tmp)
+
+
+def non_finite_keys(tensors: Mapping[str, torch.Tensor]) -> list[str]:
+    """Names of the floating-point tensors that hold a NaN or an infinity."""
+    return [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+
+
+def sort_header_metadata(path: Path) -> None:
+    """Rewrite a safetensors header with its ``__metadata__`` keys sorted, in place.
+
+    safetensors serialises the metadata map in hash order, which differs between processes, so the same
+    tensors and metadata would give different bytes (a resumed or parallel run could not be compared
+    with an uninterrupted one byte for byte). The library has no option for a fixed order, hence this.
+    Reordering the members of a JSON object keeps its length, so the data offsets stay valid.
+    """
+    with open(path, "r+b") as handle:
+        length = int.from_bytes(handle.read(8), "little")
+        header = json.loads(handle.read(length))
+        if "__metadata__" not in header:
+            return
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+        text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(text) > length:
+            raise RuntimeError(f"{path}: re-serialised safetensors header grew ({len(text)} > {length} bytes)")
+        handle.seek(8)
+        handle.write(text.ljust(length))  # the format pads headers with spaces
+
+
+def read_safetensors(path: str | os.PathLike, fix: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Every tensor and the metadata of a safetensors file; a missing or damaged file raises
+    :class:`InputFileError` naming it, followed by ``fix`` (what the user should do)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "no such file" if not path.exists() else "is not a file", fix)
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return {key: handle.get_tensor(key) for key in handle.keys()}, handle.metadata() or {}
+    except (SafetensorError, OSError, ValueError) as error:
+        raise InputFileError(path, f"not a readable safetensors file ({one_line(error)})", fix) from error
 
 
 def write_json_atomic(data: Any, path: str | os.PathLike) -> None:

@@ -19,6 +19,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from tracegs.console import show
+
 log = logging.getLogger("tracegs")
 
 
@@ -189,10 +191,11 @@ def build_restorer(cfg: DictConfig, student_adapter: str | None):
         if not student.exists():
             raise FileNotFoundError(
                 f"artifacts.student_adapter: no student adapter at {student} "
-                f"(run tracegs-train stage=stage2 ablation={student.parent.name})"
+                f"(run tracegs-train stage=stage2 ablation={cfg.ablation.name} with the same settings)"
             )
         adapter = "student"
-        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False)
+        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False, expected=backbone_cfg.lora,
+                              field="artifacts.student_adapter")
         identity.append(f"student={_digest(student)}")
     pipeline = RestorationPipeline(backbone, adapter=adapter)
     return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity), steps=cfg.deploy.steps)
@@ -298,7 +301,7 @@ def report(cfg: DictConfig) -> Path:
         inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", v).evaluation.out_dir
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
-        print(table.read_text())
+        show(table.read_text())
         return table
     raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation', 'per_step' or 'seeds', got {kind!r}")
 
@@ -313,7 +316,7 @@ def seed_report(cfg: DictConfig) -> Path:
     table = Path(cfg.report.output_dir) / "seeds.md"
     with atomic_write(table) as tmp:
         tmp.write_text(seed_spread_markdown(list(cfg.report.inputs)))
-    print(table.read_text())
+    show(table.read_text())
     return table
 
 
@@ -352,7 +355,7 @@ def per_step_report(cfg: DictConfig) -> Path:
     write_json_atomic(curves, out / "per_step_variants.json")
     figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png")
     for variant, curve in curves.items():
-        print(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+        show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
     return figure
 
 
@@ -409,9 +412,9 @@ def demo(cfg: DictConfig) -> Path:
     write_json_atomic(run, out_dir / "run.json")
     with atomic_write(out_dir / "tables.md") as tmp:
         tmp.write_text(demo_tables_markdown(out_dir, run))
-    print((out_dir / "tables.md").read_text())
-    print(f"tracegs-demo: finished in {run['wall_s']:.0f} s, peak RSS {run['peak_rss_gib']:.2f} GiB")
-    print(f"tracegs-demo: tables, grids, videos, refined PLYs and plots in {out_dir.resolve()}")
+    show((out_dir / "tables.md").read_text())
+    show(f"tracegs-demo: finished in {run['wall_s']:.0f} s, peak RSS {run['peak_rss_gib']:.2f} GiB")
+    show(f"tracegs-demo: tables, grids, videos, refined PLYs and plots in {out_dir.resolve()}")
     return out_dir
 
 

@@ -60,3 +60,10 @@ def tiny_configs(tmp: Path) -> tuple[SyntheticConfig, SceneSourceConfig, Prepare
 def all_files(root: Path) -> dict[str, int]:
     """Modification time of every file under ``root`` (to prove a rerun wrote nothing)."""
     return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+
+
+def differing_files(expected: Path, actual: Path) -> list[str]:
+    """Files (relative paths) that are missing, extra or differ in bytes between two folders."""
+    files = {str(p.relative_to(root)) for root in (expected, actual) for p in root.rglob("*") if p.is_file()}
+    return sorted(f for f in files if not ((expected / f).is_file() and (actual / f).is_file()
+                                           and (expected / f).read_bytes() == (actual / f).read_bytes()))

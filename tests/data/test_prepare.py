@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -15,10 +16,10 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors import safe_open
-from scene_builders import all_files, tiny_configs, write_scene
+from scene_builders import all_files, differing_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import PrepareError, fit_unit_paths, merge_manifests, run_prepare, shard_is_valid
+from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare
 
 
 def test_prepare_builds_the_cache_from_nothing(prepared):
@@ -53,43 +54,91 @@ def test_second_run_does_no_work(prepared, backbone):
     assert time.perf_counter() - start < 5.0
 
 
-def test_killed_run_completes_on_rerun(tmp_path, prepared, backbone):
-    _, synthetic, source, _, _ = prepared  # reuse the generated scene, prepare into a fresh cache
-    prepare = replace(tiny_configs(tmp_path)[2], clips_per_scene=3)
-    script = (
-        "import sys\n"
-        "sys.path.insert(0, sys.argv[1])\n"
-        "from dataclasses import replace\n"
-        "from pathlib import Path\n"
-        "from scene_builders import tiny_configs\n"
-        "from tracegs.data.prepare import run_prepare\n"
-        "from tracegs.restorer.build import build_backbone\n"
-        "from tracegs.restorer.config import BackboneConfig\n"
-        "synthetic, source, _ = tiny_configs(Path(sys.argv[2]))\n"
-        "prepare = replace(tiny_configs(Path(sys.argv[3]))[2], clips_per_scene=3)\n"
-        "run_prepare(prepare, source, build_backbone(BackboneConfig()), synthetic, progress=False)\n"
-    )
-    generated = Path(synthetic.root).parent
+PREPARE_SCRIPT = (
+    "import sys\n"
+    "sys.path.insert(0, sys.argv[1])\n"
+    "from dataclasses import replace\n"
+    "from pathlib import Path\n"
+    "from scene_builders import tiny_configs\n"
+    "from tracegs.data.prepare import run_prepare\n"
+    "from tracegs.restorer.build import build_backbone\n"
+    "from tracegs.restorer.config import BackboneConfig\n"
+    "if __name__ == '__main__':\n"
+    "    synthetic, source, _ = tiny_configs(Path(sys.argv[2]))\n"
+    "    prepare = replace(tiny_configs(Path(sys.argv[3]))[2], workers=int(sys.argv[4]))\n"
+    "    if int(sys.argv[5]):\n"
+    "        prepare.fit = replace(prepare.fit, iterations=int(sys.argv[5]), snapshot_iters=[8, int(sys.argv[5])])\n"
+    "    run_prepare(prepare, source, build_backbone(BackboneConfig()), synthetic, progress=False)\n"
+)
+
+
+def start_prepare(generated: Path, out: Path, workers: int = 1, fit_iterations: int = 0) -> subprocess.Popen:
+    """``run_prepare`` of the tiny configs (scenes under ``generated``, products under ``out``) in a new process,
+    with ``workers`` processes and, if non-zero, ``fit_iterations`` per fit."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    process = subprocess.Popen([sys.executable, "-c", script, str(Path(__file__).parent), str(generated),
-                                str(tmp_path)], env=env, stderr=subprocess.PIPE, text=True)
-    # Kill once the first fit unit (both snapshots of the 3-view fit) is complete, before the others.
-    first_fit = fit_unit_paths(tmp_path / "work", "scene_000", "3", [8, 16], prepare.fit)[16]
-    deadline = time.monotonic() + 120
-    while not first_fit.is_file() and process.poll() is None and time.monotonic() < deadline:
+    return subprocess.Popen([sys.executable, "-c", PREPARE_SCRIPT, str(Path(__file__).parent), str(generated),
+                             str(out), str(workers), str(fit_iterations)], env=env, stderr=subprocess.PIPE, text=True)
+
+
+def products(out: Path) -> list[Path]:
+    return [p for part in ("work", "cache") for p in (out / part).rglob("*") if p.is_file()
+            and not p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
+def test_killed_run_reruns_to_identical_bytes(tmp_path, prepared, backbone, seed):
+    """SIGKILL after a random number of finished products plus a random delay (seeded), then the same command:
+    every fit and cache file equals the uninterrupted run's byte for byte, and finished fits are not redone."""
+    reference, synthetic, source, _, _ = prepared
+    total = len(products(reference))
+    rng = random.Random(seed)
+    kill_after, delay = rng.randrange(total), rng.uniform(0.0, 0.5)
+    process = start_prepare(Path(synthetic.root).parent, tmp_path)
+    deadline = time.monotonic() + 300
+    while len(products(tmp_path)) < kill_after and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
+    time.sleep(delay)
     assert process.poll() is None, f"prepare ended before it could be killed: {process.stderr.read()[-2000:]}"
     process.send_signal(signal.SIGKILL)
     process.wait()
     process.stderr.close()
-    assert not (tmp_path / "cache" / "manifest.json").exists()
-    finished_fits = {p: p.stat().st_mtime_ns for p in first_fit.parent.glob("*.ply")}
-    assert len(finished_fits) == 2
-    manifest = json.loads(run_prepare(prepare, source, backbone, synthetic, progress=False).read_text())
-    clips = manifest["scenes"]["scene_000"]["clips"]
-    assert len(clips) == 3 and all(shard_is_valid(tmp_path / "cache" / c) for c in clips)
+    finished_fits = {p: p.stat().st_mtime_ns for p in (tmp_path / "work").rglob("*.ply")}
+    prepare = tiny_configs(tmp_path)[2]
+    run_prepare(prepare, source, backbone, synthetic, progress=False)
+    assert differing_files(reference / "work", tmp_path / "work") == []
+    assert differing_files(reference / "cache", tmp_path / "cache") == []
     assert all(p.stat().st_mtime_ns == t for p, t in finished_fits.items()), "a finished fit was redone"
-    assert not list(tmp_path.rglob(".*.tmp"))
+
+
+def child_pids(pid: int) -> set[int]:
+    return {int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()}
+
+
+def alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.slow  # two spawned workers import torch, then fit for a while: over a minute on a busy 2-core machine
+@pytest.mark.skipif(sys.platform != "linux", reason="parent-death signal is Linux-only")
+def test_workers_die_with_a_killed_parent(tmp_path, prepared):
+    """SIGKILL of prepare while its two workers fit: the workers end at once, and write nothing more."""
+    _, synthetic, _, _, _ = prepared
+    process = start_prepare(Path(synthetic.root).parent, tmp_path, workers=2, fit_iterations=400)
+    deadline = time.monotonic() + 300
+    while not list((tmp_path / "work").rglob("*.ply")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.poll() is None, f"prepare ended before it could be killed: {process.stderr.read()[-2000:]}"
+    workers = child_pids(process.pid)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    process.stderr.close()
+    written = set((tmp_path / "work").rglob("*.ply"))
+    time.sleep(1.0)
+    assert workers and not any(alive(pid) for pid in workers)
+    assert set((tmp_path / "work").rglob("*.ply")) == written
 
 
 def test_sharded_manifests_merge(tmp_path, prepared, backbone):
@@ -183,13 +232,11 @@ def test_changed_settings_are_not_mistaken_for_finished_work(tmp_path, prepared,
     assert {p: p.stat().st_mtime_ns for p in Path(fitted.work_dir).rglob("*.ply")} == fits
 
 
-def test_parallel_fit_workers_give_the_same_fits(tmp_path, prepared, backbone):
-    """Fits in two worker processes (one thread each) equal the in-process fits byte for byte."""
-    _, synthetic, source, fitted, _ = prepared
-    parallel = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), workers=2)
+def test_parallel_workers_give_the_same_products(tmp_path, prepared, backbone):
+    """Fits and clip renders in two worker processes (one thread each) equal the in-process run byte for byte:
+    the fitted PLYs and every cache file (shards with their header metadata, scene files, manifest, sheet)."""
+    _, synthetic, source, serial, _ = prepared
+    parallel = replace(serial, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), workers=2)
     run_prepare(parallel, source, backbone, synthetic, progress=False)
-    serial_files = sorted(Path(fitted.work_dir).rglob("*.ply"))
-    parallel_files = sorted((tmp_path / "work").rglob("*.ply"))
-    assert [p.relative_to(fitted.work_dir) for p in serial_files] == [p.relative_to(tmp_path / "work")
-                                                                      for p in parallel_files]
-    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(serial_files, parallel_files))
+    assert differing_files(Path(serial.work_dir), tmp_path / "work") == []
+    assert differing_files(Path(serial.cache_dir), tmp_path / "cache") == []

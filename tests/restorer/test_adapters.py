@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from tracegs.errors import InputFileError
 from tracegs.restorer import adapters
 
 
@@ -104,5 +105,5 @@ def test_load_adapter_rejects_mismatched_file(tmp_path, backbone):
     adapters.add_adapter(model, "self_attn_only", other)
     with pytest.raises(adapters.AdapterFileError, match=r"unexpected \[.transformer_blocks.0.ref_attn"):
         adapters.load_adapter(model, "self_attn_only", path, trainable=True)
-    with pytest.raises(FileNotFoundError, match="absent.safetensors"):
+    with pytest.raises(InputFileError, match="absent.safetensors: no such file"):
         adapters.load_adapter(model, "x", tmp_path / "absent.safetensors", trainable=True)

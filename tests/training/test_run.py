@@ -78,13 +78,18 @@ def config(tmp_path: Path, cache: Path, name: str, steps: int, out: str, decay: 
     )
 
 
-@pytest.fixture(scope="module")
-def stages(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("run")
+def train_baseline_and_stage1(tmp: Path) -> tuple[Path, Path, Path]:
+    """(cache, baseline transformer, Stage-1 adapter): two steps of each stage on a random cache under ``tmp``."""
     cache = write_cache(tmp / "cache")
     baseline = train_stage(config(tmp, cache, "baseline", 2, "baseline"))
     stage1 = train_stage(config(tmp, cache, "stage1", 2, "stage1", base_weights=str(baseline)))
-    return tmp, cache, baseline, stage1
+    return cache, baseline, stage1
+
+
+@pytest.fixture(scope="module")
+def stages(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("run")
+    return tmp, *train_baseline_and_stage1(tmp)
 
 
 def logged_columns(run_dir: Path) -> set[str]:

@@ -10,6 +10,7 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import sys
 from collections.abc import Callable
@@ -17,16 +18,67 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
+from tracegs.console import to_log_files
+from tracegs.errors import TraceGSError, one_line, require_writable_dir
 
 # conf/ sits at the repository root (editable install); TRACEGS_CONF points elsewhere if needed.
 CONF_DIR = os.environ.get("TRACEGS_CONF", str(Path(__file__).resolve().parents[2] / "conf"))
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+
+def exit_with_one_line(app: str, error: BaseException) -> None:
+    """Print ``error`` as one line on stderr (and into the run's log files), then exit with code 2."""
+    message = error.args[0] if isinstance(error, KeyError) and error.args else error
+    line = f"tracegs-{app}: error: {one_line(message, limit=2000)}"
+    to_log_files(line, logging.ERROR)  # not through the console handler: stderr gets the line exactly once
+    print(line, file=sys.stderr)
+    sys.exit(2)
+
+
+def log_libraries_through_hydra() -> None:
+    """Send Lightning's and diffusers' messages to Hydra's handlers (console on stdout, the run's log file).
+
+    Lightning and diffusers give their loggers their own stderr handler: their notices would then mix with
+    the one-line error on stderr and never reach the log file.
+    """
+    from diffusers.utils import logging as diffusers_logging
+
+    diffusers_logging.disable_default_handler()
+    diffusers_logging.enable_propagation()
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
+            logger.removeHandler(handler)
+        logger.propagate = True
+
+
+class OutputsWritable(Callback):
+    """Hydra callback: check the run (or sweep) folder is a writable directory before Hydra writes into it.
+
+    Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
+    would only see Hydra's own traceback for an output path that is a file or read-only.
+    """
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config.hydra.run.dir, "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config.hydra.sweep.dir, "hydra.sweep.dir", kwargs.get("config_name", "run"))
+
+    @staticmethod
+    def _check(directory: str, field: str, app: str) -> None:
+        try:
+            require_writable_dir(directory, field)
+        except TraceGSError as error:
+            if os.environ.get("TRACEGS_TRACEBACK"):
+                raise
+            exit_with_one_line(app, error)
 
 
 def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
@@ -39,14 +91,13 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                 validate(cfg)
                 import lightning
 
+                log_libraries_through_hydra()
                 lightning.seed_everything(cfg.seed, workers=True, verbose=False)
                 return task(cfg)
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
                     raise
-                message = error.args[0] if isinstance(error, KeyError) and error.args else error
-                print(f"tracegs-{config_name}: error: {message}", file=sys.stderr)
-                sys.exit(2)
+                exit_with_one_line(config_name, error)
 
         register_configs()
         return hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError
 
 
 class ConfigError(ValueError):
@@ -41,10 +42,27 @@ def _check_increasing(values: Iterable[int], field: str) -> list[int]:
 
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` naming the first field whose value is inconsistent with the others."""
+    _validate_known_keys(cfg)
     _validate_data(cfg)
     _validate_training(cfg)
     _validate_backbone(cfg)
     _validate_deployment(cfg)
+
+
+def _validate_known_keys(cfg: DictConfig) -> None:
+    """Every key must be a field of the schema. Hydra's ``+key=value`` adds keys past struct mode (it is
+    even Hydra's hint for a misspelt override), so the composed tree is merged into the schema once more, as
+    plain containers: a node keeps its added keys when merged as a typed node."""
+    from tracegs.config.schema import TraceGSConfig
+
+    tree = OmegaConf.to_container(cfg)
+    tree.pop("hydra", None)  # Hydra's own node, present when composed with return_hydra_config
+    try:
+        OmegaConf.merge(OmegaConf.structured(TraceGSConfig), tree)
+    except ConfigKeyError as error:
+        field = error.full_key or str(error.key)
+        raise ConfigError(field, "is not a field of the schema (misspelt, or added with '+'); "
+                                 "see --cfg job for the valid keys") from error
 
 
 def _validate_data(cfg: DictConfig) -> None:

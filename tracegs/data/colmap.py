@@ -14,6 +14,7 @@ import torch
 from PIL import Image
 
 from tracegs.data.config import SceneSourceConfig
+from tracegs.errors import InputFileError, one_line
 from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 
@@ -98,7 +99,15 @@ def list_scenes(cfg: SceneSourceConfig) -> list[str]:
     if not root.is_dir():
         raise SceneFormatError(f"source.root {root} does not exist")
     _, sparse_dir, _ = preset_dirs(cfg)
-    return sorted(p.name for p in root.iterdir() if (p / sparse_dir).is_dir())
+    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    lacking = [p.name for p in folders if not (p / sparse_dir).is_dir()]
+    if lacking:
+        raise InputFileError(root / lacking[0] / sparse_dir,
+                             f"scene folder without a COLMAP reconstruction ({len(lacking)} of {len(folders)} "
+                             f"scene folders lack {sparse_dir}: {lacking[:5]})",
+                             "run COLMAP on it, move it out of source.root, or list the scenes to use in "
+                             "data.source.scenes")
+    return [p.name for p in folders]
 
 
 def camera_from_colmap(colmap_camera, cam_from_world: np.ndarray, source: Path) -> Camera:
@@ -141,6 +150,18 @@ def normalize_scene(scene: Scene) -> Scene:
                    world_scale=radius)
 
 
+def decoded_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image after decoding all of it: a truncated or corrupt file fails here, at
+    scene load, rather than in the middle of a fit after other products were written."""
+    try:
+        with Image.open(path) as pil:
+            pil.load()
+            return pil.size
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:  # PIL's decode errors
+        raise InputFileError(path, f"cannot decode the image ({one_line(error)})",
+                             "replace it with an intact copy or remove it from the COLMAP model") from error
+
+
 def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     """Load scene ``name`` under ``cfg.root``; every listed image must exist in the image folder."""
     import pycolmap  # lazily, after PIL and torch (bundled zlib, see module docstring)
@@ -168,8 +189,7 @@ def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     for image, path in zip(images, paths):
         camera = camera_from_colmap(image.camera, image.cam_from_world().matrix(), sparse)
         # Downscaled folders (images_4, ...) keep COLMAP's full-resolution intrinsics: rescale them.
-        with Image.open(path) as pil:
-            width, height = pil.size
+        width, height = decoded_size(path)
         width, height = cfg.width or width, cfg.height or height
         if (width, height) != (camera.width, camera.height):
             camera = camera.rescaled(width, height)

@@ -20,6 +20,7 @@ import hashlib
 import json
 import math
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,9 +29,10 @@ import numpy as np
 import torch
 from PIL import Image
 from rich.progress import Progress
-from safetensors import SafetensorError, safe_open
+from safetensors import safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
+from tracegs.console import PlainProgress
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, make_split, view_set_key
@@ -42,7 +44,15 @@ from tracegs.data.synthetic import (
     render_images,
     scene_background,
 )
-from tracegs.io import atomic_write, save_safetensors_atomic, write_json_atomic
+from tracegs.errors import InputFileError, require_writable_dir
+from tracegs.io import (
+    atomic_write,
+    non_finite_keys,
+    read_safetensors,
+    save_safetensors_atomic,
+    write_json_atomic,
+)
+from tracegs.processes import die_with_parent
 from tracegs.restorer.build import Backbone
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
@@ -138,8 +148,9 @@ def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int], f
 
 def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata)."""
-    relevant = {k: v for k, v in asdict(cfg).items()
-                if k not in ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet")}
+    # Where and how the work runs (folders, shards, worker processes) does not change a shard's bytes.
+    ignored = ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet", "workers")
+    relevant = {k: v for k, v in asdict(cfg).items() if k not in ignored}
     return settings_digest({"prepare": relevant, "backbone": asdict(backbone.cfg)})
 
 
@@ -214,17 +225,18 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
 
 
 def shard_is_valid(path: Path, settings: str | None = None) -> bool:
-    """A shard exists, its header is readable and (if given) it was made with ``settings``.
+    """A shard exists, is readable, holds only finite numbers and (if given) was made with ``settings``.
 
-    Atomic writes make partial files impossible, but a disk can still damage them, and a shard made
-    with other settings is not a finished unit of this run.
+    Atomic writes make partial files impossible, but a disk can still damage them, a shard made with
+    other settings is not a finished unit of this run, and one with NaN would poison training.
     """
     try:
-        with safe_open(str(path), framework="pt") as f:
-            made_with = (f.metadata() or {}).get("settings")
-            return "latent/target" in f.keys() and (settings is None or made_with == settings)
-    except (SafetensorError, OSError):
+        tensors, metadata = read_safetensors(path, fix="")
+    except InputFileError:
         return False
+    made_with = metadata.get("settings")
+    return ("latent/target" in tensors and (settings is None or made_with == settings)
+            and not non_finite_keys(tensors))
 
 
 def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
@@ -232,7 +244,9 @@ def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
     from tracegs.restorer.adapters import load_adapter
     from tracegs.restorer.sampler import RestorationPipeline
 
-    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False)
+    # phi_pre comes with the pretrained restorer, at its own rank: it is not checked against backbone.lora.
+    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False,
+                 field="data.prepare.pseudo_adapter")
     return RestorationPipeline(backbone, adapter="pseudo_target")
 
 
@@ -297,7 +311,8 @@ def remove_stale_temporaries(directory: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def _one_thread_worker() -> None:
+def _one_thread_worker(parent_pid: int) -> None:
+    die_with_parent(parent_pid)
     # Each worker process gets one intra-op thread: on CPU, parallel fits use the cores far better than
     # multi-threaded kernels on these small tensors (measured 23 ms/iteration with 1 thread, 35 with 2).
     torch.set_num_threads(1)
@@ -311,7 +326,7 @@ def worker_pool(cfg: PrepareConfig) -> ProcessPoolExecutor | None:
     if cfg.workers <= 1:
         return None
     return ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_one_thread_worker)
+                               initializer=_one_thread_worker, initargs=(os.getpid(),))
 
 
 def run_units(pool: ProcessPoolExecutor | None, function, arguments: list[tuple]):
@@ -330,8 +345,10 @@ def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecuto
     """Run every unfinished (scene, view set) fit."""
     units = [(plan, key, cfg) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
     task = progress.add_task("3DGS fits", total=len(units))
-    for _ in run_units(pool, fit_view_set, units):
+    plain = PlainProgress("3DGS fits", len(units))
+    for done, _ in enumerate(run_units(pool, fit_view_set, units), 1):
         progress.advance(task)
+        plain.update(done)
 
 
 def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, Path]:
@@ -373,9 +390,11 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     # Rendering runs in the worker processes; the frozen encoders (paper scale: GPU) stay in this one.
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_clip, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
-    for c, (conditions, ground_truth) in zip(todo, rendered):
+    plain = PlainProgress(f"{name}: clips", len(todo))
+    for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, rendered), 1):
         save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c], settings)
         progress.advance(clip_task)
+        plain.update(done)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
@@ -469,6 +488,10 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     anything is written, so bad input fails without side effects.
     """
     validate_config(prepare)
+    require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir")
+    require_writable_dir(prepare.work_dir, "data.prepare.work_dir")
+    if synthetic is not None:
+        require_writable_dir(synthetic.root, "data.synthetic.root")
     threads = torch.get_num_threads()
     if prepare.workers > 1:
         # The workers take the other cores; oversubscribed intra-op threads are much slower (5x measured).

@@ -13,7 +13,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import multiprocessing
+import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +31,7 @@ from tracegs.data.splits import make_split
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
+from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.eval.report import (
@@ -40,6 +43,7 @@ from tracegs.eval.report import (
     write_results_tables,
 )
 from tracegs.io import atomic_write, write_json_atomic
+from tracegs.processes import die_with_parent
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View
@@ -131,6 +135,15 @@ def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
     )
 
 
+def require_finite_metrics(per_view: Sequence[Mapping[str, float | None]], unit: str) -> None:
+    """A NaN or infinite score (a NaN render, an empty image) must not be averaged into a table."""
+    for index, row in enumerate(per_view):
+        bad = {name: value for name, value in row.items() if value is not None and not math.isfinite(value)}
+        if bad:
+            raise NonFiniteError(unit, f"non-finite metrics {bad} on test view {index}; nothing was written",
+                                 "check the restorer weights and the refinement settings (deploy.*)")
+
+
 def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None], cfg: EvaluationConfig,
                   refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig, metrics: ImageMetrics,
                   gt_renderer: GroundTruthRenderer | None = None, progress: Progress | None = None) -> dict:
@@ -150,6 +163,7 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
                        seed=refine_cfg.seed)
         renders = render_views(model, unit.test_cameras, background, None)
         per_view = metrics.per_view(renders, unit.test_images)
+        require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
         result["methods"][method] = {"per_view": per_view, "mean": mean_metrics(per_view)}
         test_renders[method], models[method] = renders, model
         if progress is not None:
@@ -247,7 +261,8 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
     global _FORKED_JOB
     _FORKED_JOB = job
     try:
-        with multiprocessing.get_context("fork").Pool(min(workers, len(keys))) as pool:
+        with multiprocessing.get_context("fork").Pool(min(workers, len(keys)), initializer=die_with_parent,
+                                                      initargs=(os.getpid(),)) as pool:
             yield from pool.imap_unordered(_run_forked, keys)
             # Let the workers exit on their own: the pool's __exit__ would SIGTERM them, and pycolmap's
             # signal handler then prints a stack trace for every worker.
@@ -276,6 +291,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     refine_cfg.validate()
+    require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
                    ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,

@@ -18,9 +18,9 @@ from pathlib import Path
 import torch
 from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
-from safetensors import safe_open
 
-from tracegs.io import atomic_directory, save_safetensors_atomic
+from tracegs.errors import ConfigMismatchError, InputFileError
+from tracegs.io import atomic_directory, read_safetensors, save_safetensors_atomic
 
 from .config import LoraConfig
 
@@ -158,40 +158,63 @@ def save_adapter(model: torch.nn.Module, name: str, path: str | Path) -> None:
         (staging / PEFT_CONFIG_FILE).write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
 
 
-def read_adapter(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+def read_adapter(path: str | Path, fix: str = "re-create it with the stage that writes it"
+                 ) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """(peft-keyed tensors, safetensors metadata) of an adapter file or peft adapter folder."""
     path = Path(path)
-    if path.is_dir():
-        file = path / PEFT_WEIGHTS_FILE
-        if not file.is_file():
-            raise FileNotFoundError(f"adapter folder {path} has no {PEFT_WEIGHTS_FILE}")
-    elif path.is_file():
-        file = path
-    else:
-        raise FileNotFoundError(f"adapter {path} does not exist")
-    with safe_open(str(file), framework="pt") as handle:
-        metadata = handle.metadata() or {}
-        tensors = {key.removeprefix(PEFT_KEY_PREFIX): handle.get_tensor(key) for key in handle.keys()}
+    tensors, metadata = read_safetensors(path / PEFT_WEIGHTS_FILE if path.is_dir() else path, fix)
     if METADATA_KEY not in metadata and (path / PEFT_CONFIG_FILE).is_file():
         metadata[METADATA_KEY] = (path / PEFT_CONFIG_FILE).read_text()
-    return tensors, metadata
+    return {key.removeprefix(PEFT_KEY_PREFIX): value for key, value in tensors.items()}, metadata
 
 
-def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable: bool) -> None:
-    """Load an adapter file or folder as ``name`` (created from its config if absent); exact key match required."""
-    tensors, metadata = read_adapter(path)
+def check_adapter_config(path: Path, stored: dict, expected: LoraConfig, field: str) -> None:
+    """The file's rank, alpha and target modules must be the config's: peft would otherwise build the adapter
+    from the file and train at the file's rank, or fail later on a size mismatch."""
+    wanted = peft_config(expected)
+    fields = {"r": ("rank", wanted.r), "lora_alpha": ("alpha", wanted.lora_alpha),
+              "target_modules": ("target_modules / attention_modules", wanted.target_modules)}
+    differing = [f"{name} {stored.get(key)!r} in the file, {value!r} in backbone.lora"
+                 for key, (name, value) in fields.items() if stored.get(key) != value]
+    if differing:
+        raise ConfigMismatchError(
+            path, "adapter saved with other LoRA settings: " + "; ".join(differing),
+            f"set backbone.lora to the file's values or point {field} at an adapter trained with these settings",
+        )
+
+
+def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable: bool,
+                 expected: LoraConfig | None = None, field: str = "the adapter path") -> None:
+    """Load an adapter file or peft adapter folder as ``name`` (created from its config if absent); exact key
+    match required.
+
+    ``expected`` (the run's LoRA config) is compared with the file's before the model is touched;
+    ``field`` is the config field that named the file (quoted in errors).
+    """
+    path = Path(path)
+    fix = f"re-create it with the stage that writes it, or point {field} at another file"
+    tensors, metadata = read_adapter(path, fix)
+    stored = None
+    if METADATA_KEY in metadata:
+        try:
+            stored = json.loads(metadata[METADATA_KEY])
+        except ValueError as error:
+            raise InputFileError(path, f"'{METADATA_KEY}' metadata is not JSON ({error})", fix) from error
+    if expected is not None:
+        if stored is None:
+            raise InputFileError(path, f"no '{METADATA_KEY}' metadata to check against backbone.lora", fix)
+        check_adapter_config(path, stored, expected, field)
     if name not in adapter_names(model):
-        if METADATA_KEY not in metadata:
+        if stored is None:
             raise AdapterFileError(f"{path}: no '{METADATA_KEY}' metadata to rebuild adapter {name!r}")
-        stored = json.loads(metadata[METADATA_KEY])
         fields = PeftLoraConfig.__dataclass_fields__
         config = PeftLoraConfig(**{k: v for k, v in stored.items() if k in fields and fields[k].init})
         previous = active_adapter(model) if adapter_names(model) else None
         _inject(model, config, name)
         if previous is not None:
             model.set_adapter(previous)
-    expected = set(get_peft_model_state_dict(model, adapter_name=name))
-    missing, unexpected = sorted(expected - set(tensors)), sorted(set(tensors) - expected)
+    expected_keys = set(get_peft_model_state_dict(model, adapter_name=name))
+    missing, unexpected = sorted(expected_keys - set(tensors)), sorted(set(tensors) - expected_keys)
     if missing or unexpected:
         raise AdapterFileError(f"{path}: missing LoRA tensors {missing[:8]}, unexpected {unexpected[:8]}")
     set_peft_model_state_dict(model, tensors, adapter_name=name)

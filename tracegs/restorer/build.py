@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from safetensors import SafetensorError
+
+from tracegs.errors import InputFileError, one_line
 
 from .codec import Codec, build_codec
 from .config import BackboneConfig, TransformerConfig
@@ -59,7 +62,12 @@ def load_transformer(
     """Load ``cfg.pretrained_path`` (diffusers layout). The directory's config must agree with ``cfg`` and its
     weights must cover the model exactly; otherwise the error lists the differing fields / keys."""
     path = require_local_dir(cfg.pretrained_path, "transformer.pretrained_path")
-    stored = ReferenceGuidedTransformer.load_config(path)
+    fix = ("point backbone.transformer.pretrained_path (or artifacts.baseline_weights) at a complete diffusers "
+           "directory, or re-run tracegs-train stage=baseline")
+    try:
+        stored = ReferenceGuidedTransformer.load_config(path)
+    except (OSError, ValueError) as error:  # diffusers: EnvironmentError / JSON errors, message names no field
+        raise InputFileError(path / "config.json", f"no readable diffusers config ({one_line(error)})", fix) from error
     # Checkpoints without the key (plain CogVideoX, or ours from before it existed) predict velocity; reading
     # them as x0 predictions would silently change what the weights mean.
     stored.setdefault("prediction", "velocity")
@@ -71,9 +79,13 @@ def load_transformer(
         )
     # Keys a plain CogVideoX config lacks (reference dims, timestep scale) come from ``cfg``.
     absent = {k: v for k, v in wanted.items() if k not in stored}
-    model, info = ReferenceGuidedTransformer.from_pretrained(
-        path, torch_dtype=dtype, output_loading_info=True, **absent
-    )
+    try:
+        # use_safetensors: without it diffusers falls back to unpickling a .bin file.
+        model, info = ReferenceGuidedTransformer.from_pretrained(
+            path, torch_dtype=dtype, output_loading_info=True, use_safetensors=True, **absent
+        )
+    except (OSError, SafetensorError, ValueError) as error:  # no weights file, or a truncated / garbage one
+        raise InputFileError(path, f"cannot load the transformer weights ({one_line(error)})", fix) from error
     missing, unexpected = sorted(info.get("missing_keys", [])), sorted(info.get("unexpected_keys", []))
     if missing or unexpected or info.get("mismatched_keys"):
         raise CheckpointMismatchError(

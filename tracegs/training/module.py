@@ -22,6 +22,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
+from tracegs.errors import NonFiniteError
 from tracegs.training.config import OptimizerConfig
 
 # Checkpoint entry holding the restorer's diffusers config, compared on resume.
@@ -154,6 +155,7 @@ class RestorerTrainingModule(L.LightningModule):
         terms = self.compute_and_backward(batch, self.step_generator())
         grads = [p.grad for p in self.trainable_parameters() if p.grad is not None]
         grad_norm = torch.nn.utils.get_total_norm(grads) if grads else torch.zeros(())
+        self.stop_if_non_finite(batch, terms["loss"], grad_norm)
         if self.optimizer_cfg.grad_clip is not None:
             self.clip_gradients(
                 optimizer, gradient_clip_val=self.optimizer_cfg.grad_clip, gradient_clip_algorithm="norm"
@@ -169,6 +171,23 @@ class RestorerTrainingModule(L.LightningModule):
         logged["train/step_time_s"] = elapsed
         self.log_dict(logged, prog_bar=False, batch_size=batch_size, on_step=True, on_epoch=False)
         self.log("loss", terms["loss"], prog_bar=True, batch_size=batch_size, on_step=True, on_epoch=False)
+
+    def stop_if_non_finite(self, batch: dict, loss: Tensor, grad_norm: Tensor) -> None:
+        """Stop before the optimiser step when the loss or gradient norm is NaN or infinite.
+
+        One bad batch would otherwise turn every weight into NaN while the run carries on and exits 0. The
+        weights are still those of the last good step, and no checkpoint is written on the way out.
+        """
+        if bool(torch.isfinite(loss)) and bool(torch.isfinite(grad_norm)):
+            return
+        clips = [f"{scene}/clip_{int(clip):03d}" for scene, clip in zip(batch["scene"], batch["clip"])]
+        raise NonFiniteError(
+            f"step {self.global_step}",
+            f"non-finite loss ({float(loss):.4g}) or gradient norm ({float(grad_norm):.4g}) on clips "
+            f"{', '.join(clips)}",
+            "check those cache shards (re-run tracegs-prepare) or the learning rate; rerunning resumes from "
+            "the last good checkpoint",
+        )
 
     def _trainable_names(self) -> set[str]:
         ids = {id(p) for p in self.trainable_parameters()}

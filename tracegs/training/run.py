@@ -17,17 +17,26 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from tracegs.console import interactive
 from tracegs.data.datamodule import PairedClipDataModule
+from tracegs.errors import require_writable_dir
 from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
+from tracegs.training.checkpoints import (
+    CheckpointOnSignal,
+    ConfirmedCheckpoint,
+    require_loadable_checkpoint,
+    stopped_by_signal,
+)
 from tracegs.training.config import TrainConfig
 from tracegs.training.module import RestorerTrainingModule
+from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
 
@@ -73,6 +82,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         on_policy=cfg.policy.on_policy,
         memory_mode=stage.memory_mode,
         seed=stage.seed,
+        lora=cfg.backbone.lora,
     )
 
 
@@ -95,7 +105,7 @@ def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
 
 
 def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
-    checkpoints = ModelCheckpoint(
+    checkpoints = ConfirmedCheckpoint(
         dirpath=output_dir / "checkpoints",
         filename="step{step:06d}",
         auto_insert_metric_name=False,
@@ -115,8 +125,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints],
-        enable_progress_bar=cfg.trainer.enable_progress_bar,
+        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress()],
+        enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
         overfit_batches=cfg.trainer.overfit_batches,
@@ -136,9 +146,12 @@ def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
         return None
     if resume == "last":
         last = output_dir / "checkpoints" / "last.ckpt"
-        return str(last) if last.is_file() else None
-    if not Path(resume).is_file():
+        if not last.is_file():
+            return None
+        resume = str(last)
+    elif not Path(resume).is_file():
         raise FileNotFoundError(f"stage.resume_from: no such checkpoint {resume}")
+    require_loadable_checkpoint(resume, "stage.resume_from")
     return resume
 
 
@@ -169,9 +182,11 @@ def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
     cfg = copy.deepcopy(as_train_config(cfg))
     output_dir = Path(cfg.output_dir)
+    require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
+    resume = resume_checkpoint(cfg, output_dir)  # checked before any work
     if cfg.trainer.cpu_threads is not None:
         torch.set_num_threads(cfg.trainer.cpu_threads)
-    L.seed_everything(cfg.stage.seed, workers=True)
+    L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
     if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
             raise FileNotFoundError(
@@ -185,7 +200,10 @@ def train_stage(cfg) -> Path:
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     trainer = build_trainer(cfg, output_dir)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg, output_dir))
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+    except SIGTERMException:
+        raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
     product = output_dir / PRODUCTS[cfg.stage.name]
     if trainer.is_global_zero:
         export_product(module, cfg.stage.name, output_dir)

@@ -9,6 +9,7 @@ from lightning.pytorch.strategies import ParallelStrategy
 from torch import Tensor, nn
 
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
+from tracegs.restorer.config import LoraConfig
 from tracegs.training.config import MEMORY_MODES, OptimizerConfig
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule
@@ -44,6 +45,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         on_policy: bool = True,
         memory_mode: str = "stepwise",
         seed: int = 0,
+        lora: LoraConfig | None = None,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
         if memory_mode not in MEMORY_MODES:
@@ -58,7 +60,9 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.memory_mode = memory_mode
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
-        load_adapter(self.transformer, STUDENT, init_adapter, trainable=True)
+        # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
+        load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=lora,
+                     field="stage.init_adapter")
         clone_adapter(self.transformer, STUDENT, TEACHER, trainable=False)
         self._student_params = adapter_parameters(self.transformer, STUDENT)
         activate(self.transformer, STUDENT)

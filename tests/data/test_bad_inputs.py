@@ -1,0 +1,192 @@
+"""Every bad input through the real entry points: exit code 2, one line on stderr naming the file or field,
+and nothing written but Hydra's own run record (.hydra/, the log file)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from scene_builders import write_scene
+
+from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
+from tracegs.restorer import adapters
+from tracegs.restorer.build import create_transformer
+from tracegs.restorer.config import LoraConfig
+
+
+def tiny_backbone_config():
+    """The backbone the entry points build by default (conf/backbone/tiny.yaml)."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return OmegaConf.to_object(compose(config_name="train").backbone)
+
+
+def adapter_file(path: Path, rank: int | None = None) -> Path:
+    backbone = tiny_backbone_config()
+    model = create_transformer(backbone.transformer)
+    lora = backbone.lora if rank is None else LoraConfig(rank=rank, alpha=rank)
+    adapters.add_adapter(model, "a", lora)
+    adapters.save_adapter(model, "a", path)
+    return path
+
+
+def transformer_dir(path: Path) -> Path:
+    create_transformer(tiny_backbone_config().transformer).save_pretrained(path)
+    return path
+
+
+def truncate(path: Path, keep: float = 0.5) -> Path:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    return path
+
+
+def scene_root(tmp: Path) -> Path:
+    write_scene(tmp / "scenes" / "ring", n=12)
+    return tmp / "scenes"
+
+
+PREPARE = ["data=mipnerf360", "data.source.image_dir=images", "data.source.height=32", "data.source.width=48",
+           "data.prepare.pseudo_target=dense", "data.prepare.student_snapshots=[140,340]", "data.prepare.frames_per_clip=9",
+           "data.datamodule.student_snapshots=[140,340]"]
+
+
+# --- builders: each damages its inputs under tmp and returns (app, overrides, text the line must name) ---
+def truncated_png(tmp: Path):
+    scenes = scene_root(tmp)
+    image = truncate(scenes / "ring" / "images" / "img_003.png")
+    return "prepare", [*PREPARE, f"data.source.root={scenes}"], f"{image}: cannot decode the image"
+
+
+def empty_png(tmp: Path):
+    scenes = scene_root(tmp)
+    image = scenes / "ring" / "images" / "img_005.png"
+    image.write_bytes(b"")
+    return "prepare", [*PREPARE, f"data.source.root={scenes}"], f"{image}: cannot decode the image"
+
+
+def scene_without_sparse(tmp: Path):
+    scenes = scene_root(tmp)
+    (scenes / "garden" / "images").mkdir(parents=True)
+    return "prepare", [*PREPARE, f"data.source.root={scenes}"], f"{scenes / 'garden' / 'sparse/0'}: scene folder"
+
+
+def truncated_stage1_adapter(tmp: Path):
+    path = truncate(adapter_file(tmp / "stage1_adapter.safetensors"))
+    return ("train", ["stage=stage2", "stage.base_weights=null", f"stage.init_adapter={path}"],
+            f"{path}: not a readable safetensors file")
+
+
+def stage1_adapter_of_another_rank(tmp: Path):
+    path = adapter_file(tmp / "rank4.safetensors", rank=4)
+    return ("train", ["stage=stage2", "stage.base_weights=null", f"stage.init_adapter={path}",
+                      "backbone.lora.rank=8", "backbone.lora.alpha=8"],
+            "rank 4 in the file, 8 in backbone.lora")
+
+
+def garbage_student_adapter(tmp: Path):
+    path = tmp / "student_adapter.safetensors"
+    path.write_bytes(b"this is not a safetensors file" * 4)
+    return ("deploy", ["artifacts.baseline_weights=null", f"artifacts.student_adapter={path}"],
+            f"{path}: not a readable safetensors file")
+
+
+def truncated_baseline_transformer(tmp: Path):
+    directory = transformer_dir(tmp / "baseline_transformer")
+    truncate(directory / "diffusion_pytorch_model.safetensors")
+    return ("deploy", ["ablation=A", f"artifacts.baseline_weights={directory}"],
+            f"{directory}: cannot load the transformer weights")
+
+
+def baseline_directory_without_weights(tmp: Path):
+    directory = transformer_dir(tmp / "baseline_transformer")
+    (directory / "diffusion_pytorch_model.safetensors").unlink()
+    return ("deploy", ["ablation=A", f"artifacts.baseline_weights={directory}"],
+            f"{directory}: cannot load the transformer weights")
+
+
+def corrupt_checkpoint(tmp: Path):
+    path = tmp / "last.ckpt"
+    path.write_bytes(b"PK\x03\x04 truncated zip")
+    return ("train", ["stage=stage1", "stage.base_weights=null", f"stage.resume_from={path}"],
+            f"{path}: not a loadable training checkpoint")
+
+
+def pickled_checkpoint(tmp: Path):
+    path = tmp / "pickled.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": argparse.Namespace(lr=1.0)}, path)
+    return ("train", ["stage=stage1", "stage.base_weights=null", f"stage.resume_from={path}"],
+            f"{path}: holds Python objects that safe loading (weights_only) refuses")
+
+
+def output_folder_is_a_file(tmp: Path):
+    runs = tmp / "outputs"
+    runs.write_text("not a folder")
+    return "train", ["stage=stage1", f"paths.runs_dir={runs}"], f"{runs}: is a file"
+
+
+def cache_folder_is_a_file(tmp: Path):
+    scenes = scene_root(tmp)
+    cache = tmp / "cache"
+    cache.write_text("not a folder")
+    return ("prepare", [*PREPARE, f"data.source.root={scenes}", f"data.prepare.cache_dir={cache}"],
+            f"{cache}: is a file, but data.prepare.cache_dir needs a directory")
+
+
+def misspelt_key_added_with_plus(tmp: Path):
+    return "train", ["+stage.rollout_stpes=5"], "'stage.rollout_stpes': is not a field of the schema"
+
+
+CASES: dict[str, Callable[[Path], tuple[str, list[str], str]]] = {
+    f.__name__: f
+    for f in (truncated_png, empty_png, scene_without_sparse, truncated_stage1_adapter,
+              stage1_adapter_of_another_rank, garbage_student_adapter, truncated_baseline_transformer,
+              baseline_directory_without_weights, corrupt_checkpoint, pickled_checkpoint, output_folder_is_a_file,
+              cache_folder_is_a_file, misspelt_key_added_with_plus)
+}
+
+
+def files_under(root: Path) -> set[Path]:
+    return {p for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_gives_one_line_exit_2_and_writes_nothing(tmp_path, entry_point, case):
+    app, overrides, expected = CASES[case](tmp_path)
+    before = files_under(tmp_path)
+    result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}"], tmp_path)
+    lines = result.stderr_lines()
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1, result.stderr[-3000:]
+    assert lines[0].startswith(f"tracegs-{app}: error: ") and expected in lines[0], lines[0]
+    written = [p for p in files_under(tmp_path) - before if ".hydra" not in p.parts and p.suffix != ".log"]
+    assert written == []
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder_is_named(tmp_path, entry_point):
+    runs = tmp_path / "outputs"
+    runs.mkdir()
+    runs.chmod(0o555)
+    try:
+        result = entry_point("train", ["stage=stage1", f"paths.runs_dir={runs}", f"paths.root_dir={tmp_path}"],
+                             tmp_path)
+    finally:
+        runs.chmod(0o755)
+    assert result.returncode == 2 and len(result.stderr_lines()) == 1
+    assert f"{runs}: not writable" in result.stderr_lines()[0]
+
+
+def test_the_error_line_reaches_the_run_log(tmp_path, entry_point):
+    app, overrides, expected = corrupt_checkpoint(tmp_path)
+    result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}"], tmp_path)
+    assert result.returncode == 2
+    logs = list((tmp_path / "outputs").rglob("*.log"))
+    assert logs and any(expected in log.read_text() for log in logs)

@@ -1,0 +1,92 @@
+"""Stage 2 under faults: SIGKILL at a random moment, or SIGTERM / SIGUSR2, then the same call again ends with a
+student adapter byte-identical to the uninterrupted run's."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from test_run import config, train_baseline_and_stage1
+
+from tracegs.training.run import train_stage
+
+STEPS = 6
+SCRIPT = (
+    "import pickle, sys, torch\n"
+    "torch.set_num_threads(1)\n"
+    "from tracegs.training.run import train_stage\n"
+    "with open(sys.argv[1], 'rb') as handle:\n"
+    "    train_stage(pickle.load(handle))\n"
+)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """(tmp, stage-2 config maker, student adapter bytes of an uninterrupted run)."""
+    tmp = tmp_path_factory.mktemp("faults")
+    cache, baseline, stage1 = train_baseline_and_stage1(tmp)
+
+    def stage2(out: str):
+        return config(tmp, cache, "stage2", STEPS, out, base_weights=str(baseline), init_adapter=str(stage1))
+
+    product = train_stage(stage2("uninterrupted"))
+    return tmp, stage2, product.read_bytes()
+
+
+def start_training(cfg, tmp: Path) -> subprocess.Popen:
+    spec = tmp / f"{Path(cfg.output_dir).name}.pickle"
+    spec.write_bytes(pickle.dumps(cfg))
+    return subprocess.Popen([sys.executable, "-c", SCRIPT, str(spec)], stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def wait_for_saves(checkpoint: Path, saves: int, process: subprocess.Popen) -> None:
+    """Poll until ``checkpoint`` has been (re)written ``saves`` times or the process ends."""
+    seen: set[int] = set()
+    deadline = time.monotonic() + 300
+    while len(seen) < saves and process.poll() is None and time.monotonic() < deadline:
+        if checkpoint.is_file():
+            seen.add(checkpoint.stat().st_mtime_ns)
+        time.sleep(0.005)
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
+def test_stage2_killed_at_a_random_moment_reruns_to_identical_bytes(uninterrupted, seed):
+    tmp, stage2, expected = uninterrupted
+    cfg = stage2(f"killed_{seed}")
+    rng = random.Random(seed)
+    saves, delay = rng.randrange(1, STEPS), rng.uniform(0.0, 0.3)
+    process = start_training(cfg, tmp)
+    wait_for_saves(Path(cfg.output_dir) / "checkpoints" / "last.ckpt", saves, process)
+    time.sleep(delay)
+    assert process.poll() is None, f"training ended before it could be killed: {process.stderr.read()[-2000:]}"
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    process.stderr.close()
+    assert train_stage(cfg).read_bytes() == expected
+
+
+@pytest.mark.slow  # one more training process per signal
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGUSR2], ids=["SIGTERM", "SIGUSR2"])
+def test_a_signal_leaves_a_resumable_checkpoint(uninterrupted, signum):
+    tmp, stage2, expected = uninterrupted
+    cfg = stage2(f"signal_{signum.name}")
+    last = Path(cfg.output_dir) / "checkpoints" / "last.ckpt"
+    process = start_training(cfg, tmp)
+    wait_for_saves(last, 1, process)
+    assert process.poll() is None, f"training ended before the signal: {process.stderr.read()[-2000:]}"
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode != 0 and "training stopped by a signal after step" in stderr, stderr[-2000:]
+    step = int(stderr.split("after step ")[1].split(";")[0])
+    assert 0 < step < STEPS and torch.load(last, weights_only=True)["global_step"] == step
+    assert not (Path(cfg.output_dir) / "student_adapter.safetensors").exists()
+    assert train_stage(cfg).read_bytes() == expected

@@ -1,0 +1,52 @@
+"""What a run shows the user (tables, where outputs landed, its error) also goes to the run's log files."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+log = logging.getLogger("tracegs")
+
+
+def to_log_files(text: str, level: int = logging.INFO) -> None:
+    """Write ``text`` to every file handler of the root logger (Hydra's job log), not to the console."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.emit(log.makeRecord(log.name, level, __file__, 0, text, None, None))
+
+
+def show(text: str = "") -> None:
+    """Print ``text`` on stdout as is (tables stay copy-pasteable) and keep it in the log files."""
+    print(text)
+    sys.stdout.flush()
+    to_log_files(text)
+
+
+# A plain-text progress line at most this often: a progress bar's redraws are unreadable in log files and
+# SLURM output, and one line every half minute keeps a long job visibly alive without flooding its log.
+PROGRESS_EVERY_S = 30.0
+
+
+def interactive() -> bool:
+    """Whether stdout is a terminal (progress bars) rather than a file or pipe (plain progress lines)."""
+    return sys.stdout.isatty()
+
+
+class PlainProgress:
+    """Logs ``<label>: <done>/<total>, <elapsed> s, ~<left> s left`` at most every ``PROGRESS_EVERY_S`` and at
+    the end, when stdout is not a terminal (the log file gets the lines either way)."""
+
+    def __init__(self, label: str, total: int, every_s: float = PROGRESS_EVERY_S) -> None:
+        self.label, self.total, self.every_s = label, total, every_s
+        self.enabled = not interactive()
+        self.start = self.last = time.monotonic()
+
+    def update(self, done: int, detail: str = "") -> None:
+        now = time.monotonic()
+        if not self.enabled or (now - self.last < self.every_s and done < self.total):
+            return
+        self.last = now
+        elapsed = now - self.start
+        left = elapsed / done * (self.total - done) if done else float("nan")
+        log.info("%s: %d/%d%s, %.0f s, ~%.0f s left", self.label, done, self.total, detail, elapsed, left)

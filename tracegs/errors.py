@@ -1,0 +1,64 @@
+"""The project's error type for problems a user can fix: a bad input file, an unwritable output, a
+mismatch between a file and the config, a non-finite number.
+
+Each error names where the problem is (a file or a dotted config field) and what to do about it. They
+are raised at the boundary where the project reads or writes, and the entry-point wrapper
+(``tracegs.cli.app``) prints them as one line on stderr with exit code 2.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+class TraceGSError(Exception):
+    """A user-fixable problem at ``where`` (a path or config field): ``"<where>: <problem>; <fix>"``."""
+
+    def __init__(self, where: str | os.PathLike, problem: str, fix: str | None = None) -> None:
+        self.where = str(where)
+        super().__init__(f"{self.where}: {problem}" + (f"; {fix}" if fix else ""))
+
+
+class InputFileError(TraceGSError):
+    """A file the run reads is missing, truncated, of the wrong format or unsafe to load."""
+
+
+class OutputPathError(TraceGSError):
+    """A folder the run writes to is not a writable directory, or a product did not appear on disk."""
+
+
+class ConfigMismatchError(TraceGSError):
+    """A file was written with settings that differ from the current config (both values named)."""
+
+
+class NonFiniteError(TraceGSError):
+    """A NaN or infinity where a finite number is required (a cached tensor, a loss, a metric)."""
+
+
+def one_line(error: BaseException | str, limit: int = 300) -> str:
+    """A library's error message squeezed onto one line (and cut at ``limit`` characters) for quoting."""
+    text = " ".join(str(error).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def require_writable_dir(path: str | os.PathLike, field: str) -> Path:
+    """Check that ``path`` is, or can be created as, a writable directory; raise naming ``field`` otherwise.
+
+    Nothing is created: the probe file goes into ``path`` or, when it does not exist yet, into its nearest
+    existing parent (where it would be created). A probe rather than permission bits, because those do not
+    tell the whole story (read-only mounts, ACLs, root ignoring the bits).
+    """
+    directory = Path(path)
+    existing = next((p for p in (directory, *directory.parents) if p.exists()), Path("."))
+    if not existing.is_dir():
+        raise OutputPathError(existing, f"is a file, but {field} needs a directory here",
+                              f"move the file away or choose another {field}")
+    probe = existing / f".write-probe-{os.getpid()}"
+    try:
+        probe.touch()
+        probe.unlink()
+    except OSError as error:
+        raise OutputPathError(existing, f"not writable ({error.strerror or error})",
+                              f"fix the folder's permissions or choose another {field}") from error
+    return directory

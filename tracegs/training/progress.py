@@ -1,0 +1,18 @@
+"""Training progress as plain log lines when stdout is not a terminal (log files, SLURM output)."""
+
+from __future__ import annotations
+
+from lightning.pytorch.callbacks import Callback
+
+from tracegs.console import PlainProgress
+
+
+class PlainTrainingProgress(Callback):
+    """Step, loss and time left at a fixed interval through :class:`tracegs.console.PlainProgress`."""
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self.progress = PlainProgress("train", trainer.max_steps)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        loss = trainer.callback_metrics.get("loss")
+        self.progress.update(trainer.global_step, f", loss {float(loss):.4g}" if loss is not None else "")

@@ -30,6 +30,7 @@ def section(node: DictConfig) -> Any:
 
 
 # ------------------------------------------------------------------------------------ run identity
+RUN_RECORD = "run_identity.json"
 # Overrides of Stage 2's own settings and of the ablation axes: they describe the run being started, not
 # the earlier runs it builds on (every Table 3 variant clones the one Stage-1 adapter).
 _STAGE_OWN = ("stage", "optimizer")
@@ -86,27 +87,29 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
         cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
 
 
-def record_run(cfg: DictConfig, kind: str, folder: str | Path) -> None:
-    """Keep beside a run's products the settings that determine them and the whole resolved config.
-
-    A folder recorded under other settings (an explicit ``run_dir`` or an older version of the code) is
-    refused with the differing keys named, instead of being resumed or overwritten.
-    """
+def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
+    """Refuse a folder whose recorded settings differ from ``cfg`` (an explicit ``run_dir`` or an older
+    version of the code), naming the differing keys, instead of resuming or overwriting it."""
     import json
 
     from tracegs.config.identity import differing_keys, scoped_values
     from tracegs.config.validate import ConfigError
-    from tracegs.io import atomic_write, write_json_atomic
 
-    folder = Path(folder)
-    current = scoped_values(cfg, kind)
-    record = folder / "run_identity.json"
+    record = Path(folder) / RUN_RECORD
     if record.is_file():
-        differing = differing_keys(json.loads(record.read_text()), current)
+        differing = differing_keys(json.loads(record.read_text()), scoped_values(cfg, kind))
         if differing:
             raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
                               f"({', '.join(differing[:6])} differ): choose another run_dir or remove that folder")
-    write_json_atomic(current, record)
+
+
+def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
+    """Keep beside a finished product the settings that determine it and the whole resolved config."""
+    from tracegs.config.identity import scoped_values
+    from tracegs.io import atomic_write, write_json_atomic
+
+    folder = Path(folder)
+    write_json_atomic(scoped_values(cfg, kind), folder / RUN_RECORD)
     with atomic_write(folder / "config.yaml") as tmp:
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True))
 
@@ -117,10 +120,11 @@ def prepare(cfg: DictConfig) -> Path:
     from tracegs.data.prepare import run_prepare
     from tracegs.restorer.build import build_backbone
 
-    record_run(cfg, "prepare", cfg.data.prepare.cache_dir)
+    check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     backbone = build_backbone(section(cfg.backbone))
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
     manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
+    write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     log.info("paired-clip cache: %s", manifest)
     return manifest
 
@@ -141,7 +145,7 @@ def train(cfg: DictConfig) -> Path | None:
         )
     locate_artifacts(cfg, {"baseline": [], "stage1": ["baseline_weights"],
                            "stage2": ["baseline_weights", "stage1_adapter"]}[cfg.stage.name])
-    record_run(cfg, cfg.stage.name, cfg.run_dir)
+    check_run_record(cfg, cfg.stage.name, cfg.run_dir)
     train_cfg = TrainConfig(
         stage=section(cfg.stage),
         optimizer=section(cfg.optimizer),
@@ -154,6 +158,7 @@ def train(cfg: DictConfig) -> Path | None:
         output_dir=cfg.run_dir,
     )
     product = train_stage(train_cfg)
+    write_run_record(cfg, cfg.stage.name, cfg.run_dir)
     log.info("%s product: %s", cfg.stage.name, product)
     return product
 
@@ -239,7 +244,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from tracegs.deploy.evaluate import evaluate as run_evaluation
 
     restorers = build_restorers(cfg, list(cfg.evaluation.methods))
-    record_run(cfg, "evaluate", cfg.evaluation.out_dir)
+    check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     results = run_evaluation(
         section(cfg.evaluation),
         section(cfg.data.source),
@@ -251,6 +256,7 @@ def evaluate(cfg: DictConfig) -> dict:
     )
     if cfg.evaluation.held_out_cache is not None:
         held_out_quality(cfg, restorers)
+    write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     log.info("evaluation written to %s", cfg.evaluation.out_dir)
     return results
 
@@ -274,9 +280,11 @@ def deploy(cfg: DictConfig) -> list[Path]:
 
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = build_restorers(cfg, [method])[method]
-    record_run(cfg, "deploy", cfg.run_dir)
-    return deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                         section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+    check_run_record(cfg, "deploy", cfg.run_dir)
+    written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
+                            section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+    write_run_record(cfg, "deploy", cfg.run_dir)
+    return written
 
 
 # ------------------------------------------------------------------------------------------- report

@@ -116,13 +116,13 @@ def test_training_reads_the_cache_that_prepare_writes():
 
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
     folder = tmp_path / "run"
-    tasks.record_run(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
-    tasks.record_run(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
-                     "stage2", folder)
+    tasks.write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
+    tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
+                           "stage2", folder)
     assert OmegaConf.load(folder / "config.yaml").stage.name == "stage2"
     with pytest.raises(ConfigError, match=r"loss\.lambda_ret"):
-        tasks.record_run(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
-                         "stage2", folder)
+        tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
+                               "stage2", folder)
 
 
 def test_one_root_seed_derives_a_distinct_stream_for_every_part():

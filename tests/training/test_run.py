@@ -24,6 +24,7 @@ from training_support import (
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
+from tracegs.errors import ConfigMismatchError
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
 from tracegs.training.run import train_stage
@@ -171,4 +172,14 @@ def test_resuming_under_another_restorer_configuration_fails_naming_the_field(st
     changed.backbone = dataclasses.replace(
         BACKBONE, transformer=dataclasses.replace(BACKBONE.transformer, prediction="residual"))
     with pytest.raises(ValueError, match="'prediction': \\('velocity', 'residual'\\)"):
+        train_stage(changed)
+
+
+def test_resuming_with_another_lora_rank_names_both_shapes(stages):
+    tmp, cache, baseline, _ = stages
+    train_stage(config(tmp, cache, "stage1", 1, "rerank", base_weights=str(baseline)))
+    changed = config(tmp, cache, "stage1", 2, "rerank", base_weights=str(baseline))
+    changed.backbone = dataclasses.replace(BACKBONE, lora=dataclasses.replace(TINY_LORA, rank=4, alpha=4))
+    with pytest.raises(ConfigMismatchError, match=r"stage.resume_from: .*lora_A.* \(2, 16\) in the checkpoint, "
+                                                  r"\(4, 16\) now; was backbone.lora.rank changed"):
         train_stage(changed)

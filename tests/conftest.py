@@ -5,9 +5,12 @@ OpenMP workers made the suite 5-20x slower (measured by the package helpers). Th
 and autouse, so it is in force before any session fixture (e.g. the prepared cache) is built.
 """
 
+import contextlib
 import dataclasses
 import importlib
 import os
+import shutil
+import subprocess
 import sys
 import traceback
 from pathlib import Path
@@ -76,3 +79,27 @@ def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
 @pytest.fixture
 def entry_point():
     return run_entry_point
+
+
+@contextlib.contextmanager
+def read_only_folder(path: Path):
+    """Make ``path`` unwritable for this process: permission bits, or the immutable attribute for root (who
+    ignores the bits); skips the test when neither is possible here."""
+    if os.geteuid() != 0:
+        path.chmod(0o555)
+        try:
+            yield path
+        finally:
+            path.chmod(0o755)
+        return
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(path)]).returncode != 0:
+        pytest.skip("cannot make a folder read-only for root here (no chattr +i)")
+    try:
+        yield path
+    finally:
+        subprocess.run(["chattr", "-i", str(path)], check=True)
+
+
+@pytest.fixture
+def read_only():
+    return read_only_folder

@@ -1,5 +1,5 @@
 """Stage 2 under faults: SIGKILL at a random moment, or SIGTERM / SIGUSR2, then the same call again ends with a
-student adapter byte-identical to the uninterrupted run's."""
+student adapter byte-identical to the uninterrupted run's; a checkpoint that did not reach the disk stops the run."""
 
 from __future__ import annotations
 
@@ -12,10 +12,17 @@ import sys
 import time
 from pathlib import Path
 
+import lightning as L
 import pytest
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from test_run import config, train_baseline_and_stage1
+from training_support import fixed_batch_loader, make_batch, make_schedule, make_transformer
 
+from tracegs.errors import OutputPathError
+from tracegs.training.baseline import BaselineRestorerModule
+from tracegs.training.checkpoints import ConfirmedCheckpoint
+from tracegs.training.config import OptimizerConfig
 from tracegs.training.run import train_stage
 
 STEPS = 6
@@ -90,3 +97,22 @@ def test_a_signal_leaves_a_resumable_checkpoint(uninterrupted, signum):
     assert 0 < step < STEPS and torch.load(last, weights_only=True)["global_step"] == step
     assert not (Path(cfg.output_dir) / "student_adapter.safetensors").exists()
     assert train_stage(cfg).read_bytes() == expected
+
+
+@pytest.mark.parametrize("confirmed", [True, False], ids=["confirmed", "lightning-alone"])
+def test_a_checkpoint_that_did_not_reach_the_disk_stops_the_run(tmp_path, read_only, confirmed):
+    """Lightning's save swallows the PermissionError of a read-only folder; the confirmed checkpoint does not."""
+    module = BaselineRestorerModule(make_transformer(), make_schedule(), OptimizerConfig(), seed=0)
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    callback = (ConfirmedCheckpoint if confirmed else ModelCheckpoint)(dirpath=folder, every_n_train_steps=1)
+    trainer = L.Trainer(accelerator="cpu", max_steps=2, logger=False, callbacks=[callback], enable_progress_bar=False,
+                        enable_model_summary=False)
+    with read_only(folder):
+        if confirmed:
+            with pytest.raises(OutputPathError, match=r"checkpoints: checkpoint .*\.ckpt was not written"):
+                trainer.fit(module, train_dataloaders=fixed_batch_loader(make_batch()))
+        else:  # what the run would do without the confirmation: finish with nothing on disk
+            trainer.fit(module, train_dataloaders=fixed_batch_loader(make_batch()))
+            assert trainer.global_step == 2
+    assert list(folder.iterdir()) == []

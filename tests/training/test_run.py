@@ -24,6 +24,7 @@ from training_support import (
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
+from tracegs.errors import ConfigMismatchError
 from tracegs.restorer.adapters import read_adapter
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
@@ -215,3 +216,13 @@ def test_a_saved_student_adapter_loads_with_peft_directly(stages):
     saved = read_adapter(student)[0]
     assert loaded.keys() == saved.keys() and all(torch.equal(loaded[k], saved[k]) for k in saved)
     assert any(float(v.abs().sum()) > 0 for k, v in saved.items() if "lora_B" in k)
+
+
+def test_resuming_with_another_lora_rank_names_both_shapes(stages):
+    tmp, cache, baseline, _ = stages
+    train_stage(config(tmp, cache, "stage1", 1, "rerank", base_weights=str(baseline)))
+    changed = config(tmp, cache, "stage1", 2, "rerank", base_weights=str(baseline))
+    changed.backbone = dataclasses.replace(BACKBONE, lora=dataclasses.replace(TINY_LORA, rank=4, alpha=4))
+    with pytest.raises(ConfigMismatchError, match=r"stage.resume_from: .*lora_A.* \(2, 16\) in the checkpoint, "
+                                                  r"\(4, 16\) now; was backbone.lora.rank changed"):
+        train_stage(changed)

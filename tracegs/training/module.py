@@ -22,7 +22,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from tracegs.errors import NonFiniteError
+from tracegs.errors import ConfigMismatchError, NonFiniteError
 from tracegs.training.config import OptimizerConfig
 
 # Checkpoint entry holding the restorer's diffusers config, compared on resume.
@@ -214,3 +214,14 @@ class RestorerTrainingModule(L.LightningModule):
                 f"checkpoint does not match this stage's trainable weights: missing {missing}, "
                 f"unexpected {unexpected}"
             )
+        # Same names, other shapes: e.g. LoRA factors of another rank (Lightning would fail on a size mismatch).
+        shapes = {name: tuple(p.shape) for name, p in self.named_parameters() if name in expected}
+        resized = {k: (tuple(v.shape), shapes[k]) for k, v in checkpoint["state_dict"].items()
+                   if tuple(v.shape) != shapes[k]}
+        if resized:
+            name, (stored_shape, shape) = next(iter(sorted(resized.items())))
+            raise ConfigMismatchError(
+                "stage.resume_from", f"the checkpoint's weights have other shapes than this run's ({len(resized)} "
+                f"tensors, e.g. {name}: {stored_shape} in the checkpoint, {shape} now; was backbone.lora.rank "
+                "changed?)", "resume with the settings the checkpoint was written with, or delete the run's "
+                "checkpoints/ to start over")

@@ -10,10 +10,10 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import os
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import hydra
@@ -22,8 +22,9 @@ from omegaconf import DictConfig
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
 
-# conf/ sits at the repository root (editable install); TRACEGS_CONF points elsewhere if needed.
-CONF_DIR = os.environ.get("TRACEGS_CONF", str(Path(__file__).resolve().parents[2] / "conf"))
+# The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
+# editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
+CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs.conf")))
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, KeyError)

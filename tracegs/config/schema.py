@@ -76,6 +76,11 @@ class ExperimentConfig:
     stage2_warmup_steps: int = 4  # paper: 100
     adapter_lr: float = 1e-3  # paper: 1e-5
     batch_size: int = 4  # per device; paper: 2
+    # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
+    frame_height: int = 48  # rendered frames and resized images; paper: 480 (Sec. 4.1)
+    frame_width: int = 72  # paper: 720
+    frames_per_clip: int = 9  # 8k+1 frames per paired clip and deployment clip; paper: 49
+    clips_per_scene: int = 8  # paired clips prepared per scene; paper: 150
 
 
 @dataclass

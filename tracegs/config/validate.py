@@ -148,10 +148,14 @@ def _validate_backbone(cfg: DictConfig) -> None:
     height, width = cfg.data.synthetic.height, cfg.data.synthetic.width
     if cfg.data.source.preset != "synthetic" and cfg.data.source.height is not None:
         height, width = cfg.data.source.height, cfg.data.source.width
+    # The data groups take their frame size from the experiment, so a backbone chosen without its scale
+    # fails here: say which experiment sizes frames for it.
+    scale_hint = ", or use experiment=paper (480x720 frames)" if backbone.codec.kind == "cogvideox" else ""
     _require(
         height % factor == 0 and width % factor == 0,
         "backbone.transformer.patch_size",
-        f"frames of {height}x{width} are not divisible by codec factor x patch size = {factor}",
+        f"frames of {height}x{width} are not divisible by codec factor x patch size = {factor}; set "
+        f"experiment.frame_height/frame_width to multiples of {factor}{scale_hint}",
     )
 
 

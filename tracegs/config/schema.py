@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from hydra.core.config_store import ConfigStore
 
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
-from tracegs.deploy.config import EvaluationConfig, RefinementConfig
+from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.restorer.config import BackboneConfig
 from tracegs.training.config import (
     LossConfig,
@@ -129,6 +129,7 @@ class TraceGSConfig:
     deploy: RefinementConfig = field(default_factory=RefinementConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)  # tracegs-restore's own scene
 
 
 SCHEMA_NAME = "tracegs_schema"

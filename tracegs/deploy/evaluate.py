@@ -158,7 +158,22 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
         result["per_step"] = unit_per_step_curves(unit, cold, restorers, refine_cfg, fit_cfg, gt_renderer)
     if cfg.save_media:
         result["media"] = _save_media(unit, cfg, test_renders, models, background, gt_renderer)
+    if cfg.save_models:
+        result["models"] = {method: str(_save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
+                                                                           method)))
+                            for method, model in models.items()}
     return result
+
+
+def model_path(out_dir: str | Path, scene: str, views: int, method: str) -> Path:
+    return Path(out_dir) / "models" / scene / f"views_{views}_{method}.ply"
+
+
+def _save_model(model: GaussianModel, path: Path) -> Path:
+    """The refined 3DGS as a standard 3DGS PLY, written whole or not at all."""
+    with atomic_write(path) as tmp:
+        save_ply(model, tmp)
+    return path
 
 
 def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mapping[str, ClipRestorer | None],
@@ -366,8 +381,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
                 unit = load_unit(loaded[scene_name], views, source)
                 model = refine(unit.cold_start(refine_cfg, fit_cfg), unit.captured, restorer, refine_cfg, fit_cfg,
                                caption=unit.scene.caption or "", seed=refine_cfg.seed)
-                with atomic_write(target) as tmp:
-                    save_ply(model, tmp)
+                _save_model(model, target)
             written.append(target)
             progress.advance(task)
     return written

@@ -145,6 +145,7 @@ def test_wrong_type_names_the_field():
         (["teacher=v3", "teacher.privileged=true"], "teacher.views"),
         (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
+        (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],
          "backbone.transformer.prediction"),
     ],

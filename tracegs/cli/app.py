@@ -19,6 +19,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
 
@@ -47,9 +48,19 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                     raise
                 message = error.args[0] if isinstance(error, KeyError) and error.args else error
                 print(f"tracegs-{config_name}: error: {message}", file=sys.stderr)
+                if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end
+                    return JobFailed(str(message))
                 sys.exit(2)
 
         register_configs()
-        return hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)
+        hydra_main = hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)
+
+        @functools.wraps(hydra_main)
+        def main() -> Any:
+            if print_configs(CONF_DIR, config_name, sys.argv[1:]):
+                return None
+            return hydra_main()
+
+        return main
 
     return decorate

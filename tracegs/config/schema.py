@@ -114,6 +114,8 @@ class TraceGSConfig:
     # Where this task writes its artefacts (also Hydra's run dir). Fixed per stage / variant rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = "${paths.experiment_dir}/${task}"
+    # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
+    job_name: str = "${task}-${stage.name}-${ablation.name}"
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)

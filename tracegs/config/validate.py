@@ -11,6 +11,8 @@ from collections.abc import Iterable
 
 from omegaconf import DictConfig, OmegaConf
 
+from tracegs.deploy.config import METHODS
+
 
 class ConfigError(ValueError):
     """An invalid combination of config values; ``field`` is the dotted key to change."""
@@ -45,6 +47,7 @@ def validate(cfg: DictConfig) -> None:
     _validate_training(cfg)
     _validate_backbone(cfg)
     _validate_deployment(cfg)
+    _validate_evaluation(cfg)
 
 
 def _validate_data(cfg: DictConfig) -> None:
@@ -174,3 +177,8 @@ def _validate_deployment(cfg: DictConfig) -> None:
         f"deployment clips ({clip_frames} frames) must match the training clips "
         f"(data.prepare.frames_per_clip={cfg.data.prepare.frames_per_clip})",
     )
+
+
+def _validate_evaluation(cfg: DictConfig) -> None:
+    unknown = [m for m in cfg.evaluation.methods if m not in METHODS]
+    _require(not unknown, "evaluation.methods", f"unknown methods {unknown}; choose from {list(METHODS)}")

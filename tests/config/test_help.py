@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import sys
-from importlib import metadata
 from pathlib import Path
 from unittest import mock
 
@@ -20,10 +20,15 @@ CONF = Path(CONF_DIR)
 GROUPS = sorted(p.name for p in CONF.iterdir() if p.is_dir() and p.name not in ("hydra", "__pycache__"))
 
 
-def entry_points() -> list[str]:
+def console_scripts() -> dict[str, str]:
+    """Script name -> "module:function", as pyproject.toml declares them."""
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
-    return sorted(tomllib.loads(pyproject.read_text())["project"]["scripts"])
+    return tomllib.loads(pyproject.read_text())["project"]["scripts"]
+
+
+def entry_points() -> list[str]:
+    return sorted(console_scripts())
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +36,8 @@ def help_pages() -> dict[str, str]:
     """Each console script's --help, run in this process through the script's own entry point."""
     pages = {}
     for name in entry_points():
-        (script,) = metadata.entry_points(group="console_scripts", name=name)
-        main = script.load()
+        module, function = console_scripts()[name].split(":")
+        main = getattr(importlib.import_module(module), function)
         with mock.patch.object(sys, "argv", [name, "--help"]), \
                 contextlib.redirect_stdout(io.StringIO()) as out, pytest.raises(SystemExit) as done:
             main()

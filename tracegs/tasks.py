@@ -218,6 +218,8 @@ def restore(cfg: DictConfig) -> Path:
     for method, ply in unit["models"].items():
         print(f"refined 3DGS ({method}): {ply}")
     print(f"grid: {unit['media']['grid']}\nvideo: {unit['media']['video']}")
+    for method, frames in unit["media"].get("frames", {}).items():
+        print(f"trajectory renders ({method}): {frames}/")
     return Path(unit["models"][evaluation.methods[-1]])
 
 

@@ -56,6 +56,8 @@ def test_restore_writes_ply_video_grid_and_scores(capture, tmp_path):
     grid = iio.imread(unit["media"]["grid"])
     assert grid.ndim == 3 and grid.shape[0] > 2 * 24  # caption strip + two held-out views
     assert Path(unit["media"]["video"]).stat().st_size > 0
+    frames = sorted(Path(unit["media"]["frames"]["baseline"]).glob("frame_*.png"))
+    assert len(frames) == 6 and iio.imread(frames[0]).shape == (24, 32, 3)
     assert f"refined 3DGS (baseline): {unit['models']['baseline']}" in result.stdout
     assert not list(run.rglob("*.tmp"))
 

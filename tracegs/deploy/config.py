@@ -69,6 +69,7 @@ class EvaluationConfig:
     per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists
     save_media: bool = True  # qualitative grid PNG + comparison video per scene/view count
     save_models: bool = False  # each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)
+    save_frames: bool = False  # each method's renders along the video's trajectory as PNG frames
     grid_views: int = 3  # test views shown in the qualitative grid
     video_frames: int = 24  # frames of the comparison video along a test trajectory
     video_fps: int = 8

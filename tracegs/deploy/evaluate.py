@@ -36,6 +36,7 @@ from tracegs.eval.report import (
     METHOD_LABELS,
     plot_per_step_quality,
     save_comparison_video,
+    save_frames,
     save_qualitative_grid,
     write_results_tables,
 )
@@ -196,8 +197,9 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
 
 def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[str, Tensor],
                 models: Mapping[str, GaussianModel], background: Tensor,
-                gt_renderer: GroundTruthRenderer | None) -> dict[str, str]:
-    """Qualitative grid (methods + GT on the first test views) and a video along a test trajectory."""
+                gt_renderer: GroundTruthRenderer | None) -> dict:
+    """Qualitative grid (methods + GT on the first test views) and a video along a test trajectory (and,
+    with ``cfg.save_frames``, each method's frames of it)."""
     media_dir = Path(cfg.out_dir) / "media"
     stem = f"{unit.scene.name}_views{unit.views}"
     shown = min(cfg.grid_views, len(unit.test_cameras))
@@ -209,7 +211,11 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     if gt_renderer is not None:
         frames["GT"] = gt_renderer(unit.scene, path)
     video = save_comparison_video(frames, media_dir / f"{stem}_trajectory", fps=cfg.video_fps)
-    return {"grid": str(grid), "video": str(video)}
+    media: dict = {"grid": str(grid), "video": str(video)}
+    if cfg.save_frames:
+        media["frames"] = {m: str(save_frames(frames[METHOD_LABELS.get(m, m)], media_dir / f"{stem}_frames" / m))
+                           for m in models}
+    return media
 
 
 @dataclass

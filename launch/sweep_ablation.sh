@@ -5,22 +5,27 @@
 # Order:   baseline (A) -> one shared Stage-1 adapter -> Stage 2 for B..F (one job each, all loading
 #          the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 -> Fig. 6 (A, off-policy E,
 #          on-policy F along their reverse trajectories on held-out clips; synthetic benchmark only).
-# SLURM:   hydra/launcher=slurm takes nodes / tasks_per_node / gpus_per_node from the trainer
-#          group, so `trainer=ddp trainer.devices=4` sizes every job of the sweep.
+# SLURM:   hydra/launcher=slurm takes nodes / tasks_per_node and the trainer's cluster resources
+#          (GPUs, CPUs, memory, time) from the trainer group, so `trainer=ddp trainer.devices=4` sizes
+#          every job; every step, including the report, runs on compute nodes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 where="${1:-local}"; shift || true
 launcher="hydra/launcher=${where}"
 BIN=.venv/bin
-"$BIN/tracegs-train" stage=baseline "$@"
-"$BIN/tracegs-train" stage=stage1 "$@"
-"$BIN/tracegs-train" -m "$launcher" stage=stage2 ablation=B,C,D,E,F-,F "$@"
+# Every step is a multirun through the chosen launcher, so on SLURM each one runs on compute nodes (the
+# submitit launcher waits for its jobs) and this script only submits; locally it runs in this process.
+# A SLURM array carries one name: the swept steps name themselves after all their variants (job_name).
+step() { "$BIN/$1" -m "$launcher" "${@:2}"; }
+step tracegs-train stage=baseline "$@"
+step tracegs-train stage=stage1 "$@"
+step tracegs-train stage=stage2 ablation=B,C,D,E,F-,F job_name=train-stage2-B-F "$@"
 # Each variant is scored by the method that stands for it (A: baseline restorer, B..F: their student).
-"$BIN/tracegs-evaluate" -m "$launcher" ablation=A,B,C,D,E,F-,F 'evaluation.methods=[${ablation.method}]' "$@"
-"$BIN/tracegs-report" report.kind=ablation "$@"
+step tracegs-evaluate ablation=A,B,C,D,E,F-,F 'evaluation.methods=[${ablation.method}]' job_name=evaluate-A-F "$@"
+step tracegs-report report.kind=ablation "$@"
 # Held-out clips with ground truth exist for the embedded synthetic benchmark only.
 if [[ " $* " != *"experiment="* && " $* " != *"data="* ]]; then
-  "$BIN/tracegs-prepare" data.prepare.split=test "$@"
-  "$BIN/tracegs-report" report.kind=per_step data.prepare.split=test \
+  step tracegs-prepare data.prepare.split=test "$@"
+  step tracegs-report report.kind=per_step data.prepare.split=test \
     'evaluation.held_out_cache=${data.prepare.cache_dir}' "$@"
 fi

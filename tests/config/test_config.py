@@ -29,8 +29,8 @@ ABLATION_GRID = {
     "F": (None, True, True, 0.15, True),
 }
 
-PAPER_SCALE = {("backbone", "cogvideox5b"), ("data", "dl3dv"), ("data", "mipnerf360"), ("data", "nerfbusters"),
-               ("splat", "paper"), ("deploy", "paper"), ("experiment", "paper")}
+# Options that cannot run at the other scale: they must fail validation saying which experiment they need.
+NEEDS_EXPERIMENT = {("embedded", "backbone", "cogvideox5b"): "experiment=paper"}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -68,8 +68,12 @@ def test_primary_configs_compose_and_validate(name):
     assert resolved["run_dir"]
 
 
+@pytest.mark.parametrize("scale", ["embedded", "paper"])
 @pytest.mark.parametrize(("group", "option"), group_options())
-def test_every_group_option_composes(group, option):
+def test_every_group_option_composes_alone_at_either_scale(group, option, scale):
+    """Each option chosen on its own: dataset sizes come from the experiment, so every data / splat /
+    deploy option validates at both scales; what cannot (a backbone needing other frame sizes) says
+    which experiment it needs."""
     if group == "hydra/launcher":
         cfg = compose(config_name="train", overrides=[f"{group}={option}"], return_hydra_config=True)
         launcher = cfg.hydra.launcher
@@ -78,12 +82,25 @@ def test_every_group_option_composes(group, option):
             assert str(launcher.tasks_per_node) == str(cfg.trainer.devices)
             assert launcher.max_num_timeout == 0  # Lightning, not submitit, owns requeueing
         return
-    # Paper-scale options are checked inside the paper experiment (a 5B backbone on 48x72 frames is,
-    # rightly, an invalid combination); everything else inside the embedded default.
-    scale = ["experiment=paper"] if (group, option) in PAPER_SCALE else []
-    cfg = compose(config_name="train", overrides=[*scale, f"{group}={option}"])
+    cfg = compose(config_name="train", overrides=[f"experiment={scale}", f"{group}={option}"])
     OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
-    validate(cfg)
+    needed = NEEDS_EXPERIMENT.get((scale, group, option))
+    if needed is None:
+        validate(cfg)
+        return
+    with pytest.raises(ConfigError) as error:
+        validate(cfg)
+    assert needed in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("data", ["synthetic", "dl3dv", "mipnerf360", "nerfbusters"])
+def test_dataset_options_are_sized_by_the_experiment(data):
+    for scale, size, frames in (("embedded", (48, 72), 9), ("paper", (480, 720), 49)):
+        cfg = compose(config_name="train", overrides=[f"experiment={scale}", f"data={data}"])
+        sized = cfg.data.synthetic if data == "synthetic" else cfg.data.source
+        assert (sized.height, sized.width) == size
+        assert cfg.data.prepare.frames_per_clip == frames == cfg.deploy.trajectory.frames_per_clip
+        assert list(cfg.data.prepare.student_snapshots) == list(cfg.data.prepare.fit.snapshot_iters)[:2]
 
 
 @pytest.mark.parametrize("variant", sorted(ABLATION_GRID))
@@ -128,6 +145,7 @@ def test_wrong_type_names_the_field():
         (["teacher=v3", "teacher.privileged=true"], "teacher.views"),
         (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
+        (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],
          "backbone.transformer.prediction"),
     ],

@@ -10,34 +10,42 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import logging
 import os
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
 from tracegs.console import to_log_files
 from tracegs.errors import TraceGSError, one_line, require_writable_dir
 
-# conf/ sits at the repository root (editable install); TRACEGS_CONF points elsewhere if needed.
-CONF_DIR = os.environ.get("TRACEGS_CONF", str(Path(__file__).resolve().parents[2] / "conf"))
+# The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
+# editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
+CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs.conf")))
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
 
-def exit_with_one_line(app: str, error: BaseException) -> None:
-    """Print ``error`` as one line on stderr (and into the run's log files), then exit with code 2."""
+def report_one_line(app: str, error: BaseException) -> str:
+    """Print ``error`` as one line on stderr (and into the run's log files); return the line."""
     message = error.args[0] if isinstance(error, KeyError) and error.args else error
     line = f"tracegs-{app}: error: {one_line(message, limit=2000)}"
     to_log_files(line, logging.ERROR)  # not through the console handler: stderr gets the line exactly once
     print(line, file=sys.stderr)
+    return line
+
+
+def exit_with_one_line(app: str, error: BaseException) -> None:
+    """The one line of :func:`report_one_line`, then exit code 2."""
+    report_one_line(app, error)
     sys.exit(2)
 
 
@@ -97,9 +105,20 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
                     raise
-                exit_with_one_line(config_name, error)
+                line = report_one_line(config_name, error)
+                if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end
+                    return JobFailed(line)
+                sys.exit(2)
 
         register_configs()
-        return hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)
+        hydra_main = hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)(run)
+
+        @functools.wraps(hydra_main)
+        def main() -> Any:
+            if print_configs(CONF_DIR, config_name, sys.argv[1:]):
+                return None
+            return hydra_main()
+
+        return main
 
     return decorate

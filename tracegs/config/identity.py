@@ -42,6 +42,8 @@ SCOPES: dict[str, tuple[str, ...]] = {
     "deploy": (*_TRAINING, "loss", "teacher", "policy", "ablation.name", "artifacts", "deploy", "evaluation"),
 }
 SCOPES["evaluate"] = SCOPES["deploy"]
+# A capture of the user's own (tracegs-restore): deployment's scope plus which capture and views.
+SCOPES["restore"] = (*SCOPES["deploy"], "capture")
 
 # Execution settings inside scoped sections: they never change a product.
 EXECUTION_KEYS = frozenset({
@@ -61,7 +63,7 @@ EXECUTION_KEYS = frozenset({
     "evaluation.methods", "evaluation.views", "evaluation.scenes",
 })
 # Training reads the train split's cache whatever split a later prepare builds.
-_TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate")
+_TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate", "restore")
 _IGNORED_PER_KIND = {kind: frozenset({"data.prepare.split"}) for kind in _TRAINING_KINDS}
 
 # Hydra's own overrides and path-like keys never name a run.

@@ -15,7 +15,7 @@ from hydra.core.config_store import ConfigStore
 
 from tracegs.config.identity import register_resolvers
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
-from tracegs.deploy.config import EvaluationConfig, RefinementConfig
+from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
@@ -98,6 +98,11 @@ class ExperimentConfig:
     stage2_warmup_steps: int = 4  # paper: 100
     adapter_lr: float = 1e-3  # paper: 1e-5
     batch_size: int = 4  # per device; paper: 2
+    # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
+    frame_height: int = 48  # rendered frames and resized images; paper: 480 (Sec. 4.1)
+    frame_width: int = 72  # paper: 720
+    frames_per_clip: int = 9  # 8k+1 frames per paired clip and deployment clip; paper: 49
+    clips_per_scene: int = 8  # paired clips prepared per scene; paper: 150
 
 
 @dataclass
@@ -132,6 +137,8 @@ class TraceGSConfig:
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = "${paths.experiment_dir}/${task}"
+    # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
+    job_name: str = "${task}-${stage.name}-${ablation.name}"
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
@@ -147,6 +154,7 @@ class TraceGSConfig:
     deploy: RefinementConfig = field(default_factory=lambda: RefinementConfig(seed=seeded("deploy")))
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)  # tracegs-restore's own scene
 
 
 SCHEMA_NAME = "tracegs_schema"

@@ -12,6 +12,8 @@ from collections.abc import Iterable
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
+from tracegs.deploy.config import METHODS
+
 
 class ConfigError(ValueError):
     """An invalid combination of config values; ``field`` is the dotted key to change."""
@@ -47,6 +49,7 @@ def validate(cfg: DictConfig) -> None:
     _validate_training(cfg)
     _validate_backbone(cfg)
     _validate_deployment(cfg)
+    _validate_evaluation(cfg)
 
 
 def _validate_known_keys(cfg: DictConfig) -> None:
@@ -166,10 +169,14 @@ def _validate_backbone(cfg: DictConfig) -> None:
     height, width = cfg.data.synthetic.height, cfg.data.synthetic.width
     if cfg.data.source.preset != "synthetic" and cfg.data.source.height is not None:
         height, width = cfg.data.source.height, cfg.data.source.width
+    # The data groups take their frame size from the experiment, so a backbone chosen without its scale
+    # fails here: say which experiment sizes frames for it.
+    scale_hint = ", or use experiment=paper (480x720 frames)" if backbone.codec.kind == "cogvideox" else ""
     _require(
         height % factor == 0 and width % factor == 0,
         "backbone.transformer.patch_size",
-        f"frames of {height}x{width} are not divisible by codec factor x patch size = {factor}",
+        f"frames of {height}x{width} are not divisible by codec factor x patch size = {factor}; set "
+        f"experiment.frame_height/frame_width to multiples of {factor}{scale_hint}",
     )
 
 
@@ -188,3 +195,8 @@ def _validate_deployment(cfg: DictConfig) -> None:
         f"deployment clips ({clip_frames} frames) must match the training clips "
         f"(data.prepare.frames_per_clip={cfg.data.prepare.frames_per_clip})",
     )
+
+
+def _validate_evaluation(cfg: DictConfig) -> None:
+    unknown = [m for m in cfg.evaluation.methods if m not in METHODS]
+    _require(not unknown, "evaluation.methods", f"unknown methods {unknown}; choose from {list(METHODS)}")

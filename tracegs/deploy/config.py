@@ -68,9 +68,20 @@ class EvaluationConfig:
     lpips_convention: str = "3dgs"  # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
     per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists
     save_media: bool = True  # qualitative grid PNG + comparison video per scene/view count
+    save_models: bool = False  # each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)
+    save_frames: bool = False  # each method's renders along the video's trajectory as PNG frames
     grid_views: int = 3  # test views shown in the qualitative grid
     video_frames: int = 24  # frames of the comparison video along a test trajectory
     video_fps: int = 8
     force: bool = False  # recompute finished units even when their settings are unchanged
     variant: str | None = None  # ablation variant name recorded in results.json (Table 3)
     progress: bool = True
+
+
+@dataclass
+class CaptureConfig:
+    """A capture of your own for ``tracegs-restore``: a COLMAP scene folder, undistorted (PINHOLE model)."""
+
+    # The scene folder: <path>/images/ and <path>/sparse/0 (COLMAP's image_undistorter output layout).
+    path: str | None = None
+    views: int = 6  # K captured views the 3DGS is fitted from (the split's view-selection rule picks them)

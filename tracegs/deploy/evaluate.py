@@ -39,6 +39,7 @@ from tracegs.eval.report import (
     METHOD_LABELS,
     plot_per_step_quality,
     save_comparison_video,
+    save_frames,
     save_qualitative_grid,
     write_results_tables,
 )
@@ -172,7 +173,22 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
         result["per_step"] = unit_per_step_curves(unit, cold, restorers, refine_cfg, fit_cfg, gt_renderer)
     if cfg.save_media:
         result["media"] = _save_media(unit, cfg, test_renders, models, background, gt_renderer)
+    if cfg.save_models:
+        result["models"] = {method: str(_save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
+                                                                           method)))
+                            for method, model in models.items()}
     return result
+
+
+def model_path(out_dir: str | Path, scene: str, views: int, method: str) -> Path:
+    return Path(out_dir) / "models" / scene / f"views_{views}_{method}.ply"
+
+
+def _save_model(model: GaussianModel, path: Path) -> Path:
+    """The refined 3DGS as a standard 3DGS PLY, written whole or not at all."""
+    with atomic_write(path) as tmp:
+        save_ply(model, tmp)
+    return path
 
 
 def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mapping[str, ClipRestorer | None],
@@ -195,9 +211,9 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
 
 def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[str, Tensor],
                 models: Mapping[str, GaussianModel], background: Tensor,
-                gt_renderer: GroundTruthRenderer | None) -> dict[str, str]:
-    """Qualitative grid (methods + GT on the first test views), a video along a test trajectory, and each
-    method's refined 3DGS as a PLY."""
+                gt_renderer: GroundTruthRenderer | None) -> dict:
+    """Qualitative grid (methods + GT on the first test views) and a video along a test trajectory (and,
+    with ``cfg.save_frames``, each method's frames of it)."""
     media_dir = Path(cfg.out_dir) / "media"
     stem = f"{unit.scene.name}_views{unit.views}"
     shown = min(cfg.grid_views, len(unit.test_cameras))
@@ -209,12 +225,11 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     if gt_renderer is not None:
         frames["GT"] = gt_renderer(unit.scene, path)
     video = save_comparison_video(frames, media_dir / f"{stem}_trajectory", fps=cfg.video_fps)
-    plys = {}
-    for method, model in models.items():
-        plys[method] = media_dir / f"{stem}_{method}.ply"  # the refined 3DGS, standard PLY layout
-        with atomic_write(plys[method]) as tmp:
-            save_ply(model, tmp)
-    return {"grid": str(grid), "video": str(video), "ply": {m: str(p) for m, p in plys.items()}}
+    media: dict = {"grid": str(grid), "video": str(video)}
+    if cfg.save_frames:
+        media["frames"] = {m: str(save_frames(frames[METHOD_LABELS.get(m, m)], media_dir / f"{stem}_frames" / m))
+                           for m in models}
+    return media
 
 
 @dataclass
@@ -388,8 +403,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
                 unit = load_unit(loaded[scene_name], views, source)
                 model = refine(unit.cold_start(refine_cfg, fit_cfg), unit.captured, restorer, refine_cfg, fit_cfg,
                                caption=unit.scene.caption or "", seed=refine_cfg.seed)
-                with atomic_write(target) as tmp:
-                    save_ply(model, tmp)
+                _save_model(model, target)
             written.append(target)
             progress.advance(task)
     return written

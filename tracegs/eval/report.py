@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from tracegs.eval.metrics import METRIC_NAMES
-from tracegs.io import atomic_write, write_json_atomic
+from tracegs.io import atomic_directory, atomic_write, write_json_atomic
 
 METHOD_LABELS = {"3dgs": "3DGS", "baseline": "Baseline (A)", "tracegs": "TRACE-GS"}
 METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
@@ -250,6 +250,15 @@ def save_qualitative_grid(columns: Mapping[str, Sequence[Tensor]], path: str | P
     with atomic_write(path) as tmp:
         iio.imwrite(tmp, grid, extension=".png")
     return path
+
+
+def save_frames(frames: Tensor, directory: str | Path) -> Path:
+    """``frames`` [F,3,H,W] as ``frame_0000.png``, ... in ``directory`` (replaced whole, never half-written)."""
+    directory = Path(directory)
+    with atomic_directory(directory) as staging:
+        for index, frame in enumerate(frames):
+            iio.imwrite(staging / f"frame_{index:04d}.png", to_uint8(frame), extension=".png")
+    return directory
 
 
 def video_extension() -> str:

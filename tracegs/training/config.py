@@ -109,6 +109,16 @@ class LossConfig:
 
 
 @dataclass
+class ClusterResources:
+    """What one SLURM job running this trainer requests (read by conf/hydra/launcher/slurm.yaml)."""
+
+    gpus_per_node: int = 0
+    cpus_per_task: int = 2
+    mem_gb: int = 8
+    timeout_min: int = 240
+
+
+@dataclass
 class TrainerConfig:
     """Arguments forwarded to ``lightning.Trainer`` (paper scale: accelerator gpu, bf16-mixed, DDP)."""
 
@@ -130,6 +140,7 @@ class TrainerConfig:
     detect_anomaly: bool = False
     # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints and requeues.
     slurm_requeue_signal: str = "SIGUSR2"
+    cluster: ClusterResources = field(default_factory=ClusterResources)
 
 
 @dataclass

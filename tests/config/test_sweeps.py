@@ -1,0 +1,64 @@
+"""Sweeps and clusters: `-m` with `--cfg`, a failing sweep job, the SLURM launcher's requests and names."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import subprocess
+import sys
+from pathlib import Path
+from unittest import mock
+
+import pytest
+import yaml
+
+from tracegs.cli.train import main as train_main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def train_stdout(*argv: str) -> str:
+    """`tracegs-train <argv>` run through its entry point in this process."""
+    with mock.patch.object(sys, "argv", ["tracegs-train", *argv]), contextlib.redirect_stdout(io.StringIO()) as out:
+        train_main()
+    return out.getvalue()
+
+
+def test_multirun_cfg_prints_one_config_per_job():
+    out = train_stdout("-m", "stage=stage2", "ablation=B,E", "--cfg", "job", "--resolve")
+    documents = [yaml.safe_load(d) for d in out.split("---\n") if d.strip()]
+    assert [d["ablation"]["name"] for d in documents] == ["B", "E"]
+    assert [d["policy"]["on_policy"] for d in documents] == [True, False]  # ablation E is off-policy
+    assert "${" not in out
+
+
+@pytest.mark.parametrize(("trainer", "gpus", "tasks"), [("cpu", 0, 1), ("ddp_sim", 0, 2), ("ddp", 4, 4)])
+def test_slurm_launcher_requests_what_the_trainer_uses(trainer, gpus, tasks):
+    launcher = yaml.safe_load(train_stdout("hydra/launcher=slurm", f"trainer={trainer}", "stage=stage1",
+                                           "--cfg", "hydra", "--resolve"))["launcher"]
+    assert launcher["gpus_per_node"] == gpus and launcher["tasks_per_node"] == tasks
+    assert launcher["name"] == "tracegs-train-stage1-F"
+    if gpus == 0:  # a CPU trainer asks for neither a GPU nor the paper-scale budget
+        assert launcher["mem_gb"] < 200 and launcher["timeout_min"] < 2880
+
+
+def test_a_failing_sweep_job_is_reported_and_the_others_run(tmp_path):
+    # Variant A trains no Stage 2, so its valid job finishes at once; rollout N=40 fails validation.
+    result = subprocess.run(
+        [str(Path(sys.executable).with_name("tracegs-train")), "-m", "ablation=A", "stage.rollout_steps=40,5",
+         f"paths.root_dir={tmp_path}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2
+    summary = result.stderr[result.stderr.index("tracegs-train: 1 of 2 sweep jobs succeeded"):].splitlines()
+    assert summary[1].startswith("  #0 ablation=A stage.rollout_steps=40 ")
+    assert "failed: config field 'stage.rollout_steps'" in summary[1]
+    assert summary[2].startswith("  #1 ablation=A stage.rollout_steps=5 ") and summary[2].endswith(": ok")
+    assert "Traceback" not in result.stderr
+
+
+def test_every_step_of_the_sweep_script_goes_through_the_launcher():
+    """On SLURM nothing may run on the login node: each command is a multirun through `step`."""
+    script = (REPO / "launch" / "sweep_ablation.sh").read_text()
+    commands = [line.strip() for line in script.splitlines() if "tracegs-" in line and not line.lstrip().startswith("#")]
+    assert len(commands) >= 7
+    assert all(line.startswith("step tracegs-") for line in commands)
+    assert 'step() { "$BIN/$1" -m "$launcher"' in script

@@ -1,0 +1,126 @@
+"""Multirun bookkeeping: a job that fails on bad input does not stop the sweep, and the sweep ends with a
+summary of every job (a Hydra callback, registered in each primary config under ``hydra.callbacks``).
+
+Hydra's basic launcher stops at the first job that exits, and reports a failed job only as a traceback
+after the batch; a sweep over the ablation grid should instead run every point it can and say at the end
+which ones failed and why.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+
+@dataclass
+class JobFailed:
+    """What a sweep job returns when it stopped on bad input (already reported on stderr in one line)."""
+
+    message: str
+
+
+def sweeping() -> bool:
+    """Whether this job is one point of a multirun launched in this process (Hydra's basic launcher).
+
+    Jobs on other machines (the SLURM launcher) still exit with status 2: each is its own SLURM job, so
+    the others run anyway, and the launching process sees the failure."""
+    if not HydraConfig.initialized():
+        return False
+    hydra_cfg = HydraConfig.get()
+    return hydra_cfg.mode == RunMode.MULTIRUN and hydra_cfg.launcher._target_.endswith(".BasicLauncher")
+
+
+class SweepSummary(Callback):
+    """Collects each job's outcome in the launching process; prints them after the sweep, exit 2 on failures.
+
+    Jobs that run in other processes (the SLURM launcher) report in their own logs instead.
+    """
+
+    def __init__(self) -> None:
+        self.outcomes: list[tuple[str, str]] = []
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        overrides = " ".join(job_return.overrides or []) or "(no overrides)"
+        if job_return.status == JobStatus.FAILED:
+            outcome = f"failed: {job_return._return_value}"
+        elif isinstance(job_return.return_value, JobFailed):
+            outcome = f"failed: {job_return.return_value.message}"
+        else:
+            outcome = "ok"
+        self.outcomes.append((overrides, outcome))
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        if not self.outcomes:
+            return
+        failed = [o for o in self.outcomes if o[1] != "ok"]
+        app = config.hydra.help.app_name
+        print(f"{app}: {len(self.outcomes) - len(failed)} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
+        for number, (overrides, outcome) in enumerate(self.outcomes):
+            print(f"  #{number} {overrides}: {outcome}", file=sys.stderr)
+        if failed:
+            sys.exit(2)
+
+
+def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:
+    """``--cfg`` where Hydra refuses or crashes: with ``-m`` (one YAML document per sweep job, expanded by
+    Hydra's own basic sweeper) and ``--cfg hydra|all --resolve`` (Hydra prints its node without the job
+    config that run_dir and the launcher's resources interpolate). Returns False when Hydra can do it.
+    """
+    flags = [a for a in argv if a in ("-c", "--cfg")]
+    if not flags:
+        return False
+    position = argv.index(flags[0]) + 1
+    which = argv[position] if position < len(argv) and argv[position] in ("job", "hydra", "all") else "job"
+    resolve = "--resolve" in argv
+    multirun = bool({"-m", "--multirun"} & set(argv))
+    if not multirun and not (resolve and which != "job"):
+        return False
+    from hydra import compose, initialize_config_dir
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    jobs = [overrides]
+    if multirun:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+        for number, job in enumerate(jobs):
+            cfg = compose(config_name=config_name, overrides=job, return_hydra_config=which != "job")
+            shown = resolve_leniently(cfg) if resolve else OmegaConf.to_container(cfg)
+            if multirun:
+                print(f"# job #{number}: {' '.join(job)}")
+            print(OmegaConf.to_yaml(shown["hydra"] if which == "hydra" else shown), end="---\n" if multirun else "")
+    return True
+
+
+def resolve_leniently(node: DictConfig | ListConfig) -> Any:
+    """The node as plain containers with every interpolation resolved that can be; Hydra's runtime fields
+    (hydra.job.num, ...) exist only inside a launched job, so values built on them stay interpolations."""
+    keys = range(len(node)) if isinstance(node, ListConfig) else list(node.keys())
+    resolved = [] if isinstance(node, ListConfig) else {}
+    for key in keys:
+        child = node._get_node(key)
+        if isinstance(child, (DictConfig, ListConfig)) and not child._is_interpolation():
+            value = resolve_leniently(child)
+        else:
+            try:
+                value = node[key]
+                if isinstance(value, (DictConfig, ListConfig)):
+                    value = OmegaConf.to_container(value, resolve=True)
+            except OmegaConfBaseException:
+                value = child._value()
+        if isinstance(resolved, list):
+            resolved.append(value)
+        else:
+            resolved[key] = value
+    return resolved

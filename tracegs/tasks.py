@@ -422,7 +422,7 @@ DEMO_STEPS = (
     ("train", ("stage=baseline",)),
     ("train", ("stage=stage1",)),
     ("train", ("stage=stage2", "ablation=F")),
-    ("evaluate", ("ablation=F", HELD_OUT_SPLIT, HELD_OUT_CACHE)),
+    ("evaluate", ("ablation=F", HELD_OUT_SPLIT, HELD_OUT_CACHE, "evaluation.save_models=true")),
 )
 
 
@@ -449,7 +449,7 @@ def demo(cfg: DictConfig) -> Path:
         log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))
         step_start = time.perf_counter()
         tasks[name](step_cfg)
-        label = " ".join([name, *(e for e in extra if "=" in e and "$" not in e and "out_dir" not in e)])
+        label = " ".join([name, *(e for e in extra if "$" not in e and not e.startswith("evaluation."))])
         timings[label] = round(time.perf_counter() - step_start, 1)
     run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
            "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings}

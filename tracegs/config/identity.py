@@ -54,13 +54,16 @@ EXECUTION_KEYS = frozenset({
     "stage.resume_from", "stage.checkpoint_every_n_steps", "stage.keep_checkpoints", "stage.base_weights",
     "stage.init_adapter",
     "trainer.log_every_n_steps", "trainer.loggers", "trainer.enable_progress_bar", "trainer.cpu_threads",
-    "trainer.slurm_requeue_signal",
+    "trainer.slurm_requeue_signal", "trainer.cluster",
     "experiment.description",
     "evaluation.out_dir", "evaluation.shard_index", "evaluation.num_shards", "evaluation.workers",
     "evaluation.force", "evaluation.progress", "evaluation.held_out_cache", "evaluation.variant",
     # Which (scene, views, method) units to compute: each unit is its own file, recorded with its own
     # settings, so selections of units share one evaluation folder and merge into one results.json.
     "evaluation.methods", "evaluation.views", "evaluation.scenes",
+    # Which extra files to write beside the numbers (grids, videos, frames, PLYs).
+    "evaluation.save_media", "evaluation.save_models", "evaluation.save_frames", "evaluation.grid_views",
+    "evaluation.video_frames", "evaluation.video_fps",
 })
 # Training reads the train split's cache whatever split a later prepare builds.
 _TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate", "restore")

@@ -97,6 +97,8 @@ class TextEncoderConfig:
     dim: int = 64
     max_length: int = 8
     pretrained_path: str | None = None
+    # The T5 tokenizer's directory; None = ``pretrained_path`` (CogVideoX keeps it apart, in ``tokenizer/``).
+    tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
     seed: int = 0
 

@@ -1,0 +1,35 @@
+"""The rehearsal's world: the paper's weights tree (tiny random components) under one temporary root."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from paper_weights import install_vggt_double, write_weights
+
+from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
+
+
+def rehearsal_config(root: Path, config_name: str = "train", overrides: tuple[str, ...] = ()):
+    """``conf/<config_name>.yaml`` under ``experiment=rehearsal`` with every path below ``root``."""
+    register_configs()
+    with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
+        return compose(config_name=config_name,
+                       overrides=["experiment=rehearsal", f"paths.root_dir={root}", *overrides])
+
+
+@pytest.fixture(scope="session")
+def rehearsal_root(tmp_path_factory) -> Path:
+    """A launch directory holding ``weights/`` as the README documents it."""
+    root = tmp_path_factory.mktemp("rehearsal")
+    backbone = OmegaConf.to_object(rehearsal_config(root).backbone)
+    write_weights(backbone, root / "weights")
+    return root
+
+
+@pytest.fixture
+def vggt_double(monkeypatch):
+    install_vggt_double(monkeypatch)

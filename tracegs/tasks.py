@@ -131,7 +131,7 @@ def test_scenes(cfg: DictConfig) -> list[str]:
         synthetic = section(cfg.data.synthetic)
         generate_benchmark(synthetic)
         return benchmark_scene_names(synthetic, "test")
-    return list_scenes(section(cfg.data.source))
+    return list_scenes(section(cfg.data.source), "test")
 
 
 def ground_truth_renderer(cfg: DictConfig):

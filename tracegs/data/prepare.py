@@ -485,7 +485,7 @@ def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Ba
         generate_benchmark(synthetic, progress=progress)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
-        names = list_scenes(source)
+        names = list_scenes(source, "train")
     names = shard_scenes(names, prepare.shard_index, prepare.num_shards)
     if not names:
         raise PrepareError(f"{source.root}: no scenes for shard {prepare.shard_index}/{prepare.num_shards}")

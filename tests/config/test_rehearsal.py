@@ -45,6 +45,7 @@ SIZE_KEYS = {
     "data.prepare.student_snapshots": "iteration schedule (paper / 100)",
     "data.prepare.clips_per_scene": "number of clips",
     "data.prepare.frames_per_clip": "clip frames",
+    "data.prepare.fit.backend": "the rasterizer's device: pure-PyTorch on CPU instead of gsplat on CUDA",
     "data.prepare.fit.iterations": "iteration budget (paper / 100)",
     "data.prepare.fit.snapshot_iters": "iteration schedule (paper / 100)",
     "data.prepare.fit.sh_degree_interval": "iteration schedule (paper / 100)",

@@ -66,3 +66,16 @@ def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 2, run.stderr[-2000:]
     assert run.stderr.strip().count("\n") == 0 and "'vggt' package" in run.stderr
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU-only refusal")
+@pytest.mark.parametrize("entry_point", ["prepare", "deploy", "evaluate"])
+def test_gsplat_without_cuda_is_refused_before_any_work(tmp_path, entry_point):
+    """``experiment=paper`` rasterizes with gsplat; on a machine without CUDA every 3DGS entry point refuses
+    at once, naming the field, instead of failing inside the first fit (after loading every model)."""
+    run = subprocess.run([sys.executable, "-m", f"tracegs.cli.{entry_point}", "experiment=rehearsal",
+                          "data.prepare.fit.backend=gsplat", f"paths.root_dir={tmp_path}",
+                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert "data.prepare.fit.backend='gsplat' needs CUDA" in run.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no weights read, no data or outputs written

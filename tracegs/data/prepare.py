@@ -49,6 +49,7 @@ from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
+from tracegs.splat.render import require_available
 from tracegs.splat.trajectory import round_trajectory
 
 PSEUDO_SOURCES = ("gt", "restorer", "dense")
@@ -97,6 +98,7 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
 
 
 def validate_config(cfg: PrepareConfig) -> None:
+    require_available(cfg.fit.backend, "data.prepare.fit.backend")
     if cfg.pseudo_target not in PSEUDO_SOURCES:
         raise PrepareError(f"prepare.pseudo_target={cfg.pseudo_target!r} must be one of {PSEUDO_SOURCES}")
     if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):

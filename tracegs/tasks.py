@@ -117,9 +117,10 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
     """Generate the synthetic benchmark if selected, then build the paired-clip cache (issue: data)."""
-    from tracegs.data.prepare import run_prepare
+    from tracegs.data.prepare import run_prepare, validate_config
     from tracegs.restorer.build import build_backbone
 
+    validate_config(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     backbone = build_backbone(section(cfg.backbone))
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
@@ -139,10 +140,11 @@ def train(cfg: DictConfig) -> Path | None:
         log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
         return None
     if cfg.stage.name == "baseline" and cfg.experiment.baseline_steps == 0:
-        raise ValueError(
-            f"stage=baseline: experiment={cfg.experiment.name} uses a pretrained baseline restorer "
-            "(backbone.transformer.pretrained_path); there is nothing to train"
-        )
+        # Paper scale: variant A is GSFixer's pretrained restorer, loaded where it is used; the sweep's first
+        # command must pass on to Stage 1 rather than stop.
+        log.info("experiment %s: variant A is the pretrained restorer %s; nothing to train", cfg.experiment.name,
+                 cfg.backbone.transformer.pretrained_path)
+        return None
     locate_artifacts(cfg, {"baseline": [], "stage1": ["baseline_weights"],
                            "stage2": ["baseline_weights", "stage1_adapter"]}[cfg.stage.name])
     check_run_record(cfg, cfg.stage.name, cfg.run_dir)
@@ -226,7 +228,7 @@ def test_scenes(cfg: DictConfig) -> list[str]:
         synthetic = section(cfg.data.synthetic)
         generate_benchmark(synthetic)
         return benchmark_scene_names(synthetic, "test")
-    return list_scenes(section(cfg.data.source))
+    return list_scenes(section(cfg.data.source), "test")
 
 
 def ground_truth_renderer(cfg: DictConfig):
@@ -242,7 +244,9 @@ def ground_truth_renderer(cfg: DictConfig):
 def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     from tracegs.deploy.evaluate import evaluate as run_evaluation
+    from tracegs.splat.render import require_available
 
+    require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     restorers = build_restorers(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     results = run_evaluation(
@@ -277,7 +281,9 @@ def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
 def deploy(cfg: DictConfig) -> list[Path]:
     """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
     from tracegs.deploy.evaluate import deploy_scenes
+    from tracegs.splat.render import require_available
 
+    require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = build_restorers(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)

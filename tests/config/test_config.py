@@ -207,6 +207,7 @@ def test_paper_backbone_yaml_matches_the_library_preset():
         dino_path=composed.reference_encoder.dino_path,
         vggt_path=composed.reference_encoder.vggt_path,
         t5_path=composed.text_encoder.pretrained_path,
+        tokenizer_path=composed.text_encoder.tokenizer_path,
     )
     preset.sampler.seed = composed.sampler.seed  # run randomness: derived from the root seed, not the model
     assert composed == preset

@@ -14,6 +14,7 @@ from tracegs.restorer.encoders import (
     T5TextEncoder,
     build_reference_encoder,
 )
+from tracegs.restorer.loading import MissingPackageError
 
 
 def test_embedded_reference_tokens():
@@ -87,7 +88,7 @@ def test_vggt_missing_gives_install_hint():
     try:
         import vggt  # noqa: F401
     except ImportError:
-        with pytest.raises(ImportError, match="pip install git\\+https://github.com/facebookresearch/vggt"):
+        with pytest.raises(MissingPackageError, match="'vggt' package.*pip install git\\+https://github.com/facebookresearch/vggt"):
             build_reference_encoder(cfg)
     else:
         with pytest.raises(FileNotFoundError, match="reference_encoder.vggt_path"):

@@ -91,11 +91,37 @@ def preset_dirs(cfg: SceneSourceConfig) -> tuple[str, str, str | None]:
     return cfg.image_dir or preset["image_dir"], cfg.sparse_dir or preset["sparse_dir"], preset["test_prefix"]
 
 
-def list_scenes(cfg: SceneSourceConfig) -> list[str]:
-    """Scene names: ``cfg.scenes`` or every directory under ``cfg.root`` holding a sparse model."""
-    root = Path(cfg.root)
+def read_scene_list(path: str, field: str) -> list[str]:
+    """Scene names of a list file (one a line, blank lines and ``#`` comments ignored)."""
+    file = Path(path)
+    if not file.is_file():
+        raise FileNotFoundError(f"{field}={path!r}: scene list not found")
+    names = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()]
+    return [name for name in names if name]
+
+
+def list_scenes(cfg: SceneSourceConfig, split: str = "train") -> list[str]:
+    """Scene names of ``split`` ("train": prepare / training, "test": evaluation): ``cfg.scenes``, else the
+    split's list file, else every directory under ``cfg.root`` holding a sparse model. With both lists set,
+    a scene on both is refused, so evaluation never runs on a scene the restorer was trained on."""
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     if cfg.scenes is not None:
         return list(cfg.scenes)
+    lists = {"train": cfg.train_list, "test": cfg.test_list}
+    if lists["train"] is not None and lists["test"] is not None:
+        shared = sorted(set(read_scene_list(lists["train"], "source.train_list"))
+                        & set(read_scene_list(lists["test"], "source.test_list")))
+        if shared:
+            raise SceneFormatError(f"source.test_list={lists['test']!r} names training scenes {shared[:5]} "
+                                   f"(also in source.train_list); benchmark scenes must be held out")
+    root = Path(cfg.root)
+    if lists[split] is not None:
+        names = read_scene_list(lists[split], f"source.{split}_list")
+        missing = [n for n in names if not (root / n).is_dir()]
+        if missing:
+            raise SceneFormatError(f"source.{split}_list={lists[split]!r}: {missing[:5]} not under {root}")
+        return names
     if not root.is_dir():
         raise SceneFormatError(f"source.root {root} does not exist")
     _, sparse_dir, _ = preset_dirs(cfg)

@@ -40,7 +40,11 @@ class SceneSourceConfig:
     root: str = "data/synthetic"
     # "synthetic" | "mipnerf360" | "dl3dv" | "nerfbusters" | "custom"; fills image_dir / sparse_dir.
     preset: str = "synthetic"
-    scenes: list[str] | None = None  # None = every scene directory under root (sorted)
+    scenes: list[str] | None = None  # None = every scene directory under root (sorted), or the split's list
+    # Scene lists (one name a line) for datasets whose training and benchmark scenes share a root (DL3DV):
+    # prepare and training read ``train_list``, evaluation ``test_list``; None = every scene under root.
+    train_list: str | None = None
+    test_list: str | None = None
     image_dir: str | None = None  # None = preset default, e.g. "images_4" for Mip-NeRF 360
     sparse_dir: str | None = None  # None = preset default, e.g. "sparse/0"
     height: int | None = None  # resize images (and intrinsics) to this size; None = as stored

@@ -59,6 +59,7 @@ from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
+from tracegs.splat.render import require_available
 from tracegs.splat.trajectory import round_trajectory
 
 PSEUDO_SOURCES = ("gt", "restorer", "dense")
@@ -107,6 +108,7 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
 
 
 def validate_config(cfg: PrepareConfig) -> None:
+    require_available(cfg.fit.backend, "data.prepare.fit.backend")
     if cfg.pseudo_target not in PSEUDO_SOURCES:
         raise PrepareError(f"prepare.pseudo_target={cfg.pseudo_target!r} must be one of {PSEUDO_SOURCES}")
     if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):
@@ -508,7 +510,7 @@ def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Ba
         generate_benchmark(synthetic, progress=progress)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
-        names = list_scenes(source)
+        names = list_scenes(source, "train")
     names = shard_scenes(names, prepare.shard_index, prepare.num_shards)
     if not names:
         raise PrepareError(f"{source.root}: no scenes for shard {prepare.shard_index}/{prepare.num_shards}")

@@ -97,6 +97,8 @@ class TextEncoderConfig:
     dim: int = 64
     max_length: int = 8
     pretrained_path: str | None = None
+    # The T5 tokenizer's directory; None = ``pretrained_path`` (CogVideoX keeps it apart, in ``tokenizer/``).
+    tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
     seed: int = 0
 
@@ -146,6 +148,7 @@ def paper_backbone_config(
     dino_path: str | None = None,
     vggt_path: str | None = None,
     t5_path: str | None = None,
+    tokenizer_path: str | None = None,
 ) -> BackboneConfig:
     """CogVideoX-5B-I2V + reference cross-attention (supplement A.1-A.3): 42 blocks, 48x64 heads, LoRA r=32."""
     return BackboneConfig(
@@ -177,7 +180,8 @@ def paper_backbone_config(
         reference_encoder=ReferenceEncoderConfig(
             kind="dinov2_vggt", dino_path=dino_path, vggt_path=vggt_path
         ),
-        text_encoder=TextEncoderConfig(kind="t5", dim=4096, max_length=226, pretrained_path=t5_path),
+        text_encoder=TextEncoderConfig(kind="t5", dim=4096, max_length=226, pretrained_path=t5_path,
+                                       tokenizer_path=tokenizer_path),
         schedule=ScheduleConfig(kind="vpred_ddim", deploy_steps=50),
         sampler=SamplerConfig(guidance_scale=6.0),
     )

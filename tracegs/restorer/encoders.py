@@ -15,11 +15,11 @@ import torch
 import torch.nn.functional as F
 
 from .config import ReferenceEncoderConfig, TextEncoderConfig
-from .loading import require_local_dir
+from .loading import MissingPackageError, require_local_dir
 
 VGGT_INSTALL_HINT = (
-    "VGGT is not on PyPI: install it with `pip install git+https://github.com/facebookresearch/vggt` "
-    "(or set reference_encoder.kind=embedded)"
+    "reference_encoder.kind=dinov2_vggt needs the 'vggt' package, which is not on PyPI: install it with "
+    "`pip install git+https://github.com/facebookresearch/vggt` (or set reference_encoder.kind=embedded)"
 )
 
 
@@ -108,7 +108,7 @@ class VggtEncoder:
         try:
             from vggt.models.vggt import VGGT
         except ImportError as err:
-            raise ImportError(VGGT_INSTALL_HINT) from err
+            raise MissingPackageError(VGGT_INSTALL_HINT) from err
         path = require_local_dir(cfg.vggt_path, "reference_encoder.vggt_path")
         self.model = VGGT.from_pretrained(str(path)).to(device).eval().requires_grad_(False)
         self.cfg = cfg
@@ -135,6 +135,7 @@ class PretrainedReferenceEncoder:
     def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
         self.vggt = VggtEncoder(cfg, device)  # first: fail fast with the install hint
         self.dino = Dinov2Encoder(cfg, device)
+        self.dim_2d = self.dino.dim  # checked against transformer.ref_2d_dim when the backbone is built
 
     def to(self, device: torch.device | str) -> PretrainedReferenceEncoder:
         self.vggt.to(device)
@@ -204,7 +205,10 @@ class T5TextEncoder(TextEncoder):
 
         super().__init__(cfg)
         path = require_local_dir(cfg.pretrained_path, "text_encoder.pretrained_path")
-        self.tokenizer = AutoTokenizer.from_pretrained(path)
+        if cfg.tokenizer_path is None:
+            self.tokenizer = AutoTokenizer.from_pretrained(path)
+        else:
+            self.tokenizer = AutoTokenizer.from_pretrained(require_local_dir(cfg.tokenizer_path, "text_encoder.tokenizer_path"))
         self.model = T5EncoderModel.from_pretrained(path).to(device).eval().requires_grad_(False)
         if self.model.config.d_model != cfg.dim:
             raise ValueError(

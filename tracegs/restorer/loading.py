@@ -9,6 +9,11 @@ class MissingPretrainedError(FileNotFoundError):
     """A config field names a pretrained directory that does not exist."""
 
 
+class MissingPackageError(MissingPretrainedError):
+    """A pretrained component needs a package that is not installed (reported in one line, like a missing
+    directory: the user fixes both by installing)."""
+
+
 def require_local_dir(path: str | None, field: str) -> Path:
     """Return ``path`` as a directory Path, or raise a one-line error naming the config ``field``."""
     if not path:

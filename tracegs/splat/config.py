@@ -1,10 +1,6 @@
 """Hyperparameters of the 3DGS optimiser and of the deployment trajectories (embedded-scale defaults).
 
-Paper scale (3DGS / gsplat defaults, 30k iterations): iterations=30000, snapshot_iters=[7000, 17000, 30000],
-sh_degree_interval=1000, refine_start_iter=500, refine_stop_iter=15000, refine_every=100, reset_every=3000,
-grow_grad2d=0.0002, max_gaussians=10_000_000 (no budget in practice),
-lr_means=1.6e-4, lr_means_final=1.6e-6, lr_scales=5e-3, lr_opacities=5e-2, lr_sh_dc=2.5e-3, lr_sh_rest=1.25e-4,
-lr_quats=1e-3, backend="auto" (gsplat on CUDA). Trajectory: frames_per_clip=49.
+Paper scale: ``conf/splat/paper.yaml`` (the reference 3DGS optimiser, 30k iterations).
 """
 
 from __future__ import annotations

@@ -33,6 +33,12 @@ def gsplat_available() -> bool:
     return importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
 
 
+def require_available(backend: str, field: str) -> None:
+    """Fail before any work when ``backend`` cannot run on this machine (gsplat needs CUDA and its package)."""
+    if backend == "gsplat" and not gsplat_available():
+        raise ValueError(f"{field}='gsplat' needs CUDA and the gsplat package; use 'torch' (CPU) or 'auto' here")
+
+
 def resolve_backend(backend: str, device: torch.device) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")

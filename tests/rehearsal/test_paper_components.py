@@ -1,0 +1,81 @@
+"""The paper's pretrained components, in their published folder layouts, through the production loaders."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import rehearsal_config
+from omegaconf import OmegaConf
+
+from tracegs.restorer.build import build_backbone
+from tracegs.restorer.codec import CogVideoXCodec
+from tracegs.restorer.encoders import PretrainedReferenceEncoder, T5TextEncoder
+from tracegs.restorer.loading import MissingPackageError
+
+
+def backbone_config(root):
+    return OmegaConf.to_object(rehearsal_config(root).backbone)
+
+
+def test_t5_tokenizer_is_read_from_the_cogvideox_tokenizer_folder(rehearsal_root):
+    """CogVideoX keeps the tokenizer in ``tokenizer/`` beside ``text_encoder/`` (no tokenizer files there)."""
+    cfg = backbone_config(rehearsal_root).text_encoder
+    encoder = T5TextEncoder(cfg)
+    tokens = encoder.encode(["a photo of a scene", "a garden"])
+    assert tokens.shape == (2, cfg.max_length, cfg.dim)
+    assert not torch.allclose(tokens[0], tokens[1])
+
+
+def test_paper_backbone_loads_every_component(rehearsal_root, vggt_double):
+    cfg = backbone_config(rehearsal_root)
+    backbone = build_backbone(cfg)
+    assert isinstance(backbone.codec, CogVideoXCodec) and backbone.codec.spatial_factor == 8
+    assert isinstance(backbone.reference_encoder, PretrainedReferenceEncoder)
+    assert next(backbone.transformer.parameters()).dtype == torch.bfloat16  # the paper's dtype policy
+    frames = torch.rand(1, cfg.transformer.sample_frames, 3, 8 * cfg.transformer.sample_height,
+                        8 * cfg.transformer.sample_width)
+    latents = backbone.codec.encode(frames)
+    assert latents.shape == (1, 3, cfg.transformer.latent_channels, cfg.transformer.sample_height,
+                             cfg.transformer.sample_width)
+    ref_2d, ref_3d = backbone.reference_encoder(frames[:, :2])
+    tokens = 2 * (cfg.reference_encoder.image_size // 14) ** 2
+    assert ref_2d.shape == (1, tokens, cfg.transformer.ref_2d_dim)
+    assert ref_3d.shape == (1, tokens, cfg.transformer.ref_3d_dim)
+
+
+def test_reference_width_is_checked_against_the_transformer(rehearsal_root, vggt_double):
+    cfg = backbone_config(rehearsal_root)
+    cfg.transformer.ref_2d_dim *= 2
+    cfg.transformer.pretrained_path = None
+    with pytest.raises(ValueError, match="transformer.ref_2d_dim"):
+        build_backbone(cfg)
+
+
+def test_missing_vggt_names_the_package(rehearsal_root):
+    with pytest.raises(MissingPackageError, match="'vggt' package"):
+        build_backbone(backbone_config(rehearsal_root))
+
+
+def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root):
+    """A user without VGGT gets one line naming the package, not a traceback."""
+    run = subprocess.run([sys.executable, "-m", "tracegs.cli.prepare", "experiment=rehearsal",
+                          f"paths.root_dir={rehearsal_root}", "hydra.run.dir=" + str(rehearsal_root / "run")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert run.stderr.strip().count("\n") == 0 and "'vggt' package" in run.stderr
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU-only refusal")
+@pytest.mark.parametrize("entry_point", ["prepare", "deploy", "evaluate"])
+def test_gsplat_without_cuda_is_refused_before_any_work(tmp_path, entry_point):
+    """``experiment=paper`` rasterizes with gsplat; on a machine without CUDA every 3DGS entry point refuses
+    at once, naming the field, instead of failing inside the first fit (after loading every model)."""
+    run = subprocess.run([sys.executable, "-m", f"tracegs.cli.{entry_point}", "experiment=rehearsal",
+                          "data.prepare.fit.backend=gsplat", f"paths.root_dir={tmp_path}",
+                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert "data.prepare.fit.backend='gsplat' needs CUDA" in run.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no weights read, no data or outputs written

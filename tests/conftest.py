@@ -13,6 +13,7 @@ import shutil
 import subprocess
 import sys
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -37,39 +38,55 @@ class EntryPointRun:
         return [line for line in self.stderr.splitlines() if line.strip()]
 
 
-def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
-    """Run console script ``tracegs-<app>`` (its Hydra main) with ``args`` in a forked child of this process.
+def fork_child(work: Callable[[], None], stdout: Path, stderr: Path) -> int:
+    """Run ``work()`` in a forked child of this process with stdout / stderr going to the given files; returns
+    the child's pid. The child exits 0 when ``work`` returns, with its ``SystemExit`` code, else 1 (traceback
+    on its stderr); it never returns into pytest.
 
-    The child is the real entry point with real stdout / stderr file descriptors and exit code; forking skips
-    the ~7 s of imports a fresh interpreter would spend (the suite runs a table of these).
+    Forking skips the ~7 s of imports a fresh interpreter would spend, and the child runs the real code with
+    real file descriptors and exit code.
     """
-    out, err = cwd / f".{app}.stdout", cwd / f".{app}.stderr"
     pid = os.fork()
-    if pid == 0:  # child: never returns into pytest
-        code = 1
-        try:
-            os.chdir(cwd)
-            for fd, path in ((1, out), (2, err)):
-                os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
-            sys.stdout = open(1, "w", buffering=1, closefd=False)
-            sys.stderr = open(2, "w", buffering=1, closefd=False)
-            for variable in ("TRACEGS_TRACEBACK", "HYDRA_FULL_ERROR"):
-                os.environ.pop(variable, None)
-            from hydra.core.global_hydra import GlobalHydra
+    if pid:
+        return pid
+    code = 1
+    try:
+        for fd, path in ((1, stdout), (2, stderr)):
+            os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+        sys.stdout = open(1, "w", buffering=1, closefd=False)
+        sys.stderr = open(2, "w", buffering=1, closefd=False)
+        work()
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    except BaseException:
+        traceback.print_exc()
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
 
-            GlobalHydra.instance().clear()
-            sys.argv = [f"tracegs-{app}", *args]
-            importlib.import_module(f"tracegs.cli.{app}").main()
-            code = 0
-        except SystemExit as exit_:
-            code = exit_.code if isinstance(exit_.code, int) else 1
-        except BaseException:
-            traceback.print_exc()
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(code)
-    _, status = os.waitpid(pid, 0)
+
+@pytest.fixture
+def forked():
+    return fork_child
+
+
+def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
+    """Run console script ``tracegs-<app>`` (its Hydra main) with ``args`` in a forked child of this process."""
+    out, err = cwd / f".{app}.stdout", cwd / f".{app}.stderr"
+
+    def main() -> None:
+        os.chdir(cwd)
+        for variable in ("TRACEGS_TRACEBACK", "HYDRA_FULL_ERROR"):
+            os.environ.pop(variable, None)
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()
+        sys.argv = [f"tracegs-{app}", *args]
+        importlib.import_module(f"tracegs.cli.{app}").main()
+
+    _, status = os.waitpid(fork_child(main, out, err), 0)
     run = EntryPointRun(os.waitstatus_to_exitcode(status), out.read_text(), err.read_text())
     out.unlink()
     err.unlink()

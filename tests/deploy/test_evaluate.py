@@ -1,5 +1,6 @@
 """End-to-end evaluation on a tiny synthetic scene written to disk in COLMAP format: results.json layout,
-media, per-step curves, resumable and sharded units; and the Lightning callback logging deployment metrics.
+media, per-step curves, resumable and sharded units, a rerun after SIGKILL, plain progress lines; and the
+Lightning callback logging deployment metrics.
 
 Restorers: ``tracegs`` is the ground-truth oracle (``GroundTruthRestorer`` on the scene's true Gaussians),
 ``baseline`` the real diffusion pipeline of a randomly initialised tiny backbone (2 reverse steps), so
@@ -7,6 +8,11 @@ every code path runs without trained weights.
 """
 
 import json
+import logging
+import os
+import random
+import signal
+import time
 from pathlib import Path
 
 import lightning as L
@@ -162,3 +168,72 @@ def test_deploy_scenes_writes_refined_ply_once(scene_root, tmp_path):
     stamp = path.stat().st_mtime_ns
     deploy_scenes(cfg, source, refine_cfg, fit_cfg, oracle, [scene_name(SEED)], tmp_path)
     assert path.stat().st_mtime_ns == stamp  # finished scenes are kept
+
+
+def _plain_3dgs_runs(source: SceneSourceConfig, views: tuple[int, ...] = (3, 4)):
+    """Evaluation and deployment of plain 3DGS (no restorer) on ``views``, ``out -> None`` each."""
+    fit_cfg, refine_cfg = _configs()
+    names = [scene_name(SEED)]
+
+    def cfg(out: Path) -> EvaluationConfig:
+        return EvaluationConfig(out_dir=str(out), methods=["3dgs"], views=list(views), workers=1,
+                                save_media=False, per_step=False, progress=False)
+
+    return {
+        "evaluate": lambda out: evaluate(cfg(out), source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=names),
+        "deploy": lambda out: deploy_scenes(cfg(out), source, refine_cfg, fit_cfg, None, names, out),
+    }
+
+
+def _products(stage: str, out: Path) -> dict[str, bytes]:
+    """What a finished stage leaves: evaluation's results and unit files, deployment's PLYs."""
+    pattern = "units/*/views_*.json" if stage == "evaluate" else "*/views_*.ply"
+    found = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.glob(pattern))}
+    if (out / "results.json").is_file():
+        found["results.json"] = (out / "results.json").read_bytes()
+    return found
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(scene_root, tmp_path_factory):
+    """Each stage's products of an uninterrupted run."""
+    tmp = tmp_path_factory.mktemp("uninterrupted")
+    runs = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)))
+    for stage, run in runs.items():
+        run(tmp / stage)
+    return {stage: _products(stage, tmp / stage) for stage in runs}
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("stage", ["evaluate", "deploy"])
+def test_killed_run_reruns_to_the_same_products(scene_root, uninterrupted, forked, tmp_path, stage, seed):
+    """SIGKILL after a random number of finished units plus a random delay (seeded), then the same call: the
+    results / PLYs equal the uninterrupted run's byte for byte, and finished units are not redone."""
+    run = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)))[stage]
+    out = tmp_path / stage
+    rng = random.Random(seed)
+    kill_after, delay = rng.randrange(2), rng.uniform(0.0, 0.3)
+    pid = forked(lambda: run(out), tmp_path / "stdout", tmp_path / "stderr")
+    deadline = time.monotonic() + 300
+    while len(_products(stage, out)) < kill_after and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(delay)
+    exited, _ = os.waitpid(pid, os.WNOHANG)
+    assert not exited, f"{stage} ended before it could be killed: {(tmp_path / 'stderr').read_text()[-2000:]}"
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    finished = {p: p.stat().st_mtime_ns for p in out.rglob("views_*") if not p.name.startswith(".")}
+    run(out)
+    assert _products(stage, out) == uninterrupted[stage]
+    assert all(p.stat().st_mtime_ns == t for p, t in finished.items()), "a finished unit was redone"
+
+
+def test_evaluation_and_deployment_log_plain_progress(scene_root, tmp_path, caplog, monkeypatch):
+    """With stdout not a terminal (a log file, SLURM output) each loop logs a plain line at its end."""
+    monkeypatch.setattr("sys.stdout.isatty", lambda: False)
+    runs = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)), views=(3,))
+    with caplog.at_level(logging.INFO, logger="tracegs"):
+        for stage, run in runs.items():
+            run(tmp_path / stage)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith(("evaluation units:", "deploy:"))]
+    assert [line.split(",")[0] for line in lines] == ["evaluation units: 1/1", "deploy: 1/1"]

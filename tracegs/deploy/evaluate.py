@@ -24,6 +24,7 @@ import torch
 from rich.progress import Progress
 from torch import Tensor
 
+from tracegs.console import PlainProgress
 from tracegs.data.colmap import Scene, load_scene, test_indices_for
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
@@ -324,9 +325,11 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     workers = 1 if torch.cuda.is_available() else cfg.workers
     with Progress(disable=not cfg.progress) as progress:
         overall = progress.add_task("evaluation units", total=len(todo))
-        for key, record in _run_units(job, todo, workers, progress):
+        plain = PlainProgress("evaluation units", len(todo))
+        for finished, (key, record) in enumerate(_run_units(job, todo, workers, progress), 1):
             done[key] = record
             progress.advance(overall)
+            plain.update(finished)
     if cfg.num_shards == 1:
         return merge_results(cfg.out_dir, scenes=scenes, views=cfg.views, methods=cfg.methods)
     return {f"{s}/views_{k}": u for (s, k), u in done.items()}
@@ -394,8 +397,9 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
     with Progress(disable=not cfg.progress) as progress:
         units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)
         task = progress.add_task("deploy", total=len(units))
+        plain = PlainProgress("deploy", len(units))
         loaded: dict[str, Scene] = {}
-        for scene_name, views in units:
+        for finished, (scene_name, views) in enumerate(units, 1):
             target = Path(out_dir) / scene_name / f"views_{views}.ply"
             if not target.is_file() or cfg.force:
                 if scene_name not in loaded:
@@ -406,4 +410,5 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
                 _save_model(model, target)
             written.append(target)
             progress.advance(task)
+            plain.update(finished)
     return written

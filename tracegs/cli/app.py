@@ -35,12 +35,12 @@ CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
 
 def report_one_line(app: str, error: BaseException) -> str:
-    """Print ``error`` as one line on stderr (and into the run's log files); return the line."""
-    message = error.args[0] if isinstance(error, KeyError) and error.args else error
-    line = f"tracegs-{app}: error: {one_line(message, limit=2000)}"
+    """Print ``error`` as one line on stderr (and into the run's log files); return its message."""
+    message = one_line(error.args[0] if isinstance(error, KeyError) and error.args else error, limit=2000)
+    line = f"tracegs-{app}: error: {message}"
     to_log_files(line, logging.ERROR)  # not through the console handler: stderr gets the line exactly once
     print(line, file=sys.stderr)
-    return line
+    return message
 
 
 def exit_with_one_line(app: str, error: BaseException) -> None:
@@ -105,9 +105,9 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
                     raise
-                line = report_one_line(config_name, error)
+                message = report_one_line(config_name, error)
                 if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end
-                    return JobFailed(line)
+                    return JobFailed(message)
                 sys.exit(2)
 
         register_configs()

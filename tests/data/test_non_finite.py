@@ -72,7 +72,7 @@ def test_nan_in_a_cached_latent_stops_training_at_its_batch(tmp_path, prepared, 
     lines = result.stderr_lines()
     assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
     assert f"step {step}: non-finite loss" in lines[0] and "scene_000/clip_001" in lines[0], lines[0]
-    run_dir = tmp_path / "outputs" / "embedded" / "baseline"
+    (run_dir,) = (tmp_path / "outputs" / "embedded" / "baseline").iterdir()  # the run's identity folder
     assert not (run_dir / "baseline_transformer").exists()
     if step == 0:
         assert not (run_dir / "checkpoints" / "last.ckpt").exists()

@@ -45,7 +45,7 @@ def test_restore_writes_ply_video_grid_and_scores(capture, tmp_path):
     result = restore(tmp_path, f"capture.path={capture}", "capture.views=3", "ablation=A",
                      "artifacts.baseline_weights=null", *SMALLEST)
     assert result.returncode == 0, result.stderr[-3000:]
-    run = tmp_path / "outputs" / "embedded" / "restore" / "A"
+    (run,) = (tmp_path / "outputs" / "embedded" / "restore" / "A").iterdir()  # the run's identity folder
     results = json.loads((run / "results.json").read_text())
     assert set(results["3dgs"]) == set(results["baseline"]) == {"3"}
     assert 5.0 < results["baseline"]["3"]["psnr"] < 60.0

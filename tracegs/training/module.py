@@ -33,6 +33,11 @@ _RANK_STRIDE = 1_000_003
 _SEED_STRIDE = 7_919_000_017
 
 
+def typed(value, cls):
+    """A config dataclass from itself or from the plain dict a checkpoint's hyperparameters hold."""
+    return value if value is None or isinstance(value, cls) else cls(**value)
+
+
 def _plain(value):
     """A constructor argument as a type ``torch.load(weights_only=True)`` accepts."""
     if dataclasses.is_dataclass(value):
@@ -69,7 +74,7 @@ class RestorerTrainingModule(L.LightningModule):
         # (train mode is what enables diffusers' gradient checkpointing at paper scale).
         self.transformer = transformer.train()
         self.schedule = schedule
-        self.optimizer_cfg = optimizer if isinstance(optimizer, OptimizerConfig) else OptimizerConfig(**optimizer)
+        self.optimizer_cfg = typed(optimizer, OptimizerConfig)
         self.seed = seed
         self._save_plain_hyperparameters()
 

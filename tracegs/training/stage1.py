@@ -9,7 +9,7 @@ from tracegs.restorer.adapters import activate, adapter_parameters, add_adapter,
 from tracegs.restorer.config import LoraConfig
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.losses import warm_loss
-from tracegs.training.module import RestorerTrainingModule
+from tracegs.training.module import RestorerTrainingModule, typed
 
 
 class Stage1AlignmentModule(RestorerTrainingModule):
@@ -35,7 +35,7 @@ class Stage1AlignmentModule(RestorerTrainingModule):
         self.adapter_name = adapter_name
         self.lambda_align = lambda_align
         self.transformer.requires_grad_(False)
-        lora_cfg = lora_cfg if isinstance(lora_cfg, LoraConfig) else LoraConfig(**lora_cfg)
+        lora_cfg = typed(lora_cfg, LoraConfig)
         add_adapter(self.transformer, adapter_name, lora_cfg)
         activate(self.transformer, adapter_name)
         self._adapter_params = adapter_parameters(self.transformer, adapter_name)

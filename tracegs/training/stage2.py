@@ -12,7 +12,7 @@ from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapte
 from tracegs.restorer.config import LoraConfig
 from tracegs.training.config import MEMORY_MODES, OptimizerConfig
 from tracegs.training.losses import distillation_state_loss
-from tracegs.training.module import RestorerTrainingModule
+from tracegs.training.module import RestorerTrainingModule, typed
 
 TEACHER = "teacher"
 STUDENT = "student"
@@ -61,7 +61,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
-        load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=lora,
+        load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=typed(lora, LoraConfig),
                      field="stage.init_adapter")
         clone_adapter(self.transformer, STUDENT, TEACHER, trainable=False)
         self._student_params = adapter_parameters(self.transformer, STUDENT)

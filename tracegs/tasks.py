@@ -116,7 +116,7 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
 
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
-    """Generate the synthetic benchmark if selected, then build the paired-clip cache (issue: data)."""
+    """Generate the synthetic benchmark if selected, then build the paired-clip cache."""
     from tracegs.data.prepare import run_prepare, validate_config
     from tracegs.restorer.build import build_backbone
 

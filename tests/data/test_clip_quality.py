@@ -1,4 +1,4 @@
-"""Held-out clip quality (issue 6 acceptance): the input R_s and each restorer scored against ground truth."""
+"""Held-out clip quality: the input R_s and each restorer scored against ground truth."""
 
 from __future__ import annotations
 

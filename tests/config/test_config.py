@@ -1,4 +1,4 @@
-"""The Hydra config tree: every file composes, the ablation grid matches DESIGN section 5, bad input fails."""
+"""The Hydra config tree: every file composes, the ablation grid matches Table 3, bad input fails."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from tracegs.config.validate import ConfigError, validate
 CONF = Path(CONF_DIR)
 PRIMARY = sorted(p.stem for p in CONF.glob("*.yaml"))
 
-# DESIGN.md section 5 (Table 3): variant -> (teacher views, privileged, on-policy, lambda_ret, trains Stage 2).
+# Table 3 of the paper: variant -> (teacher views, privileged, on-policy, lambda_ret, trains Stage 2).
 ABLATION_GRID = {
     "A": (None, True, True, 0.15, False),
     "B": (3, False, True, 0.15, True),

@@ -107,7 +107,7 @@ class ExperimentConfig:
 
 @dataclass
 class AblationConfig:
-    """One row of Table 3 (DESIGN section 5); the ``ablation`` group sets teacher/policy/loss to match."""
+    """One row of Table 3; the ``ablation`` group sets teacher/policy/loss to match."""
 
     name: str = "F"
     description: str = "TRACE-GS: all-view privileged teacher, on-policy, lambda_ret 0.15"

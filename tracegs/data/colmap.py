@@ -1,7 +1,7 @@
 """COLMAP scenes: loading (pycolmap), downscaled image folders, normalisation, dataset presets, writing.
 
-pycolmap bundles its own zlib; importing it before PIL/torch can crash a later PNG write (DESIGN.md
-section 6), so it is imported inside the functions that need it, after PIL and torch are loaded.
+pycolmap bundles its own zlib; importing it before PIL/torch can crash a later PNG write, so it is
+imported inside the functions that need it, after PIL and torch are loaded.
 """
 
 from __future__ import annotations

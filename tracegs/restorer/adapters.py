@@ -2,7 +2,7 @@
 
 peft does the LoRA work (injection through diffusers' ``PeftAdapterMixin``, state dicts). What we add is the
 bookkeeping of which adapters are trainable: peft's ``set_adapter(name)`` turns ``requires_grad`` on for
-``name`` and off for every other adapter (DESIGN.md section 6), which would silently unfreeze a frozen
+``name`` and off for every other adapter, which would silently unfreeze a frozen
 teacher or freeze the student. ``activate`` switches the active adapter and then restores the recorded flags.
 """
 

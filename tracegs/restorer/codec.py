@@ -139,7 +139,7 @@ class CogVideoXCodec:
 
     def latent_frames(self, num_frames: int) -> int:
         # The causal VAE encodes frames in chunks of 2 x temporal factor after the first; other counts come back
-        # with the wrong length after decoding (DESIGN.md section 6).
+        # with the wrong length after decoding (the CogVideoX VAE's 8k+1 frame contract).
         chunk = 2 * self.temporal_factor
         if (num_frames - 1) % chunk:
             raise ValueError(

@@ -226,7 +226,7 @@ def test_scenes(cfg: DictConfig) -> list[str]:
         return list(cfg.evaluation.scenes)
     if cfg.data.source.preset == "synthetic":
         synthetic = section(cfg.data.synthetic)
-        generate_benchmark(synthetic)
+        generate_benchmark(synthetic, splits=("test",))
         return benchmark_scene_names(synthetic, "test")
     return list_scenes(section(cfg.data.source), "test")
 

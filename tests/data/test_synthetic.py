@@ -35,10 +35,12 @@ def test_same_seed_same_scene_different_seed_different_scene(prepared, tmp_path)
     assert (other / "images/frame_00000.png").read_bytes() != (original / "images/frame_00000.png").read_bytes()
 
 
-def test_train_and_test_seeds_must_be_disjoint(tmp_path):
+@pytest.mark.parametrize("seeds", [dict(train_seeds=[0, 1], test_seeds=[1]), dict(train_seeds=[0, 1], val_seeds=[1]),
+                                   dict(val_seeds=[1], test_seeds=[1])])
+def test_train_val_and_test_seeds_must_be_disjoint(tmp_path, seeds):
     from tracegs.data.config import SyntheticConfig
 
-    cfg = replace(SyntheticConfig(root=str(tmp_path)), train_seeds=[0, 1], test_seeds=[1])
+    cfg = replace(SyntheticConfig(root=str(tmp_path)), **seeds)
     with pytest.raises(ValueError, match="overlap: \\[1\\]"):
         generate_benchmark(cfg, progress=False)
     assert not any(tmp_path.iterdir())

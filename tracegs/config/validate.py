@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
+from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
 
 
@@ -70,8 +71,9 @@ def _validate_known_keys(cfg: DictConfig) -> None:
 
 def _validate_data(cfg: DictConfig) -> None:
     synthetic, prepare, datamodule = cfg.data.synthetic, cfg.data.prepare, cfg.data.datamodule
-    overlap = sorted(set(synthetic.train_seeds) & set(synthetic.test_seeds))
-    _require(not overlap, "data.synthetic.test_seeds", f"must be disjoint from train_seeds, both contain {overlap}")
+    overlap = overlapping_seeds(synthetic)
+    _require(not overlap, "data.synthetic.test_seeds",
+             f"train_seeds, val_seeds and test_seeds must be disjoint, seeds in more than one: {overlap}")
     _require(
         _is_8k_plus_1(prepare.frames_per_clip),
         "data.prepare.frames_per_clip",

@@ -18,6 +18,9 @@ class SyntheticConfig:
     root: str = "data/synthetic"
     train_seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3])
     test_seeds: list[int] = field(default_factory=lambda: [100, 101])  # disjoint from train_seeds
+    # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
+    # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
+    val_seeds: list[int] = field(default_factory=lambda: [50, 51])
     num_views: int = 32
     height: int = 48
     width: int = 72
@@ -31,6 +34,22 @@ class SyntheticConfig:
     gaussians_per_unit_area: float = 250.0  # density of surface Gaussians on the textured shapes
     init_points: int = 1500  # SfM-like points written to points3D (subsampled Gaussian centres)
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+SPLITS = ("train", "val", "test")
+
+
+def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
+    """The scene seeds of the ``"train"``, ``"val"`` or ``"test"`` split."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return list({"train": cfg.train_seeds, "val": cfg.val_seeds, "test": cfg.test_seeds}[split])
+
+
+def overlapping_seeds(cfg: SyntheticConfig) -> list[int]:
+    """Seeds that appear in more than one split (the splits must be disjoint)."""
+    seen = [seed for split in SPLITS for seed in set(split_seeds(cfg, split))]
+    return sorted({seed for seed in seen if seen.count(seed) > 1})
 
 
 @dataclass
@@ -59,7 +78,8 @@ class PrepareConfig:
 
     cache_dir: str = "data/cache"
     # Synthetic benchmark only: which seed list to prepare. "test" builds a held-out cache that no stage
-    # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``).
+    # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``). "val" builds the
+    # validation cache that embedded settings are chosen on.
     split: str = "train"
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])

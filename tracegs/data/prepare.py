@@ -34,7 +34,7 @@ from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.console import PlainProgress
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
-from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import SPLITS, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, make_split, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -122,8 +122,8 @@ def validate_config(cfg: PrepareConfig) -> None:
         raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
     if not cfg.student_views:
         raise PrepareError("prepare.student_views is empty")
-    if cfg.split not in ("train", "test"):
-        raise PrepareError(f"prepare.split={cfg.split!r} must be 'train' or 'test'")
+    if cfg.split not in SPLITS:
+        raise PrepareError(f"prepare.split={cfg.split!r} must be one of {', '.join(SPLITS)}")
 
 
 def shard_scenes(names: list[str], shard_index: int, num_shards: int) -> list[str]:
@@ -507,7 +507,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
 def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Backbone,
                  synthetic: SyntheticConfig | None, progress: bool) -> Path:
     if synthetic is not None:
-        generate_benchmark(synthetic, progress=progress)
+        generate_benchmark(synthetic, splits=(prepare.split,), progress=progress)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
         names = list_scenes(source, "train")

@@ -22,7 +22,7 @@ from PIL import Image
 from rich.progress import Progress
 
 from tracegs.data.colmap import Scene, write_colmap_model
-from tracegs.data.config import SyntheticConfig
+from tracegs.data.config import SyntheticConfig, overlapping_seeds, split_seeds
 from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 from tracegs.splat.gaussians import NUM_SH_REST, SH_C0, GaussianModel, rgb_to_sh_dc
@@ -43,10 +43,8 @@ def scene_name(seed: int) -> str:
 
 
 def benchmark_scene_names(cfg: SyntheticConfig, split: str) -> list[str]:
-    """Scene names of the ``"train"`` or ``"test"`` seeds."""
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
-    return [scene_name(s) for s in (cfg.train_seeds if split == "train" else cfg.test_seeds)]
+    """Scene names of one split's seeds."""
+    return [scene_name(s) for s in split_seeds(cfg, split)]
 
 
 def load_texture(name: str, rng: np.random.Generator) -> np.ndarray:
@@ -308,12 +306,13 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
     return target
 
 
-def generate_benchmark(cfg: SyntheticConfig, force: bool = False, progress: bool = True) -> list[Path]:
-    """Write every train and test scene of the benchmark (deterministic by seed) under ``cfg.root``."""
-    overlap = set(cfg.train_seeds) & set(cfg.test_seeds)
+def generate_benchmark(cfg: SyntheticConfig, splits: tuple[str, ...] = ("train", "test"), force: bool = False,
+                       progress: bool = True) -> list[Path]:
+    """Write the scenes of ``splits`` (deterministic by seed) under ``cfg.root``."""
+    overlap = overlapping_seeds(cfg)
     if overlap:
-        raise ValueError(f"synthetic.train_seeds and synthetic.test_seeds overlap: {sorted(overlap)}")
-    seeds = list(cfg.train_seeds) + list(cfg.test_seeds)
+        raise ValueError(f"synthetic.train_seeds, val_seeds and test_seeds overlap: {overlap}")
+    seeds = [seed for split in splits for seed in split_seeds(cfg, split)]
     root = Path(cfg.root)
     if root.is_dir():  # half-assembled scenes of a killed run (generate_scene builds in ".<name>.*")
         for stale in root.glob(".scene_*"):

@@ -20,7 +20,7 @@ class SyntheticConfig:
     test_seeds: list[int] = field(default_factory=lambda: [100, 101])  # disjoint from train_seeds
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
     # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
-    val_seeds: list[int] = field(default_factory=lambda: [50, 51])
+    val_seeds: list[int] = field(default_factory=lambda: [50, 51, 52])
     num_views: int = 32
     height: int = 48
     width: int = 72

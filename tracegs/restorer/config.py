@@ -49,7 +49,7 @@ class TransformerConfig:
     prediction: str = "velocity"
     clean_min_time: float = 0.05
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
-    dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (peft keeps LoRA factors in float32)
+    dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
     gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
 
 

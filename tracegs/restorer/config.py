@@ -125,6 +125,15 @@ class ScheduleConfig:
 
 @dataclass
 class SamplerConfig:
+    """Deployment sampling, and the Stage-2 rollout, which is the same sampler (training/stage2.py).
+
+    ``guidance_scale`` is the one classifier-free guidance value of both: deployment restores with it, and
+    Stage 2 rolls the student out, and queries teacher and student, under it. 1 = no guidance (one restorer
+    evaluation per state). Any other value costs a second, unconditional evaluation per state: twice the
+    compute at deployment, and in Stage 2 twice the student and teacher compute and twice the student
+    activation memory per visited state. The paper states no value; CogVideoX's pipelines use 6.
+    """
+
     guidance_scale: float = 1.0
     seed: int = 0
     autocast_bf16: bool = True  # only takes effect on CUDA

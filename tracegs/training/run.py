@@ -83,6 +83,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         memory_mode=stage.memory_mode,
         seed=stage.seed,
         lora=cfg.backbone.lora,
+        guidance_scale=cfg.backbone.sampler.guidance_scale,
     )
 
 

@@ -97,7 +97,8 @@ class TextEncoderConfig:
     dim: int = 64
     max_length: int = 8
     pretrained_path: str | None = None
-    # The T5 tokenizer's directory; None = ``pretrained_path`` (CogVideoX keeps it apart, in ``tokenizer/``).
+    # The T5 tokenizer's directory; None = CogVideoX's layout, ``tokenizer/`` beside ``pretrained_path``
+    # (``text_encoder/``), or ``pretrained_path`` itself if there is no such folder (a plain T5 checkpoint).
     tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
     seed: int = 0

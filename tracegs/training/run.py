@@ -197,7 +197,7 @@ def train_stage(cfg) -> Path:
         cfg.backbone.transformer.pretrained_path = cfg.stage.base_weights
     if cfg.stage.batch_size is not None:
         cfg.data.batch_size = cfg.stage.batch_size
-    backbone = build_backbone(cfg.backbone)
+    backbone = build_backbone(cfg.backbone, encoders=False)  # the cache holds every encoder's output
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     trainer = build_trainer(cfg, output_dir)

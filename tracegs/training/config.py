@@ -130,6 +130,18 @@ class ClusterResources:
 
 
 @dataclass
+class FsdpConfig:
+    """FSDP settings, read when ``trainer.strategy`` is "fsdp" (tracegs/training/strategy.py)."""
+
+    # Module classes sharded as one FSDP unit each (the transformer block at paper scale).
+    wrap_modules: list[str] = field(default_factory=lambda: ["ReferenceGuidedBlock"])
+    # Recompute each wrapped block's activations in backward (replaces diffusers' gradient checkpointing).
+    activation_checkpointing: bool = True
+    # torch's ShardingStrategy name: FULL_SHARD, SHARD_GRAD_OP, HYBRID_SHARD, NO_SHARD.
+    sharding_strategy: str = "FULL_SHARD"
+
+
+@dataclass
 class TrainerConfig:
     """Arguments forwarded to ``lightning.Trainer`` (paper scale: accelerator gpu, bf16-mixed, DDP)."""
 
@@ -152,6 +164,7 @@ class TrainerConfig:
     # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints and requeues.
     slurm_requeue_signal: str = "SIGUSR2"
     cluster: ClusterResources = field(default_factory=ClusterResources)
+    fsdp: FsdpConfig = field(default_factory=FsdpConfig)
 
 
 @dataclass

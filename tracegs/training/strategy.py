@@ -25,10 +25,12 @@ def block_classes(cfg: FsdpConfig) -> set[type[nn.Module]]:
     return {WRAPPABLE[name] for name in cfg.wrap_modules}
 
 
-def lora_factors(model: nn.Module) -> set[int]:
-    """ids of every LoRA factor module (peft keeps them in ``lora_A`` / ``lora_B`` ModuleDicts per adapter)."""
-    return {id(factor) for module in model.modules() for name in ("lora_A", "lora_B")
-            if isinstance(getattr(module, name, None), nn.ModuleDict) for factor in getattr(module, name).values()}
+def lora_factors(model: nn.Module, adapter: str | None = None) -> list[nn.Module]:
+    """Every LoRA factor module (of ``adapter``, or of all): peft keeps them in ``lora_A`` / ``lora_B``
+    ModuleDicts keyed by adapter name."""
+    return [factor for module in model.modules() for name in ("lora_A", "lora_B")
+            if isinstance(getattr(module, name, None), nn.ModuleDict)
+            for key, factor in getattr(module, name).items() if adapter in (None, key)]
 
 
 def build_strategy(cfg: TrainerConfig, model: nn.Module):
@@ -40,7 +42,7 @@ def build_strategy(cfg: TrainerConfig, model: nn.Module):
     from torch.distributed.fsdp.wrap import CustomPolicy
 
     blocks = tuple(block_classes(cfg.fsdp))
-    factors = lora_factors(model)
+    factors = {id(factor) for factor in lora_factors(model)}
     return FSDPStrategy(
         auto_wrap_policy=CustomPolicy(lambda module: isinstance(module, blocks) or id(module) in factors),
         activation_checkpointing_policy=set(blocks) if cfg.fsdp.activation_checkpointing else None,

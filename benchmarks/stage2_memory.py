@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
-import os
 import sys
 import tempfile
 from pathlib import Path
 
 import lightning as L
-from stage2 import MMAP_THRESHOLD, _StepProbe
+from stage2 import _StepProbe, in_fresh_process, random_batch
 
 MODES = ("retain", "stepwise")
 MIB = 2**20
@@ -50,24 +48,11 @@ def compose_experiment(scale: str):
     return OmegaConf.to_object(cfg.backbone), cfg.trainer.precision
 
 
-def _batch(backbone, batch_size: int, device: str) -> dict:
-    import torch
-
+def _batch(backbone, batch_size: int) -> dict:
     t = backbone.transformer
     frames = (t.sample_frames - 1) // t.temporal_compression_ratio + 1
-    latent = (batch_size, frames, t.latent_channels, t.sample_height, t.sample_width)
-    size = backbone.reference_encoder.image_size
-    refs = 2 * (size // 14) ** 2  # two reference views of DINOv2 / VGGT patch-14 tokens
-    g = torch.Generator().manual_seed(0)
-    batch = {
-        "student_cond": torch.randn(latent, generator=g),
-        "teacher_cond": torch.randn(latent, generator=g),
-        "target": torch.randn(latent, generator=g),
-        "ref_2d": torch.randn(batch_size, refs, t.ref_2d_dim, generator=g),
-        "ref_3d": torch.randn(batch_size, refs, t.ref_3d_dim, generator=g),
-        "text": torch.randn(batch_size, t.max_text_seq_length, t.text_embed_dim, generator=g),
-    }
-    return {k: v.to(device) for k, v in batch.items()}
+    refs = 2 * (backbone.reference_encoder.image_size // 14) ** 2  # two views of DINOv2 / VGGT patch-14 tokens
+    return random_batch(t, frames, refs, batch_size, seed=0)
 
 
 def _module(backbone, mode: str, rollout: int, adapter: Path, device: str):
@@ -106,7 +91,7 @@ def _step_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter
     trainer = L.Trainer(accelerator="gpu" if cuda else "cpu", devices=1, precision=precision, max_steps=2,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, callbacks=[probe])
-    trainer.fit(module, train_dataloaders=DataLoader([_batch(backbone, batch_size, "cpu")], batch_size=None))
+    trainer.fit(module, train_dataloaders=DataLoader([_batch(backbone, batch_size)], batch_size=None))
     if cuda:
         del module, trainer
         torch.cuda.empty_cache()
@@ -139,16 +124,7 @@ def _worker(scale, mode, rollout, batch_size, adapter, queue) -> None:
 
 def _cpu_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter: Path) -> float:
     """One fresh process per mode; tensors above 64 KiB are their own mappings, so RSS follows live tensors."""
-    os.environ["MALLOC_MMAP_THRESHOLD_"] = MMAP_THRESHOLD
-    context = mp.get_context("spawn")
-    queue = context.Queue()
-    worker = context.Process(target=_worker, args=(scale, mode, rollout, batch_size, str(adapter), queue))
-    worker.start()
-    peak = queue.get()
-    worker.join()
-    if worker.exitcode != 0:
-        sys.exit(f"measurement of {mode} failed (exit code {worker.exitcode})")
-    return peak
+    return in_fresh_process(_worker, (scale, mode, rollout, batch_size, str(adapter)), mode, mmap_threshold=True)
 
 
 def _make_adapter(backbone, path: Path) -> None:

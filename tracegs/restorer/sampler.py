@@ -51,20 +51,6 @@ def guided_prediction(
                           retrieval=retrieval)
 
 
-def guided_velocity(
-    model: ReferenceGuidedTransformer,
-    z: torch.Tensor,
-    cond: torch.Tensor,
-    t: torch.Tensor,
-    text: torch.Tensor,
-    ref_2d: torch.Tensor,
-    ref_3d: torch.Tensor,
-    guidance_scale: float,
-) -> torch.Tensor:
-    """The guided velocity alone (see ``guided_prediction``)."""
-    return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
-
-
 def initial_noise(shape: torch.Size, generator: torch.Generator, device: torch.device | str) -> torch.Tensor:
     """z_{t_N} ~ N(0, I), drawn on the CPU from ``generator`` so a seed gives the same states on any device."""
     return torch.randn(shape, generator=generator, dtype=torch.float32).to(device)
@@ -127,7 +113,7 @@ def sample(
 
     def velocity(_: int, z: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         with autocast:
-            return guided_velocity(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale)
+            return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
 
     states = solve(schedule, grid, initial_noise(cond.shape, generator, cond.device), velocity, progress,
                    keep_states=return_states)

@@ -76,10 +76,17 @@ def _build(mode: str, rollout: int, batch_size: int, adapter: Path):
         deploy_steps=max(cfg.schedule.deploy_steps, rollout),
         memory_mode=mode,
     )
-    g = torch.Generator().manual_seed(1)
-    latent = (batch_size, tc.sample_frames, tc.latent_channels, tc.sample_height, tc.sample_width)
     refs = 2 * (6 * 9)  # two reference views of 48x72 pixels in 8x8 patches (embedded encoder)
-    batch = {
+    return module, random_batch(tc, tc.sample_frames, refs, batch_size, seed=1)
+
+
+def random_batch(tc, frames: int, refs: int, batch_size: int, seed: int) -> dict:
+    """Random Stage-2 inputs at a transformer config's shapes: ``frames`` latent frames, ``refs`` reference tokens."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    latent = (batch_size, frames, tc.latent_channels, tc.sample_height, tc.sample_width)
+    return {
         "student_cond": torch.randn(latent, generator=g),
         "teacher_cond": torch.randn(latent, generator=g),
         "target": torch.randn(latent, generator=g),
@@ -87,7 +94,6 @@ def _build(mode: str, rollout: int, batch_size: int, adapter: Path):
         "ref_3d": torch.randn(batch_size, refs, tc.ref_3d_dim, generator=g),
         "text": torch.randn(batch_size, tc.max_text_seq_length, tc.text_embed_dim, generator=g),
     }
-    return module, batch
 
 
 class _StepProbe(L.Callback):
@@ -179,19 +185,26 @@ def _make_adapter(path: Path) -> None:
     save_adapter(transformer, "aligned", path)
 
 
-def _run_worker(context, mode: str, rollout: int, args, adapter: Path, mmap_threshold: bool) -> dict:
-    """One fresh process measuring (mode, N); glibc reads MALLOC_MMAP_THRESHOLD_ when that process starts."""
+def _run_worker(mode: str, rollout: int, args, adapter: Path, mmap_threshold: bool) -> dict:
+    return in_fresh_process(_measure, (mode, rollout, args.batch, args.steps, str(adapter)), f"{mode} N={rollout}",
+                            mmap_threshold)
+
+
+def in_fresh_process(target, args: tuple, label: str, mmap_threshold: bool):
+    """``target(*args, queue)`` in a fresh spawned process, returning what it puts on the queue; glibc reads
+    MALLOC_MMAP_THRESHOLD_ when that process starts."""
     if mmap_threshold:
         os.environ["MALLOC_MMAP_THRESHOLD_"] = MMAP_THRESHOLD
     else:
         os.environ.pop("MALLOC_MMAP_THRESHOLD_", None)
+    context = mp.get_context("spawn")
     queue = context.Queue()
-    worker = context.Process(target=_measure, args=(mode, rollout, args.batch, args.steps, str(adapter), queue))
+    worker = context.Process(target=target, args=(*args, queue))
     worker.start()
     result = queue.get()
     worker.join()
     if worker.exitcode != 0:
-        sys.exit(f"measurement of {mode} N={rollout} failed (exit code {worker.exitcode})")
+        sys.exit(f"measurement of {label} failed (exit code {worker.exitcode})")
     return result
 
 
@@ -203,15 +216,14 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if not Path("/proc/self/clear_refs").exists():
         sys.exit("benchmarks/stage2.py needs Linux /proc/self/clear_refs to reset the peak resident set size")
-    context = mp.get_context("spawn")
     results: dict[tuple[str, int], dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
         adapter = Path(tmp) / "stage1_adapter.safetensors"
         _make_adapter(adapter)
         for rollout in args.rollouts:
             for mode in ("retain", "stepwise"):
-                memory = _run_worker(context, mode, rollout, args, adapter, mmap_threshold=True)
-                timing = _run_worker(context, mode, rollout, args, adapter, mmap_threshold=False)
+                memory = _run_worker(mode, rollout, args, adapter, mmap_threshold=True)
+                timing = _run_worker(mode, rollout, args, adapter, mmap_threshold=False)
                 results[(mode, rollout)] = {**timing, "peak_mib": memory["peak_mib"]}
 
     print(f"Stage-2 step, embedded tiny restorer, batch {args.batch}, CPU 1 thread, median of {args.steps} steps "

@@ -20,9 +20,13 @@ def backbone_config(root):
     return OmegaConf.to_object(rehearsal_config(root).backbone)
 
 
-def test_t5_tokenizer_is_read_from_the_cogvideox_tokenizer_folder(rehearsal_root):
-    """CogVideoX keeps the tokenizer in ``tokenizer/`` beside ``text_encoder/`` (no tokenizer files there)."""
+@pytest.mark.parametrize("explicit", [True, False])
+def test_t5_tokenizer_is_read_from_the_cogvideox_tokenizer_folder(rehearsal_root, explicit):
+    """CogVideoX keeps the tokenizer in ``tokenizer/`` beside ``text_encoder/`` (no tokenizer files there);
+    without ``tokenizer_path`` that folder is where it is read from."""
     cfg = backbone_config(rehearsal_root).text_encoder
+    if not explicit:
+        cfg.tokenizer_path = None
     encoder = T5TextEncoder(cfg)
     tokens = encoder.encode(["a photo of a scene", "a garden"])
     assert tokens.shape == (2, cfg.max_length, cfg.dim)
@@ -46,12 +50,25 @@ def test_paper_backbone_loads_every_component(rehearsal_root, vggt_double):
     assert ref_3d.shape == (1, tokens, cfg.transformer.ref_3d_dim)
 
 
-def test_reference_width_is_checked_against_the_transformer(rehearsal_root, vggt_double):
+@pytest.mark.parametrize("field", ["ref_2d_dim", "ref_3d_dim"])
+def test_reference_widths_are_checked_against_the_transformer(rehearsal_root, vggt_double, field):
     cfg = backbone_config(rehearsal_root)
-    cfg.transformer.ref_2d_dim *= 2
+    setattr(cfg.transformer, field, 2 * getattr(cfg.transformer, field))
     cfg.transformer.pretrained_path = None
-    with pytest.raises(ValueError, match="transformer.ref_2d_dim"):
+    with pytest.raises(ValueError, match=f"transformer.{field}"):
         build_backbone(cfg)
+
+
+def test_training_backbone_builds_no_encoder(rehearsal_root, tmp_path):
+    """A training rank needs neither VGGT (not even installed here), DINOv2, T5 nor the VAE: the cache holds
+    their outputs. Their folders do not even have to exist."""
+    cfg = backbone_config(rehearsal_root)
+    for section, field in (("codec", "pretrained_path"), ("text_encoder", "pretrained_path"),
+                           ("reference_encoder", "dino_path"), ("reference_encoder", "vggt_path")):
+        setattr(getattr(cfg, section), field, str(tmp_path / "absent"))
+    backbone = build_backbone(cfg, encoders=False)
+    assert backbone.codec is None and backbone.text_encoder is None and backbone.reference_encoder is None
+    assert next(backbone.transformer.parameters()).dtype == torch.bfloat16
 
 
 def test_missing_vggt_names_the_package(rehearsal_root):

@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from tracegs.errors import InputFileError
+from tracegs.io import read_safetensors, save_safetensors_atomic
 from tracegs.restorer import adapters
 
 
@@ -107,3 +108,35 @@ def test_load_adapter_rejects_mismatched_file(tmp_path, backbone):
         adapters.load_adapter(model, "self_attn_only", path, trainable=True)
     with pytest.raises(InputFileError, match="absent.safetensors: no such file"):
         adapters.load_adapter(model, "x", tmp_path / "absent.safetensors", trainable=True)
+
+
+def test_adapters_on_a_bf16_base_are_fp32_saved_and_loaded_as_fp32(tmp_path, backbone):
+    model = backbone.transformer.to(torch.bfloat16)
+    adapters.add_adapter(model, "student", backbone.cfg.lora)
+    adapters.clone_adapter(model, "student", "teacher", trainable=False)
+    for name in ("student", "teacher"):
+        assert {p.dtype for p in adapters.adapter_parameters(model, name)} == {torch.float32}
+    _randomise(model, "student")
+    with torch.no_grad():  # values bf16 cannot hold: a downcast anywhere on the way would change them
+        for param in adapters.adapter_parameters(model, "student"):
+            param.add_(1e-5)
+    expected = {n: p.detach().clone() for n, p in model.named_parameters() if ".student." in n}
+    path = tmp_path / "student.safetensors"
+    adapters.save_adapter(model, "student", path)
+    assert {t.dtype for t in read_safetensors(path, "")[0].values()} == {torch.float32}
+
+    model.delete_adapters("student")
+    adapters.load_adapter(model, "student", path, trainable=True)
+    for name, param in model.named_parameters():
+        if ".student." in name:
+            assert param.dtype == torch.float32 and torch.equal(param.detach(), expected[name])
+
+    # a bf16 file (e.g. written by another tool) is upcast exactly into float32 factors
+    bf16_path = tmp_path / "bf16.safetensors"
+    tensors, metadata = read_safetensors(path, "")
+    save_safetensors_atomic({k: v.bfloat16() for k, v in tensors.items()}, bf16_path, metadata=metadata)
+    adapters.load_adapter(model, "from_bf16", bf16_path, trainable=False)
+    for name, param in model.named_parameters():
+        if ".from_bf16." in name:
+            original = expected[name.replace(".from_bf16.", ".student.")]
+            assert param.dtype == torch.float32 and torch.equal(param.detach(), original.bfloat16().float())

@@ -226,3 +226,18 @@ def test_resuming_with_another_lora_rank_names_both_shapes(stages):
     with pytest.raises(ConfigMismatchError, match=r"stage.resume_from: .*lora_A.* \(2, 16\) in the checkpoint, "
                                                   r"\(4, 16\) now; was backbone.lora.rank changed"):
         train_stage(changed)
+
+
+def test_training_builds_no_encoder(stages):
+    """The cache holds latents, reference tokens and text embeddings: a training run neither loads the VAE,
+    DINOv2, VGGT or T5 nor needs their folders (here configured at paper kinds, pointing nowhere)."""
+    tmp, cache, baseline, stage1 = stages
+    cfg = config(tmp, cache, "stage2", 1, "no_encoders", base_weights=str(baseline), init_adapter=str(stage1))
+    absent = str(tmp / "absent")
+    cfg.backbone = dataclasses.replace(
+        BACKBONE,
+        codec=CodecConfig(kind="cogvideox", latent_channels=CHANNELS, pretrained_path=absent),
+        reference_encoder=ReferenceEncoderConfig(kind="dinov2_vggt", dino_path=absent, vggt_path=absent),
+        text_encoder=dataclasses.replace(BACKBONE.text_encoder, kind="t5", pretrained_path=absent),
+    )
+    assert (train_stage(cfg) / "adapter_model.safetensors").is_file()

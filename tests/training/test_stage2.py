@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from training_support import TINY_LORA, fit_steps, make_batch, make_schedule, make_transformer
 
 from tracegs.restorer.adapters import active_adapter
+from tracegs.restorer.sampler import sample, using_adapter
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.stage2 import STUDENT, TEACHER, Stage2DistillationModule
 
@@ -28,13 +30,15 @@ def record_queries(module):
     calls = []
 
     def hook(model, args, kwargs, output):
-        noisy, cond, timestep = args[:3]
+        named = dict(zip(("noisy", "cond", "timestep", "text"), args)) | kwargs
+        noisy, cond, timestep = named["noisy"], named["cond"], named["timestep"]
         calls.append(
             {
                 "role": active_adapter(model),
                 "noisy": noisy.detach().clone(),
                 "cond": cond.detach().clone(),
                 "t": timestep.detach().clone(),
+                "text": named["text"].detach().clone(),
                 "grad": torch.is_grad_enabled(),
                 "retrieval": kwargs.get("return_retrieval", False),
                 "velocity": output.velocity.detach().clone(),
@@ -173,3 +177,48 @@ def test_interrupted_and_resumed_equals_uninterrupted(stage1_adapter, tmp_path):
     fit_steps(resumed, batch, steps=5, ckpt_path=checkpoint)
     for (name, a), b in zip(full.transformer.named_parameters(), resumed.transformer.parameters()):
         assert torch.equal(a, b), name
+
+
+@pytest.mark.parametrize("guidance", [1.0, 4.0])
+@pytest.mark.parametrize("rollout_steps", [N, M])
+def test_rollout_visits_the_deployment_samplers_states(stage1_adapter, guidance, rollout_steps):
+    """Same noise, grid, guidance and adapter: the Stage-2 rollout is the deployment sampler's trajectory, and
+    the teacher is queried there under the same guidance rule."""
+    module = make_module(stage1_adapter, guidance_scale=guidance, rollout_steps=rollout_steps)
+    batch = make_batch()
+    batch_size = batch["target"].shape[0]
+
+    def deployed(grid, generator, scale=guidance):
+        with using_adapter(module.transformer, STUDENT):
+            return sample(module.transformer, module.schedule, batch["student_cond"], batch["ref_2d"], batch["ref_3d"],
+                          batch["text"], M, scale, generator, return_states=True, grid=grid)[1]
+
+    generator = module.step_generator()  # the first training step's generator: grid draw, then the noise
+    grid = module.training_grid(generator)
+    if rollout_steps == M:
+        assert torch.equal(grid, module.schedule.timesteps(M))  # N = M: the full deployment schedule
+    expected = deployed(grid, generator)
+    generator = module.step_generator()
+    rolled = module.rollout(batch, module.training_grid(generator), generator)
+    assert len(rolled) == len(expected) == rollout_steps + 1
+    assert all(torch.equal(a, b) for a, b in zip(rolled, expected))
+    if guidance != 1.0:  # an unguided rollout would leave the deployed trajectory after its first step
+        generator = module.step_generator()
+        unguided = deployed(module.training_grid(generator), generator, scale=1.0)
+        assert not torch.allclose(unguided[1], expected[1], atol=1e-4)
+
+    # the training step itself (Lightning, losses, backward) queries both roles at exactly those states
+    calls, handle = record_queries(module)
+    fit_steps(module, batch, steps=1)
+    handle.remove()
+    teacher, student = calls[0::2], calls[1::2]
+    assert len(student) == rollout_steps
+    doubled = 1 if guidance == 1.0 else 2  # guidance: one doubled batch, conditional then unconditional
+    for i, (t_call, s_call) in enumerate(zip(teacher, student)):
+        assert t_call["role"] == TEACHER and s_call["role"] == STUDENT
+        for call in (t_call, s_call):
+            assert call["noisy"].shape[0] == doubled * batch_size
+            assert all(torch.equal(half, expected[i]) for half in call["noisy"].chunk(doubled))
+            assert torch.equal(call["text"][:batch_size], batch["text"])
+            if doubled == 2:
+                assert not call["text"][batch_size:].any()  # the all-zero unconditional text

@@ -65,10 +65,12 @@ def fixed_batch_loader(batch: dict) -> DataLoader:
     return DataLoader([batch], batch_size=None)
 
 
-def fit_steps(module: L.LightningModule, batch: dict, steps: int, ckpt_path=None, root=None) -> L.Trainer:
+def fit_steps(module: L.LightningModule, batch: dict, steps: int, ckpt_path=None, root=None,
+              precision: str = "32-true") -> L.Trainer:
     trainer = L.Trainer(
         accelerator="cpu",
         devices=1,
+        precision=precision,
         max_steps=steps,
         logger=False,
         enable_checkpointing=False,

@@ -1,7 +1,7 @@
 """Cross-field rules that the typed schema cannot express.
 
 Types and key names are checked by OmegaConf when Hydra composes the config; the rules here relate
-several fields (a privileged teacher must see more views than the student, N <= M, 8k+1 clips, ...).
+several fields (a teacher sees more views than every student set or is one, N <= M, 8k+1 clips, ...).
 Every error names the offending field so a sweep with a bad point fails with a one-line message.
 """
 
@@ -120,19 +120,14 @@ def _validate_training(cfg: DictConfig) -> None:
         f"{_views_label(teacher.views)} views are not prepared; prepared sets: "
         f"{sorted(_views_label(v) for v in available)}",
     )
-    if teacher.privileged:
-        _require(
-            teacher.views is None or teacher.views > student_max,
-            "teacher.views",
-            f"a privileged teacher must see more views than the student ({_views_label(teacher.views)} teacher "
-            f"views vs up to {student_max} student views); use teacher.privileged=false for variant B",
-        )
-    else:
-        _require(
-            teacher.views is not None and teacher.views <= student_max,
-            "teacher.privileged",
-            f"a teacher with {_views_label(teacher.views)} views is privileged; set teacher.privileged=true",
-        )
+    # Privileged or not is the view count itself: above every student set (C, D, E, F) or a student set
+    # (variant B). A count in between would be privileged for some student K and not for others.
+    _require(
+        teacher.views is None or teacher.views > student_max or teacher.views in cfg.data.datamodule.student_views,
+        "teacher.views",
+        f"{_views_label(teacher.views)} teacher views are neither above every student set (up to {student_max}, "
+        "privileged) nor a student set (variant B)",
+    )
     deploy_steps = cfg.backbone.schedule.deploy_steps
     _require(
         1 <= cfg.stage.rollout_steps <= deploy_steps,

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
-from tracegs.restorer.sampler import RestorationPipeline, guided_velocity, sample, using_adapter
+from tracegs.restorer.sampler import RestorationPipeline, guided_prediction, sample, using_adapter
 
 
 @torch.no_grad()
@@ -44,7 +44,7 @@ def per_step_psnr(pipeline: RestorationPipeline, frames: Tensor, ref_images: Ten
             t_batch = t.expand(z.shape[0]).to(device)
             # Re-evaluating v at the visited state (one extra forward per step) gives the exact x0 the
             # solver is heading for; the sampler itself only keeps the states.
-            v = guided_velocity(bb.transformer, z, cond, t_batch, text, ref_2d, ref_3d, guidance)
+            v = guided_prediction(bb.transformer, z, cond, t_batch, text, ref_2d, ref_3d, guidance).velocity
             clean = bb.codec.decode(bb.schedule.predict_clean(z, v.float(), t_batch)).clamp(0, 1)
             psnr = peak_signal_noise_ratio(clean[:, 1:-1].flatten(0, 1), target, data_range=1.0,
                                            reduction="none", dim=(1, 2, 3))

@@ -4,6 +4,11 @@ peft does the LoRA work (injection through diffusers' ``PeftAdapterMixin``, stat
 bookkeeping of which adapters are trainable: peft's ``set_adapter(name)`` turns ``requires_grad`` on for
 ``name`` and off for every other adapter, which would silently unfreeze a frozen
 teacher or freeze the student. ``activate`` switches the active adapter and then restores the recorded flags.
+
+LoRA factors are always float32, whatever the base dtype: diffusers' ``add_adapter`` gives new factors the
+dtype of the layer they adapt, so on the paper's bf16 base they (and AdamW's state) would be bf16 and an lr
+1e-5 step, far below bf16's ~4e-3 relative resolution, would mostly round away. Saved adapters therefore
+hold float32, and loading copies into float32 factors (a bf16 file is upcast exactly, nothing is downcast).
 """
 
 from __future__ import annotations
@@ -62,6 +67,10 @@ def _inject(model: torch.nn.Module, config: PeftLoraConfig, name: str) -> None:
         # peft warns on every adapter after the first; several named adapters are the point here.
         warnings.filterwarnings("ignore", message="Already found a `peft_config`")
         model.add_adapter(config, adapter_name=name)
+    for _, param in _lora_parameters(model, name):
+        if param.dtype != torch.float32:
+            # ``.data`` keeps the Parameter object (peft's layers and any optimiser hold references to it).
+            param.data = param.data.float()
 
 
 def _trainable_flags(model: torch.nn.Module) -> dict[str, bool]:

@@ -99,19 +99,20 @@ class Backbone:
     """Runtime bundle of the frozen restorer: v_theta plus its frozen codec / encoders and the schedule."""
 
     transformer: ReferenceGuidedTransformer
-    codec: Codec
-    reference_encoder: object
-    text_encoder: TextEncoder
+    codec: Codec | None  # None: built for training, which reads latents and tokens from the cache
+    reference_encoder: object | None
+    text_encoder: TextEncoder | None
     schedule: NoiseSchedule
     cfg: BackboneConfig
 
 
-def _check_compatible(cfg: BackboneConfig, codec: Codec, reference_encoder: object) -> None:
+def _check_compatible(cfg: BackboneConfig, codec: Codec | None, reference_encoder: object | None) -> None:
     t = cfg.transformer
     problems = []
-    if codec.latent_channels != t.latent_channels:
+    channels = cfg.codec.latent_channels if codec is None else codec.latent_channels
+    if channels != t.latent_channels:
         problems.append(
-            f"codec latent channels {codec.latent_channels} != transformer.latent_channels {t.latent_channels}"
+            f"codec latent channels {channels} != transformer.latent_channels {t.latent_channels}"
         )
     if cfg.text_encoder.dim != t.text_embed_dim:
         problems.append(
@@ -131,10 +132,15 @@ def _check_compatible(cfg: BackboneConfig, codec: Codec, reference_encoder: obje
         raise ValueError(f"backbone '{cfg.name}' is inconsistent: " + "; ".join(problems))
 
 
-def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu") -> Backbone:
-    """Frozen backbone theta (no adapters yet: see ``adapters.add_adapter`` / ``load_adapter``)."""
-    codec = build_codec(cfg.codec, device)
-    reference_encoder = build_reference_encoder(cfg.reference_encoder, device)
+def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu", encoders: bool = True) -> Backbone:
+    """Frozen backbone theta (no adapters yet: see ``adapters.add_adapter`` / ``load_adapter``).
+
+    ``encoders=False`` builds only the transformer and the schedule, what a training rank runs: the prepared
+    cache already holds the VAE latents, reference tokens and text embeddings, so the VAE, DINOv2, VGGT and
+    T5 (several GB per rank at paper scale) are neither loaded nor required to be installed.
+    """
+    codec = build_codec(cfg.codec, device) if encoders else None
+    reference_encoder = build_reference_encoder(cfg.reference_encoder, device) if encoders else None
     _check_compatible(cfg, codec, reference_encoder)
     dtype = getattr(torch, cfg.transformer.dtype, None)
     if not isinstance(dtype, torch.dtype):
@@ -152,7 +158,7 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu") -> B
         transformer=transformer,
         codec=codec,
         reference_encoder=reference_encoder,
-        text_encoder=build_text_encoder(cfg.text_encoder, device),
+        text_encoder=build_text_encoder(cfg.text_encoder, device) if encoders else None,
         schedule=build_schedule(cfg.schedule),
         cfg=cfg,
     )

@@ -49,7 +49,7 @@ class TransformerConfig:
     prediction: str = "velocity"
     clean_min_time: float = 0.05
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
-    dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (peft keeps LoRA factors in float32)
+    dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
     gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
 
 
@@ -97,7 +97,8 @@ class TextEncoderConfig:
     dim: int = 64
     max_length: int = 8
     pretrained_path: str | None = None
-    # The T5 tokenizer's directory; None = ``pretrained_path`` (CogVideoX keeps it apart, in ``tokenizer/``).
+    # The T5 tokenizer's directory; None = CogVideoX's layout, ``tokenizer/`` beside ``pretrained_path``
+    # (``text_encoder/``), or ``pretrained_path`` itself if there is no such folder (a plain T5 checkpoint).
     tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
     seed: int = 0
@@ -125,6 +126,15 @@ class ScheduleConfig:
 
 @dataclass
 class SamplerConfig:
+    """Deployment sampling, and the Stage-2 rollout, which is the same sampler (training/stage2.py).
+
+    ``guidance_scale`` is the one classifier-free guidance value of both: deployment restores with it, and
+    Stage 2 rolls the student out, and queries teacher and student, under it. 1 = no guidance (one restorer
+    evaluation per state). Any other value costs a second, unconditional evaluation per state: twice the
+    compute at deployment, and in Stage 2 twice the student and teacher compute and twice the student
+    activation memory per visited state. The paper states no value; CogVideoX's pipelines use 6.
+    """
+
     guidance_scale: float = 1.0
     seed: int = 0
     autocast_bf16: bool = True  # only takes effect on CUDA

@@ -8,8 +8,10 @@ embedding used for caption dropout and the unconditional branch of classifier-fr
 
 from __future__ import annotations
 
+import json
 import re
 import zlib
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -112,6 +114,11 @@ class VggtEncoder:
         path = require_local_dir(cfg.vggt_path, "reference_encoder.vggt_path")
         self.model = VGGT.from_pretrained(str(path)).to(device).eval().requires_grad_(False)
         self.cfg = cfg
+        # The aggregator concatenates frame- and global-attention tokens: 2 x embed_dim features. VGGT's hub
+        # config.json records embed_dim; without one the model is VGGT's default (1024, VGGT-1B).
+        config = path / "config.json"
+        embed_dim = json.loads(config.read_text()).get("embed_dim", 1024) if config.is_file() else 1024
+        self.dim = 2 * int(embed_dim)
 
     def to(self, device: torch.device | str) -> VggtEncoder:
         self.model.to(device)
@@ -135,7 +142,9 @@ class PretrainedReferenceEncoder:
     def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
         self.vggt = VggtEncoder(cfg, device)  # first: fail fast with the install hint
         self.dino = Dinov2Encoder(cfg, device)
-        self.dim_2d = self.dino.dim  # checked against transformer.ref_2d_dim when the backbone is built
+        # Both checked against transformer.ref_2d_dim / ref_3d_dim when the backbone is built.
+        self.dim_2d = self.dino.dim
+        self.dim_3d = self.vggt.dim
 
     def to(self, device: torch.device | str) -> PretrainedReferenceEncoder:
         self.vggt.to(device)
@@ -197,6 +206,15 @@ class EmbeddedTextEncoder(TextEncoder):
         return out
 
 
+def tokenizer_dir(cfg: TextEncoderConfig, encoder_dir: Path) -> Path:
+    """``text_encoder.tokenizer_path``, else CogVideoX's layout: ``tokenizer/`` beside ``text_encoder/``, or the
+    encoder's own folder when it holds the tokenizer files (a plain T5 checkpoint)."""
+    if cfg.tokenizer_path is not None:
+        return require_local_dir(cfg.tokenizer_path, "text_encoder.tokenizer_path")
+    sibling = encoder_dir.parent / "tokenizer"
+    return sibling if sibling.is_dir() else encoder_dir
+
+
 class T5TextEncoder(TextEncoder):
     """T5 encoder + tokenizer from a local directory, padded to ``max_length`` like CogVideoX's pipelines."""
 
@@ -205,10 +223,7 @@ class T5TextEncoder(TextEncoder):
 
         super().__init__(cfg)
         path = require_local_dir(cfg.pretrained_path, "text_encoder.pretrained_path")
-        if cfg.tokenizer_path is None:
-            self.tokenizer = AutoTokenizer.from_pretrained(path)
-        else:
-            self.tokenizer = AutoTokenizer.from_pretrained(require_local_dir(cfg.tokenizer_path, "text_encoder.tokenizer_path"))
+        self.tokenizer = AutoTokenizer.from_pretrained(tokenizer_dir(cfg, path))
         self.model = T5EncoderModel.from_pretrained(path).to(device).eval().requires_grad_(False)
         if self.model.config.d_model != cfg.dim:
             raise ValueError(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from rich.progress import track
@@ -11,10 +11,10 @@ from rich.progress import track
 from . import adapters
 from .build import Backbone
 from .schedules import NoiseSchedule
-from .transformer import ReferenceGuidedTransformer
+from .transformer import ReferenceGuidedTransformer, RestorerOutput
 
 
-def guided_velocity(
+def guided_prediction(
     model: ReferenceGuidedTransformer,
     z: torch.Tensor,
     cond: torch.Tensor,
@@ -23,11 +23,15 @@ def guided_velocity(
     ref_2d: torch.Tensor,
     ref_3d: torch.Tensor,
     guidance_scale: float,
-) -> torch.Tensor:
-    """Classifier-free guidance v_u + s (v_c - v_u), the unconditional branch using the all-zero text
-    embedding (supplement A.2). Scale 1 is exactly the conditional velocity, so that pass is skipped."""
+    return_retrieval: bool = False,
+) -> RestorerOutput:
+    """One restorer evaluation under classifier-free guidance: velocity v_u + s (v_c - v_u), the unconditional
+    branch using the all-zero text embedding (supplement A.2). Scale 1 is exactly the conditional velocity, so
+    that pass is skipped; otherwise both branches run as one doubled batch (twice the compute and activations).
+    The retrieval response (main paper Eq. 7) is the conditional branch's."""
     if guidance_scale == 1.0:
-        return model(noisy=z, cond=cond, timestep=t, text=text, ref_2d=ref_2d, ref_3d=ref_3d).velocity
+        return model(noisy=z, cond=cond, timestep=t, text=text, ref_2d=ref_2d, ref_3d=ref_3d,
+                     return_retrieval=return_retrieval)
 
     def twice(x: torch.Tensor) -> torch.Tensor:
         return torch.cat([x, x])
@@ -39,9 +43,45 @@ def guided_velocity(
         text=torch.cat([text, torch.zeros_like(text)]),
         ref_2d=twice(ref_2d),
         ref_3d=twice(ref_3d),
+        return_retrieval=return_retrieval,
     )
     conditional, unconditional = both.velocity.chunk(2)
-    return unconditional + guidance_scale * (conditional - unconditional)
+    retrieval = both.retrieval.chunk(2)[0] if both.retrieval is not None else None
+    return RestorerOutput(velocity=unconditional + guidance_scale * (conditional - unconditional),
+                          retrieval=retrieval)
+
+
+def initial_noise(shape: torch.Size, generator: torch.Generator, device: torch.device | str) -> torch.Tensor:
+    """z_{t_N} ~ N(0, I), drawn on the CPU from ``generator`` so a seed gives the same states on any device."""
+    return torch.randn(shape, generator=generator, dtype=torch.float32).to(device)
+
+
+def solve(
+    schedule: NoiseSchedule,
+    grid: torch.Tensor,
+    z: torch.Tensor,
+    velocity: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor],
+    progress: bool = False,
+    keep_states: bool = False,
+) -> list[torch.Tensor]:
+    """The reverse-diffusion loop shared by deployment and the Stage-2 rollout (main paper Eqs. 1 and 4).
+
+    From ``z`` at grid[0], for each step i: ``velocity(i, z_i, t_i)`` (t_i expanded to the batch) gives the
+    direction, and the detached solver transition T_i moves to grid[i + 1]. Returns the visited states
+    [z_{t_N}, ..., z_{t_0}] with ``keep_states``, else [z_{t_0}]. Deployment passes the guided velocity of one adapter; Stage 2 passes the
+    student's guided velocity and supervises it at each state on the way, so the rollout visits exactly the
+    states deployment visits for the same noise, grid, guidance and adapter.
+    """
+    batch, device = z.shape[0], z.device
+    states = [z]
+    pairs = list(zip(grid[:-1], grid[1:]))
+    for i, (t, t_next) in enumerate(track(pairs, description="restoring", disable=not progress)):
+        t_batch = t.expand(batch).to(device)
+        v = velocity(i, z, t_batch).detach().float()
+        z = schedule.step(z, v, t_batch, t_next.expand(batch).to(device)).detach()
+        if keep_states:
+            states.append(z)
+    return states if keep_states else [z]
 
 
 @torch.no_grad()
@@ -57,30 +97,27 @@ def sample(
     generator: torch.Generator,
     return_states: bool = False,
     progress: bool = False,
+    grid: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, list[torch.Tensor]]:
     """Run the M-step solver z_{t_M} ~ N(0, I) -> z_{t_0} conditioned on ``cond`` latents (B, f, C, h, w).
 
-    Noise is drawn on the CPU from ``generator`` so a seed gives the same result on any device. bf16 autocast
-    is used on CUDA. With ``return_states`` also returns the visited states [z_{t_M}, ..., z_{t_0}].
+    ``grid`` replaces the M-step deployment schedule (e.g. a Stage-2 training grid). bf16 autocast is used
+    on CUDA. With ``return_states`` also returns the visited states [z_{t_M}, ..., z_{t_0}].
     """
-    grid = schedule.timesteps(steps)
-    batch = cond.shape[0]
-    z = torch.randn(cond.shape, generator=generator, dtype=torch.float32).to(cond.device)
-    states = [z]
+    grid = schedule.timesteps(steps) if grid is None else grid
     autocast = (
         torch.autocast("cuda", dtype=torch.bfloat16)
         if cond.device.type == "cuda"
         else contextlib.nullcontext()
     )
-    pairs = list(zip(grid[:-1], grid[1:]))
-    for t, t_prev in track(pairs, description="restoring", disable=not progress):
-        t_batch = t.expand(batch).to(cond.device)
+
+    def velocity(_: int, z: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         with autocast:
-            v = guided_velocity(model, z, cond, t_batch, text, ref_2d, ref_3d, guidance_scale)
-        z = schedule.step(z, v.float(), t_batch, t_prev.expand(batch).to(cond.device))
-        if return_states:
-            states.append(z)
-    return (z, states) if return_states else z
+            return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
+
+    states = solve(schedule, grid, initial_noise(cond.shape, generator, cond.device), velocity, progress,
+                   keep_states=return_states)
+    return (states[-1], states) if return_states else states[-1]
 
 
 @contextlib.contextmanager

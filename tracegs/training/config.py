@@ -19,16 +19,24 @@ MEMORY_MODES = ("stepwise", "retain")
 
 @dataclass
 class OptimizerConfig:
-    """AdamW with linear warm-up (supplement A.4: the first 100 Stage-2 iterations warm up)."""
+    """AdamW with linear warm-up (supplement A.4: the first 100 Stage-2 iterations warm up).
+
+    The paper states AdamW, lr 1e-5 and the warm-up only; ``weight_decay``, ``betas``, ``eps`` and
+    ``grad_clip`` are not stated in the paper, and each says below why its value was chosen.
+    """
 
     lr: float = 1e-3
+    # Not stated in the paper; 0 because decay would pull the LoRA factors towards zero, i.e. the student
+    # towards the bare base and away from the Stage-1 adapter it is cloned from, which no loss asks for.
     weight_decay: float = 0.0
+    # Not stated in the paper; torch's AdamW defaults, as the paper names no departure from them.
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    eps: float = 1e-8
+    eps: float = 1e-8  # not stated in the paper; torch's default
     warmup_steps: int = 0
     # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
     decay: str = "constant"
-    # Max global L2 norm of the trainable gradients; None disables clipping.
+    # Max global L2 norm of the trainable gradients; None disables clipping. Not stated in the paper; 1.0
+    # (diffusers' fine-tuning scripts' max_grad_norm) bounds the step a rare outlier batch can take.
     grad_clip: float | None = 1.0
 
     def __post_init__(self) -> None:
@@ -82,13 +90,16 @@ class StageConfig:
 
 @dataclass
 class TeacherConfig:
-    """Stage-2 teacher conditioning (Table 3): dense views (None = all) and whether they are privileged.
+    """Stage-2 teacher conditioning (Table 3): the teacher's R_d is the final render of a 3DGS fitted to
+    ``views`` training views (None = all), for every student view count K.
 
-    ``privileged=False`` (variant B) conditions the teacher on the student's own sparse rendering.
+    The teacher is privileged when ``views`` exceeds every student K (variants C, D, E, F: 12, 18, all).
+    Variant B sets ``views`` to 3: a three-view teacher for every K in {3, 6, 9}, which carries no privileged
+    geometry (at K = 6, 9 it sees fewer views than the student). It is not the student's own rendering: that
+    changes with K and with the student's snapshot.
     """
 
     views: int | None = None
-    privileged: bool = True
 
 
 @dataclass
@@ -119,6 +130,18 @@ class ClusterResources:
 
 
 @dataclass
+class FsdpConfig:
+    """FSDP settings, read when ``trainer.strategy`` is "fsdp" (tracegs/training/strategy.py)."""
+
+    # Module classes sharded as one FSDP unit each (the transformer block at paper scale).
+    wrap_modules: list[str] = field(default_factory=lambda: ["ReferenceGuidedBlock"])
+    # Recompute each wrapped block's activations in backward (replaces diffusers' gradient checkpointing).
+    activation_checkpointing: bool = True
+    # torch's ShardingStrategy name: FULL_SHARD, SHARD_GRAD_OP, HYBRID_SHARD, NO_SHARD.
+    sharding_strategy: str = "FULL_SHARD"
+
+
+@dataclass
 class TrainerConfig:
     """Arguments forwarded to ``lightning.Trainer`` (paper scale: accelerator gpu, bf16-mixed, DDP)."""
 
@@ -141,6 +164,7 @@ class TrainerConfig:
     # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints and requeues.
     slurm_requeue_signal: str = "SIGUSR2"
     cluster: ClusterResources = field(default_factory=ClusterResources)
+    fsdp: FsdpConfig = field(default_factory=FsdpConfig)
 
 
 @dataclass

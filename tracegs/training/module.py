@@ -92,6 +92,29 @@ class RestorerTrainingModule(L.LightningModule):
         self._hparams_initial = copy.deepcopy(self._hparams)
 
     # ----------------------------------------------------------------- subclass interface
+    def _apply(self, fn, recurse=True):
+        """``module.to(...)`` and friends, except that trainable parameters keep float32.
+
+        Lightning's ``bf16-true`` / ``16-true`` plugins convert the whole module to half precision before the
+        optimiser is built; trainable adapter factors (and so AdamW's state) must stay float32 there too, or lr
+        1e-5 updates round away (see ``tracegs.restorer.adapters``). The float32 values are kept exactly, not
+        rounded through half precision and back; only a device move applies to them.
+        """
+        trainable = self._trainable_if_built()
+        kept = {id(p): p.data for p in trainable if p.dtype == torch.float32}
+        result = super()._apply(fn, recurse)
+        for param in trainable:
+            if id(param) in kept and param.dtype != torch.float32:
+                param.data = kept[id(param)].to(param.device)
+        return result
+
+    def _trainable_if_built(self) -> list[nn.Parameter]:
+        # ``_apply`` may run before a subclass's ``__init__`` has recorded its trainable parameters.
+        try:
+            return self.trainable_parameters()
+        except AttributeError:
+            return []
+
     @abstractmethod
     def trainable_parameters(self) -> list[nn.Parameter]:
         """The parameters the optimiser updates (and the only ones saved in checkpoints)."""

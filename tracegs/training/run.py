@@ -39,6 +39,7 @@ from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
+from tracegs.training.strategy import build_strategy
 
 # Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
 # the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
@@ -83,6 +84,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         memory_mode=stage.memory_mode,
         seed=stage.seed,
         lora=cfg.backbone.lora,
+        guidance_scale=cfg.backbone.sampler.guidance_scale,
     )
 
 
@@ -104,7 +106,7 @@ def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
     return loggers
 
 
-def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
+def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingModule) -> L.Trainer:
     checkpoints = ConfirmedCheckpoint(
         dirpath=output_dir / "checkpoints",
         filename="step{step:06d}",
@@ -117,7 +119,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path) -> L.Trainer:
         accelerator=cfg.trainer.accelerator,
         devices=cfg.trainer.devices,
         num_nodes=cfg.trainer.num_nodes,
-        strategy=cfg.trainer.strategy,
+        strategy=build_strategy(cfg.trainer, module),
         precision=cfg.trainer.precision,
         max_steps=cfg.stage.max_steps,
         max_epochs=-1,
@@ -196,10 +198,12 @@ def train_stage(cfg) -> Path:
         cfg.backbone.transformer.pretrained_path = cfg.stage.base_weights
     if cfg.stage.batch_size is not None:
         cfg.data.batch_size = cfg.stage.batch_size
-    backbone = build_backbone(cfg.backbone)
+    backbone = build_backbone(cfg.backbone, encoders=False)  # the cache holds every encoder's output
     module = build_module(cfg, backbone)
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
-    trainer = build_trainer(cfg, output_dir)
+    if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
+        backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
+    trainer = build_trainer(cfg, output_dir, module)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
     except SIGTERMException:

@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
+from tracegs.restorer.sampler import guided_prediction, initial_noise, solve
 from tracegs.training.config import MEMORY_MODES, OptimizerConfig
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
@@ -26,6 +27,13 @@ class Stage2DistillationModule(RestorerTrainingModule):
     timestep without a teacher rollout (Eq. 5), and minimises L_traj + lambda_ret L_ret (Eqs. 6, 8, 9).
     ``on_policy=False`` (variant E) evaluates the same objective at independently forward-noised
     pseudo-target states on the same grid.
+
+    The rollout is the deployment sampler (``sampler.solve``): same initial-noise draw, same solver, and
+    the same classifier-free guidance (``guidance_scale`` = backbone.sampler.guidance_scale). Teacher and
+    student are both queried under that guidance rule and L_traj compares their guided velocities, so the
+    student is trained on the direction it will follow at deployment. Scale 1 is the plain conditional
+    velocity (the paper's Eqs. 4-6 as written); any other scale doubles every evaluation (the unconditional
+    branch with the all-zero text embedding).
 
     Memory modes give identical gradients: ``retain`` keeps the N student graphs until one backward of
     the averaged loss; ``stepwise`` back-propagates loss_i / N at each state, so only one student graph
@@ -46,6 +54,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         memory_mode: str = "stepwise",
         seed: int = 0,
         lora: LoraConfig | None = None,
+        guidance_scale: float = 1.0,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
         if memory_mode not in MEMORY_MODES:
@@ -58,6 +67,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.retrieval_eps = retrieval_eps
         self.on_policy = on_policy
         self.memory_mode = memory_mode
+        self.guidance_scale = guidance_scale
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
@@ -78,33 +88,14 @@ class Stage2DistillationModule(RestorerTrainingModule):
         return self.schedule.resample(self.schedule.timesteps(self.deploy_steps), self.rollout_steps, generator)
 
     def compute_and_backward(self, batch: dict, generator) -> dict[str, Tensor]:
-        student_cond = self.latent(batch, "student_cond")
-        teacher_cond = self.latent(batch, "teacher_cond")
-        target = self.latent(batch, "target")
         grid = self.training_grid(generator)
-        read_retrieval = self.lambda_ret != 0.0
         n = self.rollout_steps
-        state = self.randn_like(target, generator)  # z_{t'_N} ~ N(0, I)
         retained: list[Tensor] = []
         totals: dict[str, Tensor] = {}
-        for i in range(n):
-            t, t_next = grid[i], grid[i + 1]
-            if not self.on_policy:
-                # Variant E: an independently forward-noised pseudo-target state at the same grid point.
-                state = self.schedule.add_noise(target, self.randn_like(target, generator), t)
-            activate(self.transformer, TEACHER)
-            with torch.no_grad():
-                teacher = self.predict(state, teacher_cond, t, batch, return_retrieval=read_retrieval)
-            activate(self.transformer, STUDENT)
-            student = self.predict(state, student_cond, t, batch, return_retrieval=read_retrieval)
-            terms = distillation_state_loss(
-                student.velocity,
-                teacher.velocity,
-                student.retrieval,
-                teacher.retrieval,
-                self.lambda_ret,
-                self.retrieval_eps,
-            )
+
+        def supervise(i: int, state: Tensor, t: Tensor) -> Tensor:
+            """Eqs. 5-9 at one visited state; returns the student's velocity, which drives the transition."""
+            terms, student_velocity = self.state_loss(batch, state, t)
             if self.memory_mode == "stepwise":
                 # Under DDP only the last backward synchronises: the earlier ones accumulate locally.
                 with self._gradient_sync(last=i == n - 1):
@@ -113,12 +104,60 @@ class Stage2DistillationModule(RestorerTrainingModule):
                 retained.append(terms["loss"])
             for name, value in terms.items():
                 totals[name] = totals.get(name, 0.0) + value.detach() / n
-            if self.on_policy:
-                # Eq. 4: the transition uses the student's own velocity and is detached.
-                state = self.schedule.step(state, student.velocity.detach(), t, t_next).detach()
+            return student_velocity
+
+        if self.on_policy:
+            self.rollout(batch, grid, generator, supervise)
+        else:
+            target = self.latent(batch, "target")
+            # Draw (and leave unused) the rollout's initial noise so the generator stream of variant E stays
+            # the one it has always had: its forward-noising draws follow the grid and that draw.
+            initial_noise(target.shape, generator, target.device)
+            for i in range(n):
+                # Variant E: an independently forward-noised pseudo-target state at the same grid point.
+                t = grid[i].expand(target.shape[0]).to(target.device)
+                supervise(i, self.schedule.add_noise(target, self.randn_like(target, generator), t), t)
         if retained:
             self.manual_backward(torch.stack(retained).mean())
         return totals
+
+    def rollout(self, batch: dict, grid: Tensor, generator: torch.Generator, velocity=None) -> list[Tensor]:
+        """The student's on-policy rollout (Eq. 4) on ``grid`` from noise drawn from ``generator``: the
+        deployment solver (``sampler.solve``) with the student's guided velocity, so the visited states are
+        the deployment sampler's for the same noise, grid, guidance and adapter. ``velocity(i, z, t)``
+        replaces the plain student velocity (training supervises each state there); returns every state."""
+        activate(self.transformer, STUDENT)
+        student_cond = self.latent(batch, "student_cond")
+        noise = initial_noise(student_cond.shape, generator, student_cond.device)
+        if velocity is None:
+            def velocity(_: int, state: Tensor, t: Tensor) -> Tensor:
+                return self.guided(state, student_cond, t, batch).velocity
+        return solve(self.schedule, grid, noise, velocity, keep_states=True)
+
+    def state_loss(self, batch: dict, state: Tensor, t: Tensor) -> tuple[dict[str, Tensor], Tensor]:
+        """The teacher (no gradient) and the student queried at one state under the same guidance rule
+        (Eq. 5); returns the loss terms of Eqs. 6, 8, 9 and the student's guided velocity."""
+        read_retrieval = self.lambda_ret != 0.0
+        activate(self.transformer, TEACHER)
+        with torch.no_grad():
+            teacher = self.guided(state, self.latent(batch, "teacher_cond"), t, batch, read_retrieval)
+        activate(self.transformer, STUDENT)
+        student = self.guided(state, self.latent(batch, "student_cond"), t, batch, read_retrieval)
+        terms = distillation_state_loss(
+            student.velocity,
+            teacher.velocity,
+            student.retrieval,
+            teacher.retrieval,
+            self.lambda_ret,
+            self.retrieval_eps,
+        )
+        return terms, student.velocity
+
+    def guided(self, state: Tensor, cond: Tensor, t: Tensor, batch: dict, return_retrieval: bool = False):
+        """The active adapter's prediction under ``guidance_scale`` (the deployment sampler's rule)."""
+        return guided_prediction(self.transformer, state, cond, t.to(state.device), self._float(batch["text"]),
+                                 self._float(batch["ref_2d"]), self._float(batch["ref_3d"]), self.guidance_scale,
+                                 return_retrieval=return_retrieval)
 
     def _gradient_sync(self, last: bool):
         """Context for one stepwise backward: DDP's all-reduce is deferred to the rollout's last backward."""

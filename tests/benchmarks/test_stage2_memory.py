@@ -1,0 +1,27 @@
+"""benchmarks/stage2_memory.py: one Stage-2 step per memory mode at the paper's shapes (GPU) or the rehearsal's."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import stage2_memory  # noqa: E402  (a script directory, not a package)
+
+
+def test_paper_component_bytes_on_the_meta_device():
+    backbone, _ = stage2_memory.compose_experiment("paper")
+    sizes = stage2_memory.component_bytes(backbone)
+    assert sizes["adapter_params"] == 66_060_288  # supplement: 66.06 M-parameter adapters (rank 32)
+    assert sizes["student_adapter"] == 4 * sizes["adapter_params"]  # float32 factors on the bf16 base
+    assert sizes["adamw_state"] == 2 * sizes["student_adapter"]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_paper_shape_step_fits_and_stepwise_needs_less():
+    summary = stage2_memory.main(["--scale", "paper"])
+    assert summary["peak_mib"]["stepwise"] < summary["peak_mib"]["retain"]

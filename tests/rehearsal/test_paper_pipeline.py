@@ -15,11 +15,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import rehearsal_config, rehearsal_run_dir, run_rehearsal_task
+from paper_weights import write_vggt_double_package
 from safetensors import safe_open
 from test_size_keys import SIZE_KEYS
 
@@ -102,6 +106,41 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     results = run_pipeline(root, ())
     check_products(root, results, views=[3, 6, 9], extra=())
+
+
+@pytest.mark.slow
+def test_paper_training_rehearsal_under_ddp_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """Stage 1 and Stage 2 under the paper's DDP strategy and bf16-mixed precision with two gloo processes:
+    ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+           "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
+    script = Path(sys.executable).with_name("tracegs-train")
+    for stage in ("stage=stage1", "stage=stage2"):
+        command = [str(script), "experiment=rehearsal", stage, "trainer.devices=2", f"paths.root_dir={root}", *BUDGET]
+        run = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert "Starting with 2 processes" in run.stdout + run.stderr
+    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", "trainer.devices=2", *BUDGET))
+    assert (stage2 / "student_adapter" / "adapter_model.safetensors").is_file()
+
+
+@pytest.mark.slow
+def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """``launch/sweep_ablation.sh local experiment=rehearsal``: A is the pretrained restorer (nothing to train),
+    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+           "OMP_NUM_THREADS": "1"}
+    script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
+    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *BUDGET],
+                         env=env, capture_output=True, text=True, timeout=3600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *BUDGET), key="report.output_dir")
+    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
+    assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
 
 
 @pytest.mark.gpu

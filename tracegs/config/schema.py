@@ -9,13 +9,13 @@ Cross-field rules that types cannot express live in :mod:`tracegs.config.validat
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from tracegs.config.identity import register_resolvers
+from tracegs.config.modes import Mode
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
@@ -28,18 +28,6 @@ from tracegs.training.config import (
     TeacherConfig,
     TrainerConfig,
 )
-
-
-class Mode(str, Enum):
-    """A closed set of choices: a value outside it fails at composition, naming the field. OmegaConf
-    matches a YAML value to a member's name, so each member is named by its value; the member reads as
-    its value, also inside interpolations such as ``job_name: ${task}-${report.kind}``."""
-
-    def __str__(self) -> str:
-        return self.value
-
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
 
 
 class Task(Mode):

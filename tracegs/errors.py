@@ -12,6 +12,22 @@ import os
 from pathlib import Path
 
 
+class ConfigError(ValueError):
+    """An invalid config value or combination of values; ``field`` is the dotted key to change.
+
+    A config dataclass that checks its own fields names them relative to itself; the composed config's
+    validation (tracegs.config.validate) re-raises with the section prefixed (:meth:`under`).
+    """
+
+    def __init__(self, field: str, problem: str) -> None:
+        super().__init__(f"config field '{field}': {problem}")
+        self.field, self.problem = field, problem
+
+    def under(self, section: str) -> ConfigError:
+        """The same error for the field as seen from the root config, ``<section>.<field>``."""
+        return ConfigError(f"{section}.{self.field}", self.problem)
+
+
 class TraceGSError(Exception):
     """A user-fixable problem at ``where`` (a path or config field): ``"<where>: <problem>; <fix>"``."""
 

@@ -16,7 +16,8 @@ from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
 
 CONF = Path(CONF_DIR)
-PRIMARY = sorted(p.stem for p in CONF.glob("*.yaml"))
+SHARED = "command"  # conf/command.yaml: the defaults list and Hydra settings every entry point includes
+PRIMARY = sorted(p.stem for p in CONF.glob("*.yaml") if p.stem != SHARED)
 
 # Table 3 of the paper: variant -> (teacher views, privileged, on-policy, lambda_ret, trains Stage 2).
 ABLATION_GRID = {
@@ -53,9 +54,23 @@ def group_options() -> list[tuple[str, str]]:
 def test_walk_finds_every_group():
     groups = {g for g, _ in group_options()}
     expected = {"backbone", "data", "splat", "stage", "teacher", "policy", "loss", "trainer", "experiment",
-                "ablation", "debug", "paths", "deploy", "evaluation", "hydra/launcher"}
+                "ablation", "debug", "deploy", "evaluation", "hydra/launcher"}
     assert expected <= groups
-    assert set(PRIMARY) >= {"prepare", "train", "deploy", "evaluate", "report", "demo"}
+    assert set(PRIMARY) == {"prepare", "train", "deploy", "evaluate", "report", "demo", "restore"}
+
+
+@pytest.mark.parametrize("name", PRIMARY)
+def test_entry_points_share_one_defaults_list(name):
+    """Each entry point's defaults list is the shared file and itself: a group default lives in one place."""
+    defaults = OmegaConf.load(CONF / f"{name}.yaml").defaults
+    assert list(defaults) == [SHARED, "_self_"]
+
+
+def test_task_and_modes_are_checked_at_composition():
+    with pytest.raises(ConfigCompositionException) as error:
+        compose(config_name="report", overrides=["report.kind=tables"])
+    assert "report.kind" in str(error.value.__cause__ or error.value)
+    assert compose(config_name="report", overrides=["report.kind=ablation"]).job_name == "report-ablation"
 
 
 @pytest.mark.parametrize("name", PRIMARY)

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 from paper_scenes import synthetic_scenes, write_dl3dv, write_mipnerf360, write_nerfbusters
 from paper_weights import install_vggt_double, write_weights
 
-from tracegs.cli.app import CONF_DIR
+from tracegs.cli.app import CONF_DIR, run_task
 from tracegs.config.schema import register_configs
 
 
@@ -23,9 +25,10 @@ def rehearsal_config(root: Path, config_name: str = "train", overrides: tuple[st
                        overrides=["experiment=rehearsal", f"paths.root_dir={root}", *overrides])
 
 
-def run_rehearsal_task(task, root: Path, config_name: str, overrides: tuple[str, ...] = ()):
-    """Run ``task`` as its console script would on ``rehearsal_config``'s command line: inside Hydra, with the
-    job's overrides known, so each stage finds the products of the stages before it (run identity)."""
+@contextlib.contextmanager
+def rehearsal_job(root: Path, config_name: str, overrides: tuple[str, ...] = ()) -> Iterator[DictConfig]:
+    """``rehearsal_config`` as the console script's job sees it: inside Hydra with the job's overrides known,
+    so the run folders it names (run identity) are the ones that command line writes and reads."""
     register_configs()
     with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
         cfg = compose(config_name=config_name, return_hydra_config=True,
@@ -34,9 +37,22 @@ def run_rehearsal_task(task, root: Path, config_name: str, overrides: tuple[str,
         try:
             with open_dict(cfg):
                 del cfg["hydra"]
-            return task(cfg)
+            yield cfg
         finally:
             HydraConfig.instance().cfg = None
+
+
+def run_rehearsal_task(task, root: Path, config_name: str, overrides: tuple[str, ...] = ()):
+    """Run ``task`` as its console script does (tracegs.cli.app.run_task: validation, seeding, the task), so
+    each stage finds the products of the stages before it."""
+    with rehearsal_job(root, config_name, overrides) as cfg:
+        return run_task(task, cfg)
+
+
+def rehearsal_run_dir(root: Path, config_name: str, overrides: tuple[str, ...] = (), key: str = "run_dir") -> Path:
+    """The folder a rehearsal command line writes (``key``: ``run_dir`` or ``evaluation.out_dir``)."""
+    with rehearsal_job(root, config_name, overrides) as cfg:
+        return Path(str(OmegaConf.select(cfg, key)))
 
 
 @pytest.fixture(scope="session")

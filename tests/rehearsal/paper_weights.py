@@ -141,3 +141,16 @@ def install_vggt_double(monkeypatch) -> None:
     package.models, models.vggt = models, module
     for name, mod in (("vggt", package), ("vggt.models", models), ("vggt.models.vggt", module)):
         monkeypatch.setitem(sys.modules, name, mod)
+
+
+def write_vggt_double_package(folder: Path) -> Path:
+    """A ``vggt`` package under ``folder`` whose ``vggt.models.vggt.VGGT`` is the double, for console scripts
+    run as subprocesses (put ``folder`` on their PYTHONPATH); returns ``folder``."""
+    module = folder / "vggt" / "models"
+    module.mkdir(parents=True, exist_ok=True)
+    (folder / "vggt" / "__init__.py").write_text("")
+    (module / "__init__.py").write_text("")
+    (module / "vggt.py").write_text(
+        f"import sys\nsys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from paper_weights import VggtDouble as VGGT  # noqa: E402,F401\n")
+    return folder

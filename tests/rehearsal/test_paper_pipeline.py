@@ -1,34 +1,44 @@
 """The paper pipeline under `experiment=rehearsal`: prepare -> Stage 1 -> Stage 2 -> deploy -> evaluate -> report.
 
 Every component is the paper's class read from the paper's folder layouts (tests/rehearsal/paper_weights.py,
-paper_scenes.py) through the entry points' own task functions. At paper scale variant A is GSFixer's
-pretrained restorer: it is loaded (prepare's pseudo-targets, evaluation's baseline), never trained.
+paper_scenes.py) through the entry points' own task functions, run as their console scripts run them
+(tracegs.cli.app.run_task). At paper scale variant A is GSFixer's pretrained restorer: it is loaded (prepare's
+pseudo-targets, evaluation's baseline), never trained.
 
-``test_paper_pipeline_rehearsal`` runs the rehearsal with ``SMOKE`` on top, the ``slow`` budgets test runs
-it exactly, and the ``gpu`` test runs it on CUDA with gsplat.
+``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
+only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
+it exactly, the ``slow`` DDP test trains on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
+with gsplat.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config, run_rehearsal_task
+from conftest import rehearsal_config, rehearsal_run_dir, run_rehearsal_task
+from paper_weights import write_vggt_double_package
 from safetensors import safe_open
+from test_size_keys import SIZE_KEYS
 
 from tracegs import tasks
 
-# Test-time overrides of the default suite, each a budget knob (no science setting is touched).
-SMOKE = (
-    "experiment.stage1_steps=1",  # Stage 1 budget: one optimiser step
-    "experiment.stage2_steps=2",  # Stage 2 budget: two optimiser steps, each a full N = 10 rollout
-    "deploy.steps=2",  # reverse steps per deployed restoration (rehearsal: the full M = 50)
-    "deploy.max_clips_per_round=1",  # restored clips per repair round (rehearsal: every reference pair)
-    "evaluation.views=[3]",  # evaluated view counts (rehearsal: 3, 6, 9)
+# The default suite's overrides on top of experiment=rehearsal: each makes a count smaller, none touches a
+# mode, rate, weight, schedule or sampler (test_budget_overrides_are_sizes checks the keys).
+BUDGET = (
+    "experiment.stage1_steps=1",  # Stage 1: one optimiser step
+    "experiment.stage2_steps=2",  # Stage 2: two optimiser steps, each a full N = 10 rollout of the M = 50 grid
+    "deploy.max_clips_per_round=1",  # restored clips per repair round (rehearsal: one per reference pair)
+    "evaluation.views=[3]",  # evaluated view counts (rehearsal: 3, 6, 9); the K = 3 unit runs unchanged
 )
+# Counts that experiment=rehearsal keeps at the paper's value but a test may lower: units of work.
+UNIT_COUNTS = ("deploy.max_clips_per_round", "evaluation.views")
 GPU = ("trainer.accelerator=gpu", "data.prepare.fit.backend=gsplat")  # the paper's devices and rasterizer
 
 
@@ -46,23 +56,24 @@ def run_pipeline(root: Path, extra: tuple[str, ...]) -> dict:
 
 def check_products(root: Path, results: dict, views: list[int], extra: tuple[str, ...]) -> None:
     cfg = rehearsal_config(root, "evaluate", ("ablation=F", *extra))
-    manifest = json.loads((Path(cfg.data.prepare.cache_dir) / "manifest.json").read_text())
+    cache = rehearsal_run_dir(root, "prepare", extra, key="data.prepare.cache_dir")
+    manifest = json.loads((cache / "manifest.json").read_text())
     assert list(manifest["scenes"]) == ["scene_000"]  # the training list only, never the benchmark scene
     assert manifest["pseudo_target"] == "restorer" and manifest["frames_per_clip"] == 9
     clips = manifest["scenes"]["scene_000"]["clips"]
     assert len(clips) == cfg.data.prepare.clips_per_scene
-    with safe_open(str(Path(cfg.data.prepare.cache_dir) / clips[0]), framework="pt") as shard:
+    with safe_open(str(cache / clips[0]), framework="pt") as shard:
         latent = shard.get_tensor("latent/target")
         assert latent.shape == (3, 16, 4, 6)  # 9 frames -> 3 latent frames, 32 x 48 -> 4 x 6 (VAE factor 8)
         assert shard.get_tensor("text").shape == (16, 32) and shard.get_tensor("ref_3d").shape[-1] == 64
     experiment = Path(cfg.paths.experiment_dir)
     assert not (experiment / "baseline").exists()  # variant A is loaded, not trained
     # Each stage's product in the folder its run identity names (tracegs.config.identity).
-    stage1 = Path(rehearsal_config(root, "train", ("stage=stage1", *extra)).run_dir)
-    stage2 = Path(rehearsal_config(root, "train", ("stage=stage2", "ablation=F", *extra)).run_dir)
+    stage1 = rehearsal_run_dir(root, "train", ("stage=stage1", *extra))
+    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", "ablation=F", *extra))
     assert (stage1 / "stage1_adapter" / "adapter_config.json").is_file()
     assert (stage2 / "student_adapter" / "adapter_model.safetensors").is_file()
-    deployed = Path(rehearsal_config(root, "deploy", ("ablation=F", *extra)).run_dir)
+    deployed = rehearsal_run_dir(root, "deploy", ("ablation=F", *extra))
     assert (deployed / "scene_100").is_dir()
     assert results["meta"]["scenes"] == ["scene_100"]
     for method in ("3dgs", "baseline", "tracegs"):
@@ -79,11 +90,14 @@ def fresh_root(tmp_path: Path, rehearsal_root: Path, paper_data: dict[str, Path]
     return root
 
 
-# Slow until it fits the default suite's budget: 12.6 min on a loaded 2-core machine.
-@pytest.mark.slow
+def test_budget_overrides_are_sizes():
+    keys = [override.split("=", 1)[0] for override in BUDGET]
+    assert all(key in SIZE_KEYS or key in UNIT_COUNTS for key in keys), keys
+
+
 def test_paper_pipeline_rehearsal(rehearsal_root, paper_data, vggt_double):
-    results = run_pipeline(rehearsal_root, SMOKE)
-    check_products(rehearsal_root, results, views=[3], extra=SMOKE)
+    results = run_pipeline(rehearsal_root, BUDGET)
+    check_products(rehearsal_root, results, views=[3], extra=BUDGET)
 
 
 @pytest.mark.slow
@@ -94,9 +108,44 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     check_products(root, results, views=[3, 6, 9], extra=())
 
 
+@pytest.mark.slow
+def test_paper_training_rehearsal_under_ddp_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """Stage 1 and Stage 2 under the paper's DDP strategy and bf16-mixed precision with two gloo processes:
+    ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+           "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
+    script = Path(sys.executable).with_name("tracegs-train")
+    for stage in ("stage=stage1", "stage=stage2"):
+        command = [str(script), "experiment=rehearsal", stage, "trainer.devices=2", f"paths.root_dir={root}", *BUDGET]
+        run = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert "Starting with 2 processes" in run.stdout + run.stderr
+    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", "trainer.devices=2", *BUDGET))
+    assert (stage2 / "student_adapter" / "adapter_model.safetensors").is_file()
+
+
+@pytest.mark.slow
+def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """``launch/sweep_ablation.sh local experiment=rehearsal``: A is the pretrained restorer (nothing to train),
+    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+           "OMP_NUM_THREADS": "1"}
+    script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
+    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *BUDGET],
+                         env=env, capture_output=True, text=True, timeout=3600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *BUDGET), key="report.output_dir")
+    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
+    assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (and gsplat)")
 def test_paper_pipeline_rehearsal_on_cuda_with_gsplat(tmp_path, paper_data, rehearsal_root, vggt_double):
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
-    results = run_pipeline(root, (*SMOKE, *GPU))
-    check_products(root, results, views=[3], extra=(*SMOKE, *GPU))
+    results = run_pipeline(root, (*BUDGET, *GPU))
+    check_products(root, results, views=[3], extra=(*BUDGET, *GPU))

@@ -89,6 +89,17 @@ class OutputsWritable(Callback):
             exit_with_one_line(app, error)
 
 
+def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
+    """What every entry point does with its composed config: validate the cross-field rules, route the
+    libraries' messages through Hydra's logging, seed everything from ``cfg.seed``, run ``task``."""
+    validate(cfg)
+    import lightning
+
+    log_libraries_through_hydra()
+    lightning.seed_everything(cfg.seed, workers=True, verbose=False)
+    return task(cfg)
+
+
 def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
     """Wrap ``task(cfg)`` as a Hydra main reading ``conf/<config_name>.yaml``."""
 
@@ -96,12 +107,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         @functools.wraps(task)
         def run(cfg: DictConfig) -> Any:
             try:
-                validate(cfg)
-                import lightning
-
-                log_libraries_through_hydra()
-                lightning.seed_everything(cfg.seed, workers=True, verbose=False)
-                return task(cfg)
+                return run_task(task, cfg)
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
                     raise

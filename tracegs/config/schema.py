@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
 
 from tracegs.config.identity import register_resolvers
+from tracegs.config.modes import Mode
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
@@ -26,6 +28,35 @@ from tracegs.training.config import (
     TeacherConfig,
     TrainerConfig,
 )
+
+
+class Task(Mode):
+    """The entry point a composed config belongs to (``conf/<task>.yaml``)."""
+
+    prepare = "prepare"
+    train = "train"
+    deploy = "deploy"
+    evaluate = "evaluate"
+    restore = "restore"
+    report = "report"
+    demo = "demo"
+
+
+class ReportKind(Mode):
+    """What ``tracegs-report`` merges (tracegs.tasks.report)."""
+
+    main = "main"  # evaluation shards -> results.json (Tables 1/2)
+    prepare = "prepare"  # prepare shards -> one cache manifest
+    ablation = "ablation"  # an ablation sweep -> Table 3
+    per_step = "per_step"  # Fig. 6 across variants on the held-out clips
+    seeds = "seeds"  # several demo runs -> mean, sd and range of each figure
+
+
+class EvaluatedMethod(Mode):
+    """The restorer that stands for a Table 3 variant in evaluation."""
+
+    baseline = "baseline"
+    tracegs = "tracegs"
 
 
 @dataclass
@@ -85,44 +116,45 @@ class ArtifactsConfig:
 
 @dataclass
 class ExperimentConfig:
-    """Which scale the run uses; selected by the ``experiment`` group (embedded default, paper)."""
+    """Which scale the run uses. Every value comes from the ``experiment`` group file (conf/experiment/:
+    embedded, paper, rehearsal), the one place each scale's numbers are written."""
 
-    name: str = "embedded"
-    description: str = ""
+    name: str = MISSING
+    description: str = MISSING
     # Per-scale training budgets that the ``stage`` group files read (supplement A.4); keeping them here
     # lets ``experiment=paper stage=stage1`` and ``experiment=paper stage=stage2`` each pick their own.
-    baseline_steps: int = 500  # variant A is trained only at the embedded scale (paper: pretrained GSFixer)
-    baseline_lr: float = 1e-3
-    stage1_steps: int = 80  # paper: 500
-    stage2_steps: int = 40  # paper: 2000
-    stage2_warmup_steps: int = 4  # paper: 100
-    adapter_lr: float = 1e-3  # paper: 1e-5
-    batch_size: int = 4  # per device; paper: 2
+    baseline_steps: int = MISSING  # 0 = variant A is a pretrained restorer, loaded and never trained
+    baseline_lr: float = MISSING
+    stage1_steps: int = MISSING
+    stage2_steps: int = MISSING
+    stage2_warmup_steps: int = MISSING
+    adapter_lr: float = MISSING
+    batch_size: int = MISSING  # per device
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
-    frame_height: int = 48  # rendered frames and resized images; paper: 480 (Sec. 4.1)
-    frame_width: int = 72  # paper: 720
-    frames_per_clip: int = 9  # 8k+1 frames per paired clip and deployment clip; paper: 49
-    clips_per_scene: int = 8  # paired clips prepared per scene; paper: 150
+    frame_height: int = MISSING  # rendered frames and resized images
+    frame_width: int = MISSING
+    frames_per_clip: int = MISSING  # 8k+1 frames per paired clip and deployment clip
+    clips_per_scene: int = MISSING  # paired clips prepared per scene
 
 
 @dataclass
 class AblationConfig:
-    """One row of Table 3; the ``ablation`` group sets teacher/policy/loss to match."""
+    """One row of Table 3; the ``ablation`` group file (conf/ablation/) sets it and teacher/policy/loss."""
 
-    name: str = "F"
-    description: str = "TRACE-GS: all-view privileged teacher, on-policy, lambda_ret 0.15"
+    name: str = MISSING
+    description: str = MISSING
     # Variant A evaluates the frozen baseline restorer and trains nothing.
-    train_stage2: bool = True
-    # The evaluation method that stands for this variant in Table 3 ("baseline" for A, else "tracegs");
+    train_stage2: bool = MISSING
+    # The evaluation method that stands for this variant in Table 3 (variant A: the baseline restorer);
     # a sweep evaluates only it: 'evaluation.methods=[${ablation.method}]'.
-    method: str = "tracegs"
+    method: EvaluatedMethod = EvaluatedMethod.tracegs
 
 
 @dataclass
 class ReportConfig:
-    """What ``tracegs-report`` merges: ``main`` (Tables 1/2 from evaluation shards) or ``ablation`` (Table 3)."""
+    """What ``tracegs-report`` merges (see :class:`ReportKind`)."""
 
-    kind: str = "main"
+    kind: ReportKind = ReportKind.main
     inputs: list[str] = field(default_factory=list)  # result folders; empty = the experiment's defaults
     output_dir: str = "${paths.experiment_dir}/report"
 
@@ -131,7 +163,7 @@ class ReportConfig:
 class TraceGSConfig:
     """Root of every composed config (prepare, train, deploy, evaluate, report, demo)."""
 
-    task: str = "train"
+    task: Task = MISSING  # set by each entry point's conf/<task>.yaml
     # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
     seed: int = 0
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than

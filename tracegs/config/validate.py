@@ -14,14 +14,9 @@ from omegaconf.errors import ConfigKeyError
 
 from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
+from tracegs.errors import ConfigError
 
-
-class ConfigError(ValueError):
-    """An invalid combination of config values; ``field`` is the dotted key to change."""
-
-    def __init__(self, field: str, message: str) -> None:
-        super().__init__(f"config field '{field}': {message}")
-        self.field = field
+__all__ = ["ConfigError", "validate"]
 
 
 def _require(condition: bool, field: str, message: str) -> None:
@@ -179,12 +174,11 @@ def _validate_backbone(cfg: DictConfig) -> None:
 
 def _validate_deployment(cfg: DictConfig) -> None:
     # The refinement schedule's own rules live with it (RefinementConfig.validate, also used by library
-    # callers); its messages start with the dotted field they concern.
+    # callers), naming its fields relative to itself.
     try:
         OmegaConf.to_object(cfg.deploy).validate()
-    except ValueError as error:
-        field, _, message = str(error).partition(" ")
-        raise ConfigError(field.replace("refinement.", "deploy."), message) from error
+    except ConfigError as error:
+        raise error.under("deploy") from error
     clip_frames = cfg.deploy.trajectory.frames_per_clip
     _require(
         clip_frames == cfg.data.prepare.frames_per_clip,

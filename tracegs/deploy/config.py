@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.errors import ConfigError
 from tracegs.splat.trajectory import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
@@ -33,19 +34,17 @@ class RefinementConfig:
     def validate(self) -> None:
         repairs = list(self.repair_iters)
         if not repairs:
-            raise ValueError("refinement.repair_iters must list at least one repair iteration")
+            raise ConfigError("repair_iters", "must list at least one repair iteration")
         if any(b <= a for a, b in zip(repairs, repairs[1:])):
-            raise ValueError(f"refinement.repair_iters must be strictly increasing, got {repairs}")
+            raise ConfigError("repair_iters", f"must be strictly increasing, got {repairs}")
         if repairs[0] <= 0 or repairs[-1] >= self.total_iters:
-            raise ValueError(
-                f"refinement.repair_iters {repairs} must lie strictly inside (0, total_iters={self.total_iters})"
-            )
+            raise ConfigError("repair_iters", f"{repairs} must lie strictly inside (0, total_iters={self.total_iters})")
         if self.steps is not None and self.steps < 1:
-            raise ValueError(f"refinement.steps must be >= 1 or null (full schedule), got {self.steps}")
+            raise ConfigError("steps", f"must be >= 1 or null (full schedule), got {self.steps}")
         if self.max_clips_per_round is not None and self.max_clips_per_round < 1:
-            raise ValueError(f"refinement.max_clips_per_round must be >= 1 or null, got {self.max_clips_per_round}")
+            raise ConfigError("max_clips_per_round", f"must be >= 1 or null, got {self.max_clips_per_round}")
         if self.clip_batch < 1:
-            raise ValueError(f"refinement.clip_batch must be >= 1, got {self.clip_batch}")
+            raise ConfigError("clip_batch", f"must be >= 1, got {self.clip_batch}")
 
 
 @dataclass

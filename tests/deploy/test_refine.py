@@ -12,12 +12,13 @@ import pytest
 import torch
 
 from tracegs.deploy.config import RefinementConfig
-from tracegs.deploy.refine import cold_start, pseudo_weight, refine, render_views
+from tracegs.deploy.refine import cold_start, pseudo_weight, refine
 from tracegs.deploy.restorers import GroundTruthRestorer
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.gaussians import GaussianModel
+from tracegs.splat.render import render_views
 from tracegs.splat.trajectory import TrajectoryConfig
 
 

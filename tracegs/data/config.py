@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 
 
 @dataclass
@@ -71,8 +71,9 @@ class PrepareConfig:
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
     clips_per_scene: int = 8  # paper: 150
-    # Clips follow the deployment trajectories (splat TrajectoryConfig defaults: ellipse + bridges).
     frames_per_clip: int = 9  # paper: 49
+    # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: str = "gt"  # "gt" | "restorer" | "dense"; paper: "restorer" (frozen GSFixer)
     pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
     caption: str = "a photo of a scene"  # used when a scene has no caption.txt

@@ -20,11 +20,12 @@ from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.evaluate import SceneUnit, load_unit
-from tracegs.deploy.refine import refine, render_views
+from tracegs.deploy.refine import refine
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
+from tracegs.splat.render import render_views
 
 RestorerFactory = Callable[[L.LightningModule], ClipRestorer]
 

@@ -25,12 +25,12 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
-from tracegs.data.colmap import Scene, load_scene, test_indices_for
+from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
-from tracegs.data.splits import make_split
+from tracegs.data.splits import split_scene
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
-from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
+from tracegs.deploy.refine import cold_start, refine, render_round_clips
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
@@ -52,6 +52,7 @@ from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.fit import initial_model as random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
+from tracegs.splat.render import render_views
 from tracegs.splat.trajectory import bridge_poses
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
@@ -118,11 +119,9 @@ class SceneUnit:
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
-    """Split ``scene`` (ReconFusion JSON if present, else every-8th test views) and load V_s and the test set.
-
-    Test views are disjoint from every training view, so reference frames never enter the metrics."""
-    split = make_split(len(scene), [views], source.test_every, split_dir=scene.root,
-                       test_indices=test_indices_for(source, scene))
+    """Split ``scene`` exactly as prepare does (``split_scene``: the same nested sets) and load V_s and the
+    test set. Test views are disjoint from every training view, so reference frames never enter the metrics."""
+    split = split_scene(scene, source, [views])
     captured_ids = split.views(views)
     if set(captured_ids) & set(split.test):
         raise ValueError(f"{scene.name}: test views {sorted(set(captured_ids) & set(split.test))} are captured views")

@@ -146,7 +146,7 @@ class GaussianFitter:
         return math.exp(log_lr) * self.scene_extent
 
     def sh_degree(self, step: int) -> int:
-        return min(self.cfg.sh_degree, step // max(self.cfg.sh_degree_interval, 1))
+        return self.cfg.sh_degree_at(step)
 
     def _render_loss(self, view: View, step: int) -> tuple[Tensor, dict]:
         camera = view.camera.to(self.model.means.device)

@@ -21,7 +21,9 @@ class DensificationConfig:
     grow_scale3d: float = 0.01
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
-    max_gaussians: int = 8000  # keep the most opaque ones beyond this budget (bounds the CPU cost per step)
+    # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
+    # per step at the embedded scale); None = no cap (paper scale).
+    max_gaussians: int | None = 8000
 
 
 @dataclass

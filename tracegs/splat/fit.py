@@ -190,7 +190,7 @@ class GaussianFitter:
                 # condition that is never true, so its opacity reset never runs; apply it here (idempotent if a
                 # fixed gsplat also resets).
                 reset_opa(params, self.optimizers, self.strategy_state, value=dens.prune_opa * 2.0)
-            excess = len(params["means"]) - dens.max_gaussians
+            excess = 0 if dens.max_gaussians is None else len(params["means"]) - dens.max_gaussians
             if excess > 0:
                 # A budget that gsplat's strategy does not have: drop the least opaque Gaussians.
                 weakest = params["opacities"].detach().argsort()[:excess]

@@ -122,7 +122,7 @@ def prepare(cfg: DictConfig) -> Path:
 
     validate_config(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    backbone = build_backbone(section(cfg.backbone))
+    backbone = build_backbone(section(cfg.backbone), device="cuda" if torch.cuda.is_available() else "cpu")
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
     manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
     write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)

@@ -216,13 +216,15 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
                 ref_images: torch.Tensor, caption: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
     """Codec latents of every condition and the target, reference tokens, text embedding (all frozen)."""
     keys = list(conditions)
+    device = next(backbone.transformer.parameters()).device  # the accelerator the backbone was built on
     with torch.no_grad():
-        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target]))
-        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None])
+        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target.cpu()]).to(device))
+        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None].to(device))
         text = backbone.text_encoder.encode([caption])
-    out = {f"latent/{k}": latents[i].to(dtype) for i, k in enumerate(keys)}
-    out["latent/target"] = latents[-1].to(dtype)
-    out["ref_2d"], out["ref_3d"], out["text"] = ref_2d[0].to(dtype), ref_3d[0].to(dtype), text[0].to(dtype)
+    out = {f"latent/{k}": latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
+    out["latent/target"] = latents[-1].to("cpu", dtype)
+    out["ref_2d"], out["ref_3d"], out["text"] = (ref_2d[0].to("cpu", dtype), ref_3d[0].to("cpu", dtype),
+                                                 text[0].to("cpu", dtype))
     return out
 
 
@@ -267,7 +269,7 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         target = dense
     else:
         target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
-        target = target.clamp(0, 1)
+        target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():
         tensors[f"frames/{key}"] = to_uint8(frames)

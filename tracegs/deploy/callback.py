@@ -114,7 +114,7 @@ class DeploymentRefinement(L.Callback):
         for unit, cold in self._prepared_units():
             model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
                            caption=unit.scene.caption or "")
-            renders = render_views(model, unit.test_cameras, background, None)
+            renders = render_views(model, unit.test_cameras, background, None).cpu()
             per_k[unit.views].append(mean_metrics(self.metrics.per_view(renders, unit.test_images)))
         return per_k
 

@@ -52,7 +52,7 @@ from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.fit import initial_model as random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
-from tracegs.splat.render import render_views
+from tracegs.splat.render import render_views, require_available
 from tracegs.splat.trajectory import bridge_poses
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
@@ -162,7 +162,7 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
             raise ValueError(f"evaluation.methods lists {method!r} but no restorer was built for it")
         model = refine(cold, unit.captured, restorers[method], refine_cfg, fit_cfg, caption=caption,
                        seed=refine_cfg.seed)
-        renders = render_views(model, unit.test_cameras, background, None)
+        renders = render_views(model, unit.test_cameras, background, None).cpu()
         per_view = metrics.per_view(renders, unit.test_images)
         require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
         result["methods"][method] = {"per_view": per_view, "mean": mean_metrics(per_view)}
@@ -221,7 +221,7 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     columns["GT"] = list(unit.test_images[:shown])
     grid = save_qualitative_grid(columns, media_dir / f"{stem}_grid.png")
     path = test_trajectory(unit.test_cameras, cfg.video_frames)
-    frames = {METHOD_LABELS.get(m, m): render_views(model, path, background, None) for m, model in models.items()}
+    frames = {METHOD_LABELS.get(m, m): render_views(model, path, background, None).cpu() for m, model in models.items()}
     if gt_renderer is not None:
         frames["GT"] = gt_renderer(unit.scene, path)
     video = save_comparison_video(frames, media_dir / f"{stem}_trajectory", fps=cfg.video_fps)
@@ -302,6 +302,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
         raise ValueError(f"evaluation.lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}")
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
+    require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else (scenes or []))
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
@@ -391,6 +392,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
     """Restore-refine this shard's (scene, K) units with one restorer and save each refined 3DGS as
     ``<out_dir>/<scene>/views_<K>.ply`` (standard 3DGS layout). Existing PLYs are kept unless ``cfg.force``."""
     refine_cfg.validate()
+    require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
     written = []
     with Progress(disable=not cfg.progress) as progress:

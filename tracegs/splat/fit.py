@@ -18,7 +18,7 @@ from torch import Tensor
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.render import render
+from tracegs.splat.render import fit_device, render, require_available
 
 
 @dataclass
@@ -110,7 +110,9 @@ class GaussianFitter:
     def __init__(self, model: GaussianModel, cfg: GaussianFitConfig, scene_extent: float):
         if scene_extent <= 0:
             raise ValueError(f"scene_extent must be positive, got {scene_extent}")
-        self.model = model
+        require_available(cfg.backend, "fit.backend")
+        # 3DGS runs where the backend does: CUDA with gsplat's rasterizer when present, else the CPU.
+        self.model = model.to(fit_device(cfg))
         self.cfg = cfg
         self.scene_extent = scene_extent
         self.iteration = 0

@@ -219,10 +219,13 @@ def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
 # ------------------------------------------------------------------------------------------- scenes
 def test_scenes(cfg: DictConfig) -> list[str]:
     """The evaluation scenes: the synthetic benchmark's test seeds (generated if missing) or the dataset's."""
-    from tracegs.data.colmap import list_scenes
+    from tracegs.data.colmap import list_scenes, require_held_out
     from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark
 
     if cfg.evaluation.scenes is not None:
+        if cfg.data.source.preset == "synthetic":
+            require_held_out(list(cfg.evaluation.scenes), benchmark_scene_names(section(cfg.data.synthetic), "train"),
+                             "evaluation.scenes")
         return list(cfg.evaluation.scenes)
     if cfg.data.source.preset == "synthetic":
         synthetic = section(cfg.data.synthetic)

@@ -25,7 +25,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
-from tracegs.data.colmap import Scene, load_scene
+from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
 from tracegs.data.splits import split_scene
@@ -306,6 +306,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     scenes = list(cfg.scenes if cfg.scenes is not None else (scenes or []))
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
+    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
@@ -394,6 +395,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
     refine_cfg.validate()
     require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
+    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
     written = []
     with Progress(disable=not cfg.progress) as progress:
         units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)

@@ -54,6 +54,16 @@ class SceneSourceConfig:
 
 
 @dataclass
+class CaptionConfig:
+    """Where clip captions come from."""
+
+    blip2_path: str | None = None  # local BLIP-2 weights (transformers layout); None = the deterministic source
+    fallback: str = "a photo of a scene"  # deterministic source: used when a scene has no caption.txt
+    max_new_tokens: int = 30  # unstated by the paper: BLIP-2 caption length
+
+
+
+@dataclass
 class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
@@ -76,7 +86,8 @@ class PrepareConfig:
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: str = "gt"  # "gt" | "restorer" | "dense"; paper: "restorer" (frozen GSFixer)
     pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
-    caption: str = "a photo of a scene"  # used when a scene has no caption.txt
+    # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
+    captions: CaptionConfig = field(default_factory=CaptionConfig)
     shard_index: int = 0
     num_shards: int = 1  # shard by scene for Hydra multirun / SLURM arrays
     force: bool = False

@@ -33,6 +33,7 @@ from safetensors import safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.console import PlainProgress
+from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
@@ -119,6 +120,7 @@ def validate_config(cfg: PrepareConfig) -> None:
         raise PrepareError(f"prepare.shard_index={cfg.shard_index} must lie in [0, num_shards={cfg.num_shards})")
     if cfg.frames_per_clip < 3:
         raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
+    require_captioner(cfg.captions, "data.prepare.captions")
     if cfg.trajectory.frames_per_clip != cfg.frames_per_clip:
         raise PrepareError(f"prepare.trajectory.frames_per_clip={cfg.trajectory.frames_per_clip} must equal "
                            f"prepare.frames_per_clip={cfg.frames_per_clip}")
@@ -261,7 +263,10 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     cameras: list[Camera] = clip["cameras"]
     a, b = clip["refs"]
     ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
-    caption = plan.scene.caption or cfg.caption
+    # One caption per clip, from the first frame of its sparsest, earliest-snapshot R_s (the paper does not
+    # say which of the several R_s of a clip; the most degraded one is what deployment renders first).
+    student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
+    caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
     dense = conditions[condition_key(dense_target_views(cfg))]
     if cfg.pseudo_target == "gt":
         target = ground_truth
@@ -403,7 +408,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
-        "caption": plan.scene.caption or cfg.caption,
+        "caption": plan.scene.caption or cfg.captions.fallback,
         "image_names": plan.scene.image_names,
         "split": plan.split.to_dict(),
         "intrinsics": [c.K.tolist() for c in plan.scene.cameras],

@@ -25,6 +25,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
+from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
@@ -203,7 +204,7 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
     frames = torch.stack([c.frames for c in clips])
     refs = torch.stack([c.references for c in clips])
     return {
-        method: per_step_psnr(restorer.pipeline, frames, refs, [caption] * len(clips), truth, seed=refine_cfg.seed,
+        method: per_step_psnr(restorer.pipeline, frames, refs, [c.caption for c in clips], truth, seed=refine_cfg.seed,
                               steps=restorer.steps)
         for method, restorer in restorers.items() if isinstance(restorer, DiffusionRestorer)
     }
@@ -307,6 +308,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     require_held_out(scenes, training_scenes(source), "evaluation.scenes")
+    require_captioner(refine_cfg.captions, "deploy.captions")
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
@@ -396,6 +398,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
     require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
     require_held_out(scenes, training_scenes(source), "evaluation.scenes")
+    require_captioner(refine_cfg.captions, "deploy.captions")
     written = []
     with Progress(disable=not cfg.progress) as progress:
         units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)

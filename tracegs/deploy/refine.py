@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from tracegs.data.captions import clip_caption
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
 from tracegs.splat.config import GaussianFitConfig
@@ -58,11 +59,13 @@ def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_i
     cameras = [v.camera for v in captured]
     pairs = reference_pairs(len(captured), cfg.max_clips_per_round, generator)
     clip_cameras = round_trajectory(cameras, pairs, round_index, cfg.trajectory, generator)
-    return [
-        Clip(frames=render_clip(fitter.model, cams, fit_cfg, fitter.iteration), cameras=list(cams),
-             references=torch.stack([captured[a].image, captured[b].image]), caption=caption)
-        for (a, b), cams in zip(pairs, clip_cameras)
-    ]
+    clips = []
+    for (a, b), cams in zip(pairs, clip_cameras):
+        frames = render_clip(fitter.model, cams, fit_cfg, fitter.iteration)
+        clips.append(Clip(frames=frames, cameras=list(cams), references=torch.stack([captured[a].image,
+                                                                                        captured[b].image]),
+                          caption=clip_caption(cfg.captions, frames[0], caption)))
+    return clips
 
 
 def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer, round_index: int,

@@ -55,7 +55,9 @@ class RepairRound:
 def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
                        fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
     """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
-    whose two ends are observed reference views (their captured images become the clip's references)."""
+    whose two ends are observed reference views (their captured images become the clip's references).
+    Frames come from ``render_clip`` and captions from ``clip_caption`` on each clip's first frame, as in
+    prepare; ``caption`` is the scene's own caption (its caption.txt, "" when it has none)."""
     cameras = [v.camera for v in captured]
     pairs = reference_pairs(len(captured), cfg.max_clips_per_round, generator)
     clip_cameras = round_trajectory(cameras, pairs, round_index, cfg.trajectory, generator)

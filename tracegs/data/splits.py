@@ -71,21 +71,26 @@ def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> l
     Distances are taken around the loop of ``candidates`` (capture order), because on a 360-degree capture
     the first and last images are neighbours. The first set (``keep`` empty) takes the centres of ``count``
     equal shares, ``(i + 1/2) n / count``; later, nested sets add one candidate at a time, the one farthest
-    (around the loop) from every chosen one, ties to the earliest. Written by hand because no library does
+    (around the loop) from every chosen one, ties to the one nearest such a centre, then to the earliest. Written by hand because no library does
     nested even spacing.
     """
     n = len(candidates)
     if count > n:
         raise SplitError(f"asked for {count} training views but the scene has only {n}")
     position = {c: i for i, c in enumerate(candidates)}
+    centres = [(i + 0.5) * n / count - 0.5 for i in range(count)]
     if not keep:
-        return sorted(candidates[min(n - 1, int((i + 0.5) * n / count))] for i in range(count))
+        return sorted(candidates[min(n - 1, round(c))] for c in centres)
+
+    def loop_distance(a: float, b: float) -> float:
+        return min(abs(a - b), n - abs(a - b))
+
     chosen = {position[index] for index in keep}
     while len(chosen) < count:
-        def clearance(i: int) -> int:
-            return min(min(abs(i - c), n - abs(i - c)) for c in chosen)
-
-        chosen.add(max((i for i in range(n) if i not in chosen), key=lambda i: (clearance(i), -i)))
+        # Farthest from the chosen views; among equals, nearest to one of this count's even centres.
+        chosen.add(max((i for i in range(n) if i not in chosen),
+                       key=lambda i: (min(loop_distance(i, c) for c in chosen),
+                                      -min(loop_distance(i, c) for c in centres), -i)))
     return sorted(candidates[i] for i in chosen)
 
 

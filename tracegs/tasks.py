@@ -122,7 +122,7 @@ def prepare(cfg: DictConfig) -> Path:
 
     validate_config(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    backbone = build_backbone(section(cfg.backbone))
+    backbone = build_backbone(section(cfg.backbone), device="cuda" if torch.cuda.is_available() else "cpu")
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
     manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
     write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
@@ -219,10 +219,13 @@ def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
 # ------------------------------------------------------------------------------------------- scenes
 def test_scenes(cfg: DictConfig) -> list[str]:
     """The evaluation scenes: the synthetic benchmark's test seeds (generated if missing) or the dataset's."""
-    from tracegs.data.colmap import list_scenes
+    from tracegs.data.colmap import list_scenes, require_held_out
     from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark
 
     if cfg.evaluation.scenes is not None:
+        if cfg.data.source.preset == "synthetic":
+            require_held_out(list(cfg.evaluation.scenes), benchmark_scene_names(section(cfg.data.synthetic), "train"),
+                             "evaluation.scenes")
         return list(cfg.evaluation.scenes)
     if cfg.data.source.preset == "synthetic":
         synthetic = section(cfg.data.synthetic)

@@ -12,7 +12,7 @@ from PIL import Image
 from tracegs.data.colmap import write_colmap_model
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 
 
 def ring_cameras(n: int, width: int = 36, height: int = 24) -> list[Camera]:
@@ -53,7 +53,8 @@ def tiny_configs(tmp: Path) -> tuple[SyntheticConfig, SceneSourceConfig, Prepare
     prepare = PrepareConfig(cache_dir=str(tmp / "cache"), work_dir=str(tmp / "work"), student_views=[3],
                             dense_views=[6, None], student_snapshots=[8],
                             fit=GaussianFitConfig(iterations=16, snapshot_iters=[8, 16]),
-                            clips_per_scene=2, frames_per_clip=5, workers=1)
+                            clips_per_scene=2, frames_per_clip=5, workers=1,
+                            trajectory=TrajectoryConfig(frames_per_clip=5))
     return synthetic, source, prepare
 
 

@@ -1,8 +1,13 @@
 import json
 
 import pytest
+from scene_builders import write_scene
 
+from tracegs.data.colmap import load_scene
+from tracegs.data.config import PrepareConfig, SceneSourceConfig
+from tracegs.data.prepare import plan_scene
 from tracegs.data.splits import SplitError, make_split
+from tracegs.deploy.evaluate import load_unit
 
 
 def test_every_eighth_is_held_out_and_view_sets_are_nested_and_spread():
@@ -14,10 +19,40 @@ def test_every_eighth_is_held_out_and_view_sets_are_nested_and_spread():
         assert set(small) < set(large)
     assert [len(v) for v in chain] == [3, 6, 9, 12, 18, 28]
     assert not set(split.views(None)) & set(split.test)
-    # Evenly spread: the three sparse views cover both ends of the training range and its middle.
-    three = split.views(3)
-    assert three[0] == split.train[0] and three[-1] == split.train[-1]
-    assert abs(three[1] - 16) <= 2
+
+
+def test_three_views_of_a_360_capture_are_spread_around_it():
+    """Image i of a 32-image ring capture sits at 360 i / 32 degrees: the first and last images are
+    neighbours, so a rule that takes both ends leaves a 22.5-degree gap between two of three views."""
+    num_images = 32
+    three = make_split(num_images, [3]).views(3)
+    angles = sorted(360.0 * i / num_images for i in three)
+    gaps = [b - a for a, b in zip(angles, angles[1:])] + [360.0 - angles[-1] + angles[0]]
+    assert min(gaps) >= 100.0, (three, gaps)
+    # The spread holds up the ladder: no two of the 6 views are neighbouring training images.
+    six = make_split(num_images, [6]).views(6)
+    assert min((b - a) % num_images for a, b in zip(six, six[1:] + six[:1])) >= 3, six
+
+
+def test_a_view_set_does_not_depend_on_the_other_counts_asked_for():
+    alone = {k: make_split(32, [k]).views(k) for k in (3, 6, 9, 12, 18)}
+    ladder = make_split(32, [3, 6, 9, 12, 18, None])
+    assert alone == {k: ladder.views(k) for k in alone}
+
+
+def test_prepare_and_evaluation_select_the_same_nested_views(tmp_path):
+    root, _ = write_scene(tmp_path / "scenes" / "ring", n=32)
+    source = SceneSourceConfig(root=str(root.parent), preset="custom")
+    prepare = PrepareConfig(student_views=[3, 6, 9], dense_views=[12, 18, None], pseudo_target="dense")
+    plan = plan_scene(source, prepare, "ring")
+    scene = load_scene(source, "ring")
+    evaluated = {k: load_unit(scene, k, source) for k in (3, 6, 9)}
+    for k, unit in evaluated.items():
+        assert unit.captured_ids == plan.split.views(k), k
+        assert unit.test_ids == plan.split.test
+    chain = [evaluated[k].captured_ids for k in (3, 6, 9)] + [plan.split.views(k) for k in (12, 18, None)]
+    for small, large in zip(chain, chain[1:]):
+        assert set(small) < set(large)
 
 
 def test_reconfusion_split_json_is_honoured(tmp_path):

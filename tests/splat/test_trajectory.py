@@ -15,7 +15,9 @@ from tracegs.splat.trajectory import (
     ellipse_poses,
     focus_point,
     make_clip,
+    round_shape,
     round_trajectory,
+    shorter_arc,
 )
 
 
@@ -90,16 +92,16 @@ def test_bridge_interpolates_between_its_ends():
 
 def test_round_trajectory_depends_on_round_and_phase():
     cameras, shift = observed_views()
-    pairs = [(cameras[i], cameras[(i + 1) % 8]) for i in range(8)]
+    pairs = [(i, (i + 1) % 8) for i in range(8)]
     cfg = TrajectoryConfig(frames_per_clip=9, ellipse_scales=[1.0, 0.7], height_variations=[0.05, 0.2])
     round0 = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(0))
     again = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(0))
     other_phase = round_trajectory(cameras, pairs, 0, cfg, torch.Generator().manual_seed(1))
     round1 = round_trajectory(cameras, pairs, 1, cfg, torch.Generator().manual_seed(0))
     assert len(round0) == 8 and all(len(clip) == 9 for clip in round0)
-    for clip, (ref_a, ref_b) in zip(round0, pairs):
-        assert torch.allclose(clip[0].world_to_camera, ref_a.world_to_camera, atol=1e-5)
-        assert torch.allclose(clip[-1].world_to_camera, ref_b.world_to_camera, atol=1e-5)
+    for clip, (a, b) in zip(round0, pairs):
+        assert torch.allclose(clip[0].world_to_camera, cameras[a].world_to_camera, atol=1e-5)
+        assert torch.allclose(clip[-1].world_to_camera, cameras[b].world_to_camera, atol=1e-5)
 
     def middle_centres(clips):
         return torch.stack([clip[4].center for clip in clips])
@@ -120,3 +122,39 @@ def test_invalid_trajectory_arguments_raise():
         clip_layout(2)
     with pytest.raises(ValueError, match="reference pair"):
         round_trajectory(cameras, [], 0, TrajectoryConfig())
+
+
+def azimuth(camera, centre) -> float:
+    offset = camera.center - centre
+    return math.degrees(math.atan2(offset[1].item(), offset[0].item()))
+
+
+def turned(path, centre) -> float:
+    """Total signed azimuth (degrees) a camera path turns through around ``centre``."""
+    angles = [azimuth(camera, centre) for camera in path]
+    return sum((b - a + 180.0) % 360.0 - 180.0 for a, b in zip(angles, angles[1:]))
+
+
+@pytest.mark.parametrize("order", ["forward", "backward"])
+def test_each_clip_takes_the_shorter_arc_between_its_references(order):
+    """Three views 120 degrees apart, chained against the ellipse's direction or with it: every clip must
+    turn through about 120 degrees, never the 240-degree long way round."""
+    cameras, shift = observed_views()
+    three = [cameras[i] for i in (0, 3, 6)] if order == "forward" else [cameras[i] for i in (6, 3, 0)]
+    cfg = TrajectoryConfig(frames_per_clip=49, ellipse_scales=[1.0], height_variations=[0.0])
+    clips = round_trajectory(three, [(0, 1), (1, 2), (2, 0)], 0, cfg, torch.Generator().manual_seed(0))
+    for clip in clips:
+        assert abs(turned(clip, shift)) < 180.0, turned(clip, shift)
+
+
+def test_shorter_arc_goes_either_way_and_once_round_for_one_pose():
+    assert shorter_arc(1, 3, 8) == [1, 2, 3]
+    assert shorter_arc(3, 1, 8) == [3, 2, 1]
+    assert shorter_arc(7, 1, 8) == [7, 0, 1]
+    assert len(shorter_arc(2, 2, 8)) == 9
+
+
+def test_round_shapes_cycle_so_many_rounds_use_every_shape_equally():
+    cfg = TrajectoryConfig(ellipse_scales=[1.0, 0.85, 0.7], height_variations=[0.05, 0.1, 0.15])
+    shapes = [round_shape(cfg, r) for r in range(9)]
+    assert {s: shapes.count(s) for s in shapes} == {(1.0, 0.05): 3, (0.85, 0.1): 3, (0.7, 0.15): 3}

@@ -92,12 +92,31 @@ def preset_dirs(cfg: SceneSourceConfig) -> tuple[str, str, str | None]:
 
 
 def read_scene_list(path: str, field: str) -> list[str]:
-    """Scene names of a list file (one a line, blank lines and ``#`` comments ignored)."""
+    """Scene names of a list file (one a line, blank lines and ``#`` comments ignored). A relative path that
+    does not exist from the working directory is read from the config tree, where the published benchmark
+    lists ship (``conf/data/scenes/``)."""
     file = Path(path)
+    if not file.is_file() and not file.is_absolute():
+        from tracegs.cli.app import CONF_DIR
+
+        file = Path(CONF_DIR) / path
     if not file.is_file():
         raise FileNotFoundError(f"{field}={path!r}: scene list not found")
     names = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()]
     return [name for name in names if name]
+
+
+def require_held_out(scenes: list[str], training: list[str], field: str) -> None:
+    """Refuse to evaluate a scene the restorer was trained on (``field`` names the training list)."""
+    shared = sorted(set(scenes) & set(training))
+    if shared:
+        raise SceneFormatError(f"{field} names training scenes {shared[:5]} (on source.train_list); evaluation "
+                               "needs held-out scenes")
+
+
+def training_scenes(cfg: SceneSourceConfig) -> list[str]:
+    """The scenes named by ``cfg.train_list`` (none when it is unset)."""
+    return [] if cfg.train_list is None else read_scene_list(cfg.train_list, "source.train_list")
 
 
 def list_scenes(cfg: SceneSourceConfig, split: str = "train") -> list[str]:
@@ -109,12 +128,9 @@ def list_scenes(cfg: SceneSourceConfig, split: str = "train") -> list[str]:
     if cfg.scenes is not None:
         return list(cfg.scenes)
     lists = {"train": cfg.train_list, "test": cfg.test_list}
-    if lists["train"] is not None and lists["test"] is not None:
-        shared = sorted(set(read_scene_list(lists["train"], "source.train_list"))
-                        & set(read_scene_list(lists["test"], "source.test_list")))
-        if shared:
-            raise SceneFormatError(f"source.test_list={lists['test']!r} names training scenes {shared[:5]} "
-                                   f"(also in source.train_list); benchmark scenes must be held out")
+    if lists["test"] is not None:
+        require_held_out(read_scene_list(lists["test"], "source.test_list"), training_scenes(cfg),
+                         f"source.test_list={lists['test']!r}")
     root = Path(cfg.root)
     if lists[split] is not None:
         names = read_scene_list(lists[split], f"source.{split}_list")

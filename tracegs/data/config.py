@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 
 
 @dataclass
@@ -73,6 +73,16 @@ class SceneSourceConfig:
 
 
 @dataclass
+class CaptionConfig:
+    """Where clip captions come from."""
+
+    blip2_path: str | None = None  # local BLIP-2 weights (transformers layout); None = the deterministic source
+    fallback: str = "a photo of a scene"  # deterministic source: used when a scene has no caption.txt
+    max_new_tokens: int = 30  # unstated by the paper: BLIP-2 caption length
+
+
+
+@dataclass
 class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
@@ -91,11 +101,13 @@ class PrepareConfig:
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
     clips_per_scene: int = 8  # paper: 150
-    # Clips follow the deployment trajectories (splat TrajectoryConfig defaults: ellipse + bridges).
     frames_per_clip: int = 9  # paper: 49
+    # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: str = "gt"  # "gt" | "restorer" | "dense"; paper: "restorer" (frozen GSFixer)
     pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
-    caption: str = "a photo of a scene"  # used when a scene has no caption.txt
+    # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
+    captions: CaptionConfig = field(default_factory=CaptionConfig)
     shard_index: int = 0
     num_shards: int = 1  # shard by scene for Hydra multirun / SLURM arrays
     force: bool = False

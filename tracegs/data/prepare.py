@@ -33,9 +33,10 @@ from safetensors import safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.console import PlainProgress
-from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene, test_indices_for
+from tracegs.data.captions import clip_caption, require_captioner
+from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import SPLITS, PrepareConfig, SceneSourceConfig, SyntheticConfig
-from tracegs.data.splits import SceneSplit, make_split, view_set_key
+from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
     benchmark_scene_names,
@@ -55,12 +56,12 @@ from tracegs.io import (
 from tracegs.processes import die_with_parent
 from tracegs.restorer.build import Backbone
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
+from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
-from tracegs.splat.render import require_available
-from tracegs.splat.trajectory import round_trajectory
+from tracegs.splat.render import render_clip, require_available
+from tracegs.splat.trajectory import reference_pairs, round_trajectory
 
 PSEUDO_SOURCES = ("gt", "restorer", "dense")
 MANIFEST = "manifest.json"
@@ -92,8 +93,7 @@ def _view_counts(cfg: PrepareConfig) -> list[int | None]:
 def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> ScenePlan:
     """Load and split a scene, and list the fits; raises before anything is written on bad input."""
     scene = load_scene(source, name)
-    split = make_split(len(scene), _view_counts(cfg), source.test_every, split_dir=scene.root,
-                       test_indices=test_indices_for(source, scene))
+    split = split_scene(scene, source, _view_counts(cfg))
     final = cfg.fit.iterations
     fits: dict[str, list[int]] = {}
     for count in _view_counts(cfg):
@@ -120,6 +120,10 @@ def validate_config(cfg: PrepareConfig) -> None:
         raise PrepareError(f"prepare.shard_index={cfg.shard_index} must lie in [0, num_shards={cfg.num_shards})")
     if cfg.frames_per_clip < 3:
         raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
+    require_captioner(cfg.captions, "data.prepare.captions")
+    if cfg.trajectory.frames_per_clip != cfg.frames_per_clip:
+        raise PrepareError(f"prepare.trajectory.frames_per_clip={cfg.trajectory.frames_per_clip} must equal "
+                           f"prepare.frames_per_clip={cfg.frames_per_clip}")
     if not cfg.student_views:
         raise PrepareError("prepare.student_views is empty")
     if cfg.split not in SPLITS:
@@ -178,27 +182,25 @@ def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig) -> None:
 
 
 def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
-    """Clip trajectories as deployment renders them (supplement A.5): per round a fresh ellipse around the
-    training cameras, one clip per reference pair bridging from reference a along the ellipse to b.
+    """Clip trajectories by deployment's rule (``round_trajectory`` with ``cfg.trajectory``, which is the
+    deployment's trajectory config): per round a fresh ellipse fitted to the reference views, one clip per
+    chained reference pair, each taking the shorter arc between its two references.
 
-    References come from the smallest sparse set, so they lie in every V_s (and every V_d). Pairs chain
-    around it ((v0, v1), (v1, v2), ..., (vK, v0)); odd rounds run the chain backwards.
+    References are the smallest sparse set, so they lie in every V_s (and every V_d); at deployment the
+    references are the captured V_s, so both fit their ellipse to a sparse set of the same size.
     """
     scene, split = plan.scene, plan.split
     anchors = split.views(min(cfg.student_views))
     if len(anchors) < 2:
         raise PrepareError(f"{scene.name}: the smallest sparse view set has one view; clips need two references")
-    chain = list(zip(anchors, anchors[1:] + anchors[:1]))
-    train_cameras = [scene.cameras[i] for i in split.train]
-    trajectory = TrajectoryConfig(frames_per_clip=cfg.frames_per_clip)
+    references = [scene.cameras[i] for i in anchors]
     generator = torch.Generator().manual_seed(scene_seed(cfg.seed, scene.name))
     clips: list[dict] = []
     round_index = 0
     while len(clips) < cfg.clips_per_scene:
-        pairs = chain if round_index % 2 == 0 else [(b, a) for a, b in chain]
-        refs = [(scene.cameras[a], scene.cameras[b]) for a, b in pairs]
-        cameras = round_trajectory(train_cameras, refs, round_index, trajectory, generator)
-        clips += [{"refs": list(p), "cameras": c} for p, c in zip(pairs, cameras)]
+        pairs = reference_pairs(len(anchors), None, generator)
+        cameras = round_trajectory(references, pairs, round_index, cfg.trajectory, generator)
+        clips += [{"refs": [anchors[a], anchors[b]], "cameras": c} for (a, b), c in zip(pairs, cameras)]
         round_index += 1
     return clips[: cfg.clips_per_scene]
 
@@ -216,13 +218,15 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
                 ref_images: torch.Tensor, caption: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
     """Codec latents of every condition and the target, reference tokens, text embedding (all frozen)."""
     keys = list(conditions)
+    device = next(backbone.transformer.parameters()).device  # the accelerator the backbone was built on
     with torch.no_grad():
-        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target]))
-        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None])
+        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target.cpu()]).to(device))
+        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None].to(device))
         text = backbone.text_encoder.encode([caption])
-    out = {f"latent/{k}": latents[i].to(dtype) for i, k in enumerate(keys)}
-    out["latent/target"] = latents[-1].to(dtype)
-    out["ref_2d"], out["ref_3d"], out["text"] = ref_2d[0].to(dtype), ref_3d[0].to(dtype), text[0].to(dtype)
+    out = {f"latent/{k}": latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
+    out["latent/target"] = latents[-1].to("cpu", dtype)
+    out["ref_2d"], out["ref_3d"], out["text"] = (ref_2d[0].to("cpu", dtype), ref_3d[0].to("cpu", dtype),
+                                                 text[0].to("cpu", dtype))
     return out
 
 
@@ -259,7 +263,10 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     cameras: list[Camera] = clip["cameras"]
     a, b = clip["refs"]
     ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
-    caption = plan.scene.caption or cfg.caption
+    # One caption per clip, from the first frame of its sparsest, earliest-snapshot R_s (the paper does not
+    # say which of the several R_s of a clip; the most degraded one is what deployment renders first).
+    student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
+    caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
     dense = conditions[condition_key(dense_target_views(cfg))]
     if cfg.pseudo_target == "gt":
         target = ground_truth
@@ -267,7 +274,7 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         target = dense
     else:
         target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
-        target = target.clamp(0, 1)
+        target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():
         tensors[f"frames/{key}"] = to_uint8(frames)
@@ -353,25 +360,26 @@ def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecuto
         plain.update(done)
 
 
-def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, Path]:
-    """PLY of every cached condition: ``s{K}_it{snap}`` for the student snapshots, ``d{V}`` for final fits."""
-    paths: dict[str, Path] = {}
+def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, tuple[Path, int]]:
+    """PLY and snapshot iteration of every cached condition: ``s{K}_it{snap}`` for the student snapshots,
+    ``d{V}`` for final fits."""
+    paths: dict[str, tuple[Path, int]] = {}
     for key, snapshots in plan.fits.items():
         unit = fit_unit_paths(Path(cfg.work_dir), plan.scene.name, key, snapshots, cfg.fit)
         views = None if key == "all" else int(key)
-        paths[condition_key(views)] = unit[cfg.fit.iterations]
+        paths[condition_key(views)] = (unit[cfg.fit.iterations], cfg.fit.iterations)
         if views in cfg.student_views:
             for snapshot in cfg.student_snapshots:
-                paths[condition_key(views, snapshot)] = unit[snapshot]
+                paths[condition_key(views, snapshot)] = (unit[snapshot], snapshot)
     return paths
 
 
-def render_clip(plan: ScenePlan, cameras: list[Camera], paths: dict[str, Path],
-                cfg: PrepareConfig) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
-    """Frames [F,3,H,W] of every condition along one clip, and of ground truth when the scene has it."""
-    # Reconstructions render on the background they were fitted with, ground truth on its own.
-    conditions = {key: torch.stack(render_images(load_ply(path), cameras, cfg.fit.background))
-                  for key, path in paths.items()}
+def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, tuple[Path, int]],
+                      cfg: PrepareConfig) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """Frames [F,3,H,W] (on the CPU) of every condition along one clip, rendered by deployment's clip path
+    (``render_clip``), and of ground truth when the scene has it (on the background it was made with)."""
+    conditions = {key: render_clip(load_ply(path), cameras, cfg.fit, iteration).cpu()
+                  for key, (path, iteration) in paths.items()}
     ground_truth = None
     if (plan.scene.root / GT_PLY).is_file():
         ground_truth = torch.stack(render_images(ground_truth_model(plan.scene), cameras,
@@ -391,7 +399,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     # Rendering runs in the worker processes; the frozen encoders (paper scale: GPU) stay in this one.
     paths = condition_paths(plan, cfg)
-    rendered = run_units(pool, render_clip, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
+    rendered = run_units(pool, render_conditions, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
     plain = PlainProgress(f"{name}: clips", len(todo))
     for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, rendered), 1):
         save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c], settings)
@@ -400,7 +408,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
-        "caption": plan.scene.caption or cfg.caption,
+        "caption": plan.scene.caption or cfg.captions.fallback,
         "image_names": plan.scene.image_names,
         "split": plan.split.to_dict(),
         "intrinsics": [c.K.tolist() for c in plan.scene.cameras],

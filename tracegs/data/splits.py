@@ -3,8 +3,12 @@
 TRACE-GS pairs a sparse view set V_s (K = 3, 6, 9) with a denser V_d (12, 18, all training views) and
 requires V_s to be a subset of V_d. Mip-NeRF 360 / ReconFusion publish ``train_test_split_{n}.json``
 (``train_ids`` / ``test_ids`` index the images sorted by name); they are honoured when present.
-Otherwise the test views are every 8th image and each view set is evenly spaced over the rest, grown
-greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all.
+Otherwise the test views are every 8th image and each view set is spread evenly around the capture,
+grown greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all.
+
+Every split builds the whole ladder ``NESTED_VIEW_COUNTS`` (as far as the scene has views), whatever
+counts the caller asks for, so a K-view set is the same set in prepare, training and evaluation.
+``split_scene`` is the one entry point all of them use.
 """
 
 from __future__ import annotations
@@ -13,6 +17,14 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from tracegs.data.colmap import Scene
+    from tracegs.data.config import SceneSourceConfig
+
+# The paper's view-set ladder (Sec. 4.1): sparse K = 3, 6, 9, dense 12, 18 (and all training views).
+NESTED_VIEW_COUNTS = (3, 6, 9, 12, 18)
 
 
 class SplitError(ValueError):
@@ -54,29 +66,32 @@ def every_nth_test(num_images: int, test_every: int) -> list[int]:
 
 
 def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> list[int]:
-    """Extend ``keep`` to ``count`` indices drawn from ``candidates``, as evenly spaced as nesting allows.
+    """Extend ``keep`` to ``count`` indices drawn from ``candidates``, spread evenly around the capture.
 
-    The ideal positions are ``count`` evenly spaced points over ``candidates``; each already kept index
-    claims the nearest free ideal position, and the unclaimed positions are filled with the nearest
-    unused candidate. Written by hand because no library does nested even spacing.
+    Distances are taken around the loop of ``candidates`` (capture order), because on a 360-degree capture
+    the first and last images are neighbours. The first set (``keep`` empty) takes the centres of ``count``
+    equal shares, ``(i + 1/2) n / count``; later, nested sets add one candidate at a time, the one farthest
+    (around the loop) from every chosen one, ties to the one nearest such a centre, then to the earliest. Written by hand because no library does
+    nested even spacing.
     """
     n = len(candidates)
     if count > n:
         raise SplitError(f"asked for {count} training views but the scene has only {n}")
-    if count == n:
-        return sorted(candidates)
-    ideal = [i * (n - 1) / max(count - 1, 1) for i in range(count)] if count > 1 else [(n - 1) / 2]
     position = {c: i for i, c in enumerate(candidates)}
-    free = list(range(count))
-    for index in keep:
-        nearest = min(free, key=lambda f: abs(ideal[f] - position[index]))
-        free.remove(nearest)
-    chosen = set(keep)
-    for f in free:
-        unused = [i for i in range(n) if candidates[i] not in chosen]
-        best = min(unused, key=lambda i: abs(i - ideal[f]))
-        chosen.add(candidates[best])
-    return sorted(chosen)
+    centres = [(i + 0.5) * n / count - 0.5 for i in range(count)]
+    if not keep:
+        return sorted(candidates[min(n - 1, round(c))] for c in centres)
+
+    def loop_distance(a: float, b: float) -> float:
+        return min(abs(a - b), n - abs(a - b))
+
+    chosen = {position[index] for index in keep}
+    while len(chosen) < count:
+        # Farthest from the chosen views; among equals, nearest to one of this count's even centres.
+        chosen.add(max((i for i in range(n) if i not in chosen),
+                       key=lambda i: (min(loop_distance(i, c) for c in chosen),
+                                      -min(loop_distance(i, c) for c in centres), -i)))
+    return sorted(candidates[i] for i in chosen)
 
 
 def read_split_json(path: Path, num_images: int) -> tuple[list[int], list[int]]:
@@ -103,13 +118,15 @@ def make_split(
 
     ``split_dir`` is searched for ``train_test_split_{n}.json``; a file found for a count is used
     verbatim for that view set (and its ``test_ids`` for the test split). ``test_indices`` overrides
-    the every-``test_every`` rule (e.g. NeRFBusters' separate evaluation capture).
+    the every-``test_every`` rule (e.g. NeRFBusters' separate evaluation capture). The ladder
+    ``NESTED_VIEW_COUNTS`` is always built too (the counts the scene has views for), so each set does not
+    depend on which other counts the caller asked for.
     """
-    counts = sorted({c for c in view_counts if c is not None})
+    requested = {c for c in view_counts if c is not None}
     json_sets: dict[int, tuple[Path, list[int]]] = {}
     json_test: list[int] | None = None
     if split_dir is not None:
-        for count in counts:
+        for count in sorted(requested | set(NESTED_VIEW_COUNTS)):
             path = Path(split_dir) / f"train_test_split_{count}.json"
             if path.is_file():
                 train_ids, test_ids = read_split_json(path, num_images)
@@ -127,6 +144,7 @@ def make_split(
         test = every_nth_test(num_images, test_every)
     held_out = set(test)
     train = [i for i in range(num_images) if i not in held_out]
+    counts = sorted(requested | set(json_sets) | {c for c in NESTED_VIEW_COUNTS if c <= len(train)})
     view_sets: dict[str, list[int]] = {}
     previous: list[int] = []
     previous_name = "the empty set"
@@ -149,3 +167,12 @@ def make_split(
     if any(c is None for c in view_counts):
         view_sets["all"] = list(train)
     return SceneSplit(test=test, train=train, view_sets=view_sets)
+
+
+def split_scene(scene: Scene, source: SceneSourceConfig, view_counts: Sequence[int | None]) -> SceneSplit:
+    """The split of a loaded scene: its ReconFusion files, the preset's test views or every
+    ``source.test_every``-th image, and the nested view sets. Prepare and evaluation both call this."""
+    from tracegs.data.colmap import test_indices_for
+
+    return make_split(len(scene), view_counts, source.test_every, split_dir=scene.root,
+                      test_indices=test_indices_for(source, scene))

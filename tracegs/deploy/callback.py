@@ -20,11 +20,12 @@ from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.evaluate import SceneUnit, load_unit
-from tracegs.deploy.refine import refine, render_views
+from tracegs.deploy.refine import refine
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
+from tracegs.splat.render import render_views
 
 RestorerFactory = Callable[[L.LightningModule], ClipRestorer]
 
@@ -113,7 +114,7 @@ class DeploymentRefinement(L.Callback):
         for unit, cold in self._prepared_units():
             model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
                            caption=unit.scene.caption or "")
-            renders = render_views(model, unit.test_cameras, background, None)
+            renders = render_views(model, unit.test_cameras, background, None).cpu()
             per_k[unit.views].append(mean_metrics(self.metrics.per_view(renders, unit.test_images)))
         return per_k
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.data.config import CaptionConfig
 from tracegs.errors import ConfigError
 from tracegs.splat.trajectory import TrajectoryConfig
 
@@ -23,6 +24,7 @@ class RefinementConfig:
     repair_iters: list[int] = field(default_factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
     lambda_reg: float = 1.0  # peak of the half-sine w_reg
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    captions: CaptionConfig = field(default_factory=CaptionConfig)  # the training clips' caption rule
     # Clips restored per round: None = one per reference pair of the chained captured views (K clips, the
     # paper's protocol); the embedded default samples 2 per round to keep CPU deployment within minutes.
     max_clips_per_round: int | None = 2

@@ -25,12 +25,13 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
-from tracegs.data.colmap import Scene, load_scene, test_indices_for
+from tracegs.data.captions import require_captioner
+from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
-from tracegs.data.splits import make_split
+from tracegs.data.splits import split_scene
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
-from tracegs.deploy.refine import cold_start, refine, render_round_clips, render_views
+from tracegs.deploy.refine import cold_start, refine, render_round_clips
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
@@ -52,6 +53,7 @@ from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.fit import initial_model as random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
+from tracegs.splat.render import render_views, require_available
 from tracegs.splat.trajectory import bridge_poses
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
@@ -118,11 +120,9 @@ class SceneUnit:
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
-    """Split ``scene`` (ReconFusion JSON if present, else every-8th test views) and load V_s and the test set.
-
-    Test views are disjoint from every training view, so reference frames never enter the metrics."""
-    split = make_split(len(scene), [views], source.test_every, split_dir=scene.root,
-                       test_indices=test_indices_for(source, scene))
+    """Split ``scene`` exactly as prepare does (``split_scene``: the same nested sets) and load V_s and the
+    test set. Test views are disjoint from every training view, so reference frames never enter the metrics."""
+    split = split_scene(scene, source, [views])
     captured_ids = split.views(views)
     if set(captured_ids) & set(split.test):
         raise ValueError(f"{scene.name}: test views {sorted(set(captured_ids) & set(split.test))} are captured views")
@@ -163,7 +163,7 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
             raise ValueError(f"evaluation.methods lists {method!r} but no restorer was built for it")
         model = refine(cold, unit.captured, restorers[method], refine_cfg, fit_cfg, caption=caption,
                        seed=refine_cfg.seed)
-        renders = render_views(model, unit.test_cameras, background, None)
+        renders = render_views(model, unit.test_cameras, background, None).cpu()
         per_view = metrics.per_view(renders, unit.test_images)
         require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
         result["methods"][method] = {"per_view": per_view, "mean": mean_metrics(per_view)}
@@ -204,7 +204,7 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
     frames = torch.stack([c.frames for c in clips])
     refs = torch.stack([c.references for c in clips])
     return {
-        method: per_step_psnr(restorer.pipeline, frames, refs, [caption] * len(clips), truth, seed=refine_cfg.seed,
+        method: per_step_psnr(restorer.pipeline, frames, refs, [c.caption for c in clips], truth, seed=refine_cfg.seed,
                               steps=restorer.steps)
         for method, restorer in restorers.items() if isinstance(restorer, DiffusionRestorer)
     }
@@ -222,7 +222,7 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
     columns["GT"] = list(unit.test_images[:shown])
     grid = save_qualitative_grid(columns, media_dir / f"{stem}_grid.png")
     path = test_trajectory(unit.test_cameras, cfg.video_frames)
-    frames = {METHOD_LABELS.get(m, m): render_views(model, path, background, None) for m, model in models.items()}
+    frames = {METHOD_LABELS.get(m, m): render_views(model, path, background, None).cpu() for m, model in models.items()}
     if gt_renderer is not None:
         frames["GT"] = gt_renderer(unit.scene, path)
     video = save_comparison_video(frames, media_dir / f"{stem}_trajectory", fps=cfg.video_fps)
@@ -303,9 +303,12 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
         raise ValueError(f"evaluation.lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}")
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
+    require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else (scenes or []))
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
+    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
+    require_captioner(refine_cfg.captions, "deploy.captions")
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
@@ -392,7 +395,10 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
     """Restore-refine this shard's (scene, K) units with one restorer and save each refined 3DGS as
     ``<out_dir>/<scene>/views_<K>.ply`` (standard 3DGS layout). Existing PLYs are kept unless ``cfg.force``."""
     refine_cfg.validate()
+    require_available(fit_cfg.backend, "data.prepare.fit.backend")
     scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
+    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
+    require_captioner(refine_cfg.captions, "deploy.captions")
     written = []
     with Progress(disable=not cfg.progress) as progress:
         units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)

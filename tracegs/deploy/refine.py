@@ -18,16 +18,15 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
 
+from tracegs.data.captions import clip_caption
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
-from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.render import render
-from tracegs.splat.trajectory import round_trajectory
+from tracegs.splat.render import render_clip
+from tracegs.splat.trajectory import reference_pairs, round_trajectory
 
 
 def pseudo_weight(j: int, first_repair: int, total: int, lambda_reg: float = 1.0) -> float:
@@ -53,42 +52,22 @@ class RepairRound:
     pseudo: list[View]  # replaces every earlier pseudo view
 
 
-@torch.no_grad()
-def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Tensor,
-                 sh_degree: int | None) -> Tensor:
-    """Renders [F,3,H,W] in [0,1] of ``model`` at ``cameras``."""
-    return torch.stack([render(model, cam, background=background, sh_degree=sh_degree).image for cam in cameras]
-                       ).clamp(0, 1)
-
-
-def reference_pairs(num_views: int, max_clips: int | None, generator: torch.Generator) -> list[tuple[int, int]]:
-    """Reference-view pairs of one round: the captured views chained in capture order and closed into a
-    loop ((v0, v1), ..., (v_{K-1}, v0)), so the round's clips cover the whole ellipse; with ``max_clips``
-    a random subset per round (rounds then cover different arcs)."""
-    if num_views < 2:
-        raise ValueError(f"deployment clips need two reference views, but only {num_views} view is captured")
-    pairs = [(i, (i + 1) % num_views) for i in range(num_views)] if num_views > 2 else [(0, 1), (1, 0)]
-    if max_clips is not None and max_clips < len(pairs):
-        keep = torch.randperm(len(pairs), generator=generator)[:max_clips].sort().values.tolist()
-        pairs = [pairs[i] for i in keep]
-    return pairs
-
-
 def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
                        fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
     """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
-    whose two ends are observed reference views (their captured images become the clip's references)."""
+    whose two ends are observed reference views (their captured images become the clip's references).
+    Frames come from ``render_clip`` and captions from ``clip_caption`` on each clip's first frame, as in
+    prepare; ``caption`` is the scene's own caption (its caption.txt, "" when it has none)."""
     cameras = [v.camera for v in captured]
     pairs = reference_pairs(len(captured), cfg.max_clips_per_round, generator)
-    clip_cameras = round_trajectory(cameras, [(cameras[a], cameras[b]) for a, b in pairs], round_index,
-                                    cfg.trajectory, generator)
-    background = torch.tensor(fit_cfg.background, dtype=torch.float32)
-    degree = fitter.sh_degree(fitter.iteration)
-    return [
-        Clip(frames=render_views(fitter.model, cams, background, degree), cameras=list(cams),
-             references=torch.stack([captured[a].image, captured[b].image]), caption=caption)
-        for (a, b), cams in zip(pairs, clip_cameras)
-    ]
+    clip_cameras = round_trajectory(cameras, pairs, round_index, cfg.trajectory, generator)
+    clips = []
+    for (a, b), cams in zip(pairs, clip_cameras):
+        frames = render_clip(fitter.model, cams, fit_cfg, fitter.iteration)
+        clips.append(Clip(frames=frames, cameras=list(cams), references=torch.stack([captured[a].image,
+                                                                                        captured[b].image]),
+                          caption=clip_caption(cfg.captions, frames[0], caption)))
+    return clips
 
 
 def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer, round_index: int,

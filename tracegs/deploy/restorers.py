@@ -1,7 +1,7 @@
 """Clip restorers used by the restore-refine loop: the diffusion student/baseline, and a ground-truth oracle.
 
 The loop only needs ``restore(clips) -> frames``; a clip carries its rendered frames, the poses they were
-rendered at, its two reference images (observed views at the clip ends) and the scene caption.
+rendered at, its two reference images (observed views at the clip ends) and its caption (data/captions.py).
 """
 
 from __future__ import annotations

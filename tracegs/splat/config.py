@@ -21,7 +21,9 @@ class DensificationConfig:
     grow_scale3d: float = 0.01
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
-    max_gaussians: int = 8000  # keep the most opaque ones beyond this budget (bounds the CPU cost per step)
+    # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
+    # per step at the embedded scale); None = no cap (paper scale).
+    max_gaussians: int | None = 8000
 
 
 @dataclass
@@ -53,13 +55,20 @@ class GaussianFitConfig:
     keep_freed_cpu_memory: bool = True  # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     densification: DensificationConfig = field(default_factory=DensificationConfig)
 
+    def sh_degree_at(self, iteration: int) -> int:
+        """The SH degree in use at ``iteration``: one band more every ``sh_degree_interval``, up to
+        ``sh_degree`` (reference 3DGS)."""
+        return min(self.sh_degree, iteration // max(self.sh_degree_interval, 1))
+
 
 @dataclass
 class TrajectoryConfig:
     """Deployment trajectory of supplement A.5: a 360-degree ellipse around the focus point whose scale and
     vertical variation depend on the repair round, with a random vertical phase, joined to the reference views
     by bridge poses. Round r (0-based) uses scale `ellipse_scales[r]` and height variation
-    `height_variations[r]` (the last entry repeats for later rounds)."""
+    `height_variations[r]`, one entry per repair round, cycling beyond them (prepare renders many rounds).
+    The supplement states that both depend on the round but not their values: these are unstated choices.
+    Prepare and deployment read this one config (``data.prepare.trajectory`` is ``deploy.trajectory``)."""
 
     frames_per_clip: int = 9
     ellipse_scales: list[float] = field(default_factory=lambda: [1.0, 0.85, 0.7])

@@ -18,7 +18,7 @@ from torch import Tensor
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.render import render
+from tracegs.splat.render import fit_device, render, require_available
 
 
 @dataclass
@@ -110,7 +110,9 @@ class GaussianFitter:
     def __init__(self, model: GaussianModel, cfg: GaussianFitConfig, scene_extent: float):
         if scene_extent <= 0:
             raise ValueError(f"scene_extent must be positive, got {scene_extent}")
-        self.model = model
+        require_available(cfg.backend, "fit.backend")
+        # 3DGS runs where the backend does: CUDA with gsplat's rasterizer when present, else the CPU.
+        self.model = model.to(fit_device(cfg))
         self.cfg = cfg
         self.scene_extent = scene_extent
         self.iteration = 0
@@ -146,7 +148,7 @@ class GaussianFitter:
         return math.exp(log_lr) * self.scene_extent
 
     def sh_degree(self, step: int) -> int:
-        return min(self.cfg.sh_degree, step // max(self.cfg.sh_degree_interval, 1))
+        return self.cfg.sh_degree_at(step)
 
     def _render_loss(self, view: View, step: int) -> tuple[Tensor, dict]:
         camera = view.camera.to(self.model.means.device)
@@ -194,7 +196,7 @@ class GaussianFitter:
                 # condition that is never true, so its opacity reset never runs; apply it here (idempotent if a
                 # fixed gsplat also resets).
                 reset_opa(params, self.optimizers, self.strategy_state, value=dens.prune_opa * 2.0)
-            excess = len(params["means"]) - dens.max_gaussians
+            excess = 0 if dens.max_gaussians is None else len(params["means"]) - dens.max_gaussians
             if excess > 0:
                 # A budget that gsplat's strategy does not have: drop the least opaque Gaussians.
                 weakest = params["opacities"].detach().argsort()[:excess]

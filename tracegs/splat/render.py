@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from tracegs.splat.cameras import Camera
+from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
 from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
@@ -47,6 +49,29 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
         raise ValueError("render backend 'gsplat' needs the gsplat package and the model on a CUDA device")
     return backend
+
+
+def fit_device(cfg: GaussianFitConfig) -> torch.device:
+    """Where 3DGS fits and renders run: CUDA when the backend can use gsplat there, else the CPU."""
+    return torch.device("cuda" if cfg.backend in ("auto", "gsplat") and gsplat_available() else "cpu")
+
+
+@torch.no_grad()
+def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Sequence[float] | Tensor,
+                 sh_degree: int | None, backend: str = "auto") -> Tensor:
+    """Renders [F,3,H,W] in [0,1] of ``model`` at ``cameras``, on the model's device."""
+    background = torch.as_tensor(background, dtype=torch.float32)
+    return torch.stack([render(model, camera, background, sh_degree, backend).image for camera in cameras]
+                       ).clamp(0, 1)
+
+
+def render_clip(model: GaussianModel, cameras: Sequence[Camera], fit: GaussianFitConfig, iteration: int) -> Tensor:
+    """The frames [F,3,H,W] of one restorer clip R = Render(G, P), the single path by which prepare renders
+    the training conditions (R_s, R_d) and deployment renders the clips it restores (supplement Eq.
+    supp-round-rendering): the fit's background and backend, on the fit's device, at the SH degree the
+    fit had reached at ``iteration``, so the restorer deploys on the inputs it was trained on."""
+    model = model.to(fit_device(fit))
+    return render_views(model, cameras, fit.background, fit.sh_degree_at(iteration), fit.backend)
 
 
 def render(model: GaussianModel, camera: Camera, background: Tensor | None = None, sh_degree: int | None = None,

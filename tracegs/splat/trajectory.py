@@ -133,28 +133,56 @@ def _nearest(poses: Sequence[Camera], camera: Camera) -> int:
     return int((centres - camera.center.float()).norm(dim=1).argmin())
 
 
-def round_trajectory(cameras_observed: Sequence[Camera], ref_pairs: Sequence[tuple[Camera, Camera]],
-                     round_index: int, cfg: TrajectoryConfig, generator: torch.Generator | None = None
-                     ) -> list[list[Camera]]:
-    """Clips for repair round `round_index` (0-based): a freshly sampled ellipse (round-dependent scale and
-    height variation, random vertical phase) and, per reference pair (a, b), one clip from a to b whose middle
-    follows the ellipse forward from the pose nearest a to the pose nearest b. Pairs that chain around the
-    observed views ((v0, v1), (v1, v2), ..., (vK, v0)) cover the whole 360 degrees."""
-    if not ref_pairs:
-        raise ValueError("round_trajectory needs at least one reference pair")
+def reference_pairs(num_views: int, max_clips: int | None, generator: torch.Generator) -> list[tuple[int, int]]:
+    """Reference-view pairs of one round: the views chained in capture order and closed into a loop
+    ((v0, v1), ..., (v_{K-1}, v0)), so the round's clips cover the whole ellipse; with ``max_clips`` a random
+    subset per round (rounds then cover different arcs)."""
+    if num_views < 2:
+        raise ValueError(f"clips need two reference views, but only {num_views} view is given")
+    pairs = [(i, (i + 1) % num_views) for i in range(num_views)] if num_views > 2 else [(0, 1), (1, 0)]
+    if max_clips is not None and max_clips < len(pairs):
+        keep = torch.randperm(len(pairs), generator=generator)[:max_clips].sort().values.tolist()
+        pairs = [pairs[i] for i in keep]
+    return pairs
+
+
+def shorter_arc(start: int, stop: int, n: int) -> list[int]:
+    """Indices of a closed loop of ``n`` poses from ``start`` to ``stop`` (both included) the shorter way
+    round; once around the loop when both are the same pose."""
+    forward, backward = (stop - start) % n, (start - stop) % n
+    if forward == 0:
+        return [(start + k) % n for k in range(n + 1)]
+    step, length = (1, forward) if forward <= backward else (-1, backward)
+    return [(start + step * k) % n for k in range(length + 1)]
+
+
+def round_shape(cfg: TrajectoryConfig, round_index: int) -> tuple[float, float]:
+    """(ellipse scale, height variation) of repair round ``round_index`` (0-based). The lists give one entry
+    per repair round and cycle beyond them, so prepare's many rounds per scene use the deployment rounds'
+    shapes in equal measure."""
     if round_index < 0:
         raise ValueError(f"round_index must be >= 0, got {round_index}")
-    scale = cfg.ellipse_scales[min(round_index, len(cfg.ellipse_scales) - 1)]
-    variation = cfg.height_variations[min(round_index, len(cfg.height_variations) - 1)]
+    return (cfg.ellipse_scales[round_index % len(cfg.ellipse_scales)],
+            cfg.height_variations[round_index % len(cfg.height_variations)])
+
+
+def round_trajectory(references: Sequence[Camera], pairs: Sequence[tuple[int, int]], round_index: int,
+                     cfg: TrajectoryConfig, generator: torch.Generator | None = None) -> list[list[Camera]]:
+    """Clips of repair round ``round_index`` (supplement A.5), the one rule prepare and deployment share.
+
+    The round's ellipse is fitted to the reference views ``references`` (the captured V_s at deployment,
+    the smallest sparse set in prepare), with the round's scale and height variation (``round_shape``) and a
+    random vertical phase drawn from ``generator``. Per pair (a, b) of indices into ``references``, one clip
+    from reference a to reference b whose middle follows the ellipse the shorter way round from the pose
+    nearest a to the pose nearest b. Chained pairs (``reference_pairs``) cover the whole 360 degrees.
+    """
+    if not pairs:
+        raise ValueError("round_trajectory needs at least one reference pair")
+    scale, variation = round_shape(cfg, round_index)
     phase = 2.0 * math.pi * torch.rand((), generator=generator).item()
-    ellipse = ellipse_poses(cameras_observed, cfg.ellipse_frames, scale, variation, phase)
-    n = len(ellipse)
+    ellipse = ellipse_poses(references, cfg.ellipse_frames, scale, variation, phase)
     clips = []
-    for ref_a, ref_b in ref_pairs:
-        start, stop = _nearest(ellipse, ref_a), _nearest(ellipse, ref_b)
-        length = (stop - start) % n
-        if length < 1:  # both references project onto one pose: go once around the loop
-            length = n
-        path = [ellipse[(start + k) % n] for k in range(length + 1)]
-        clips.append(make_clip(ref_a, ref_b, path, cfg.frames_per_clip))
+    for a, b in pairs:
+        arc = shorter_arc(_nearest(ellipse, references[a]), _nearest(ellipse, references[b]), len(ellipse))
+        clips.append(make_clip(references[a], references[b], [ellipse[i] for i in arc], cfg.frames_per_clip))
     return clips

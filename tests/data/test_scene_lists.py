@@ -1,0 +1,49 @@
+"""Benchmark scene lists ship with the configs, and evaluation refuses a training scene."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+from scene_builders import write_scene
+
+from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
+from tracegs.data.colmap import SceneFormatError, list_scenes, read_scene_list
+from tracegs.data.config import SceneSourceConfig
+from tracegs.deploy.config import EvaluationConfig, RefinementConfig
+from tracegs.deploy.evaluate import deploy_scenes, evaluate
+from tracegs.splat.config import GaussianFitConfig
+
+PUBLISHED = {
+    "mipnerf360": ["bicycle", "bonsai", "counter", "flowers", "garden", "kitchen", "room", "stump", "treehill"],
+    "nerfbusters": ["aloe", "art", "car", "century", "flowers", "garbage", "picnic", "pikachu", "pipe", "plant",
+                    "roses", "table"],
+}
+
+
+@pytest.mark.parametrize("data", sorted(PUBLISHED))
+def test_published_benchmark_lists_are_found_from_the_config(data, tmp_path):
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["experiment=paper", f"data={data}"])
+    assert read_scene_list(cfg.data.source.test_list, "source.test_list") == PUBLISHED[data]
+    # The list is read whatever the working directory, and its scenes must exist under the root.
+    source = SceneSourceConfig(root=str(tmp_path), preset=data, test_list=cfg.data.source.test_list)
+    with pytest.raises(SceneFormatError, match="not under"):
+        list_scenes(source, "test")
+
+
+@pytest.mark.parametrize("stage", ["evaluate", "deploy"])
+def test_evaluating_a_training_scene_is_refused_before_any_work(stage, tmp_path):
+    write_scene(tmp_path / "scenes" / "ring")
+    (tmp_path / "train.txt").write_text("ring\n")
+    source = SceneSourceConfig(root=str(tmp_path / "scenes"), preset="custom", train_list=str(tmp_path / "train.txt"))
+    out = tmp_path / "out"
+    cfg = EvaluationConfig(out_dir=str(out), methods=["3dgs"], views=[3], progress=False)
+    fit, refine_cfg = GaussianFitConfig(iterations=20), RefinementConfig(total_iters=20, repair_iters=[5, 10])
+    with pytest.raises(SceneFormatError, match=r"training scenes \['ring'\]"):
+        if stage == "evaluate":
+            evaluate(cfg, source, refine_cfg, fit, {"3dgs": None}, scenes=["ring"])
+        else:
+            deploy_scenes(cfg, source, refine_cfg, fit, None, ["ring"], out)
+    assert not out.exists()

@@ -1,0 +1,50 @@
+"""Clip captions (supplement A.2, "Text tokens"): one rule for the training clips and the deployed clips.
+
+Paper scale: a frozen BLIP-2 captioner (transformers, local weights) describes the first frame of the sparse
+rendering R_s; the text encoder appends the fixed quality suffix (``TextEncoder.prompt``). Embedded scale
+(``blip2_path`` unset): a deterministic source, the scene's ``caption.txt`` (the synthetic benchmark writes
+one describing its objects), else ``fallback``. Prepare and deployment both call ``clip_caption`` with the
+same ``CaptionConfig`` (``data.prepare.captions`` is ``deploy.captions``), so a restorer deploys on the
+captions it was trained on.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import torch
+from PIL import Image
+from torch import Tensor
+
+from tracegs.data.config import CaptionConfig
+
+
+def require_captioner(cfg: CaptionConfig, field: str) -> None:
+    """Fail before any work when the configured BLIP-2 weights are missing."""
+    if cfg.blip2_path is not None and not Path(cfg.blip2_path).is_dir():
+        raise FileNotFoundError(f"{field}.blip2_path={cfg.blip2_path!r}: no BLIP-2 weights there")
+
+
+@functools.lru_cache(maxsize=1)
+def _blip2(path: str, device: str):
+    """The frozen BLIP-2 captioner, loaded once per process (bf16 on CUDA)."""
+    from transformers import Blip2ForConditionalGeneration, Blip2Processor
+
+    dtype = torch.bfloat16 if device == "cuda" else torch.float32
+    processor = Blip2Processor.from_pretrained(path, local_files_only=True)
+    model = Blip2ForConditionalGeneration.from_pretrained(path, local_files_only=True, torch_dtype=dtype)
+    return processor, model.to(device).eval()
+
+
+@torch.no_grad()
+def clip_caption(cfg: CaptionConfig, first_frame: Tensor, scene_caption: str | None) -> str:
+    """The caption of one clip from the first frame [3,H,W] in [0,1] of its R_s (see the module docstring)."""
+    if cfg.blip2_path is None:
+        return scene_caption or cfg.fallback
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    processor, model = _blip2(cfg.blip2_path, device)
+    pixels = (first_frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    inputs = processor(images=Image.fromarray(pixels), return_tensors="pt").to(device, model.dtype)
+    tokens = model.generate(**inputs, max_new_tokens=cfg.max_new_tokens)
+    return processor.batch_decode(tokens, skip_special_tokens=True)[0].strip() or cfg.fallback

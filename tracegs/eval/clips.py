@@ -95,11 +95,16 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}
     labels = [INPUT, *pipelines]
+    scenes = sorted({scene for scene, _ in shards})
     return {
         "conditions": per_condition,
         "mean": {label: sum(row[label] for row in per_condition.values()) / len(per_condition) for label in labels},
         "clips": len(shards),
-        "scenes": sorted({scene for scene, _ in shards}),
+        "scenes": scenes,
+        # Each scene's mean over its clips, per condition: the unit of the report's intervals over scenes.
+        "per_scene": {scene: {cond: {label: sum(by_scene[scene]) / len(by_scene[scene])
+                                     for label, by_scene in rows.items()} for cond, rows in scores.items()}
+                      for scene in scenes},
     }
 
 

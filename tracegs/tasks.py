@@ -352,6 +352,9 @@ def report(cfg: DictConfig) -> Path:
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
         table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
         show(table.read_text())
+        intervals = table.with_name("table3_intervals.md")
+        if intervals.is_file():
+            show(intervals.read_text())
         return table
     raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation', 'per_step' or 'seeds', got {kind!r}")
 
@@ -386,7 +389,9 @@ def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
 
 def per_step_report(cfg: DictConfig) -> Path:
     """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the held-out clips."""
-    from tracegs.eval.clips import held_out_per_step_curves
+    from tracegs.eval.clips import held_out_clip_curves
+    from tracegs.eval.interval_tables import write_per_step_intervals
+    from tracegs.eval.per_step import mean_curves
     from tracegs.eval.report import plot_per_step_quality
     from tracegs.io import write_json_atomic
 
@@ -399,11 +404,15 @@ def per_step_report(cfg: DictConfig) -> Path:
         variant_cfg = compose_run("report", [f"ablation={variant}"])
         method = variant_cfg.ablation.method
         pipelines[variant] = build_restorers(variant_cfg, [method])[method].pipeline
-    curves = held_out_per_step_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
-                                      progress=cfg.evaluation.progress)
+    clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                       progress=cfg.evaluation.progress)
+    curves = mean_curves([c for _, c in clip_curves])
+    by_scene = {(scene, "all"): mean_curves([c for s, c in clip_curves if s == scene])
+                for scene in dict.fromkeys(s for s, _ in clip_curves)}
     out = Path(cfg.report.output_dir)
     write_json_atomic(curves, out / "per_step_variants.json")
-    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png")
+    bands = write_per_step_intervals(by_scene, out, "per_step_variants", pairs=[("F", "E"), ("F", "A")])
+    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
     for variant, curve in curves.items():
         show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
     return figure
@@ -480,6 +489,12 @@ def demo_tables_markdown(out_dir: Path, run: dict) -> str:
              f"torch {machine['torch']}): {run['wall_s'] / 60:.1f} min, peak RSS {run['peak_rss_gib']:.2f} GiB.", "",
              "Deployment on the test scenes:", "",
              results_table_markdown(json.loads((out_dir / "results.json").read_text()))]
+    intervals = out_dir / "intervals.md"
+    if intervals.is_file():
+        scenes = len(json.loads((out_dir / "per_scene.json").read_text()))
+        lines += [f"The same with 95% intervals over its {scenes} test scenes (with this few scenes the intervals "
+                  "are wide; `make benchmark` runs enough scenes and seeds to resolve smaller gaps):", "",
+                  intervals.read_text()]
     held_out = out_dir / "held_out_clips.md"
     if held_out.is_file():
         lines += ["Held-out clips (is the restorer's output closer to ground truth than its input R_s?):", "",
@@ -492,4 +507,6 @@ def demo_tables_markdown(out_dir: Path, run: dict) -> str:
             points = per_step_points(curve)
             lines.append(f"| {method} | " + " | ".join(f"{points[p]:.2f}" for p in ("first", "min", "final")) + " |")
         lines.append("")
+        if (out_dir / "per_step_intervals.md").is_file():
+            lines += [(out_dir / "per_step_intervals.md").read_text()]
     return "\n".join(lines)

@@ -44,6 +44,9 @@ def test_merge_writes_per_scene_csv_intervals_and_conclusions(tmp_path):
     steps = list(csv.DictReader((tmp_path / "per_step_per_scene.csv").open()))
     assert len(steps) == len(SCENES) * 2 * 2 * 2
     assert (tmp_path / "fig6_per_step.png").is_file()
+    per_step = (tmp_path / "per_step_intervals.md").read_text()
+    # Step 1: TRACE-GS 15 vs A 15 + K (K = 3, 6 averaged within each scene): -4.5 on every scene.
+    assert "| 1 | 19.50 [19.50, 19.50] | 15.00 [15.00, 15.00] | -4.50 [-4.50, -4.50] |" in per_step
 
 
 def _variant_folder(root: Path, variant: str, shift: float) -> Path:

@@ -190,16 +190,42 @@ def per_step_intervals(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequen
     return bands
 
 
-def write_per_step_csv(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]], path: str | Path) -> Path:
-    """One row per (scene, views, label, step) with the PSNR of the predicted clean frames."""
-    path = Path(path)
-    with atomic_write(path) as tmp, tmp.open("w", newline="") as fh:
+def per_step_intervals_markdown(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]],
+                                pairs: Sequence[tuple[str, str]] = ()) -> str:
+    """Fig. 6 as a table: per reverse step, each curve's mean with its interval over scenes, and the paired
+    differences ``pairs`` (e.g. F - E) within each (scene, views) first."""
+    bands = per_step_intervals(unit_curves)
+    labels = list(bands)
+    pairs = [(a, b) for a, b in pairs if a in bands and b in bands]
+    header = ["step", *(_label(label) for label in labels), *(f"{_label(a)} − {_label(b)}" for a, b in pairs)]
+    lines = ["Clean-frame PSNR (dB) at each reverse step, 95% bootstrap interval over scenes:", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for step in range(len(bands[labels[0]])):
+        cells = [str(step + 1), *(bands[label][step].format() for label in labels)]
+        for a, b in pairs:
+            at_step = {key: {label: curves[label][step] for label in (a, b)} for key, curves in unit_curves.items()}
+            cells.append(paired_interval({k: v[a] for k, v in at_step.items()}, {k: v[b] for k, v in at_step.items()},
+                                         cluster=_scene).format(signed=True))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_per_step_intervals(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]],
+                             out_dir: str | Path, stem: str,
+                             pairs: Sequence[tuple[str, str]] = ()) -> dict[str, tuple[list[float], list[float]]]:
+    """``<stem>_per_scene.csv`` (scene, views, label, step, psnr) and ``<stem>_intervals.md``; returns each
+    label's (low, high) band for the Fig. 6 plot."""
+    out_dir = Path(out_dir)
+    with atomic_write(out_dir / f"{stem}_per_scene.csv") as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["scene", "views", "label", "step", "psnr"])
         for (scene, views), curves in sorted(unit_curves.items()):
             for label, curve in curves.items():
                 writer.writerows([scene, views, label, step, repr(float(v))] for step, v in enumerate(curve, 1))
-    return path
+    with atomic_write(out_dir / f"{stem}_intervals.md") as tmp:
+        tmp.write_text(per_step_intervals_markdown(unit_curves, pairs))
+    return {label: ([i.low for i in band], [i.high for i in band])
+            for label, band in per_step_intervals(unit_curves).items()}
 
 
 # ------------------------------------------------------------------------------------ held-out clips

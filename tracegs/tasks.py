@@ -347,6 +347,8 @@ def report(cfg: DictConfig) -> Path:
         return out / "results.json"
     if kind == "seeds":
         return seed_report(cfg)
+    if kind == "privileged":
+        return privileged_report(cfg)
     if kind == "ablation":
         inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", v).evaluation.out_dir
                                              for v in ("A", "B", "C", "D", "E", "F-", "F")]
@@ -356,7 +358,34 @@ def report(cfg: DictConfig) -> Path:
         if intervals.is_file():
             show(intervals.read_text())
         return table
-    raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation', 'per_step' or 'seeds', got {kind!r}")
+    raise ValueError(f"report.kind must be 'main', 'prepare', 'ablation', 'per_step', 'seeds' or 'privileged', "
+                     f"got {kind!r}")
+
+
+def privileged_report(cfg: DictConfig) -> Path:
+    """The privileged gap (eval/privileged.py): A, the Stage-1 adapter and the Stage-2 student (this config's
+    variant) restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
+    from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
+    from tracegs.io import atomic_write, write_json_atomic
+
+    if cfg.evaluation.held_out_cache is None:
+        raise ValueError("evaluation.held_out_cache: report.kind=privileged needs a prepared held-out cache "
+                         "(tracegs-prepare data.prepare.split=test)")
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter", "student_adapter"])
+    if not Path(cfg.artifacts.stage1_adapter).exists():
+        raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
+                                "(run tracegs-train stage=stage1 with the same settings)")
+    pipelines = {"baseline": build_restorer(cfg, None).pipeline,
+                 "stage1": build_restorer(cfg, cfg.artifacts.stage1_adapter).pipeline,
+                 "tracegs": build_restorer(cfg, cfg.artifacts.student_adapter).pipeline}
+    gap = privileged_gap(pipelines, cfg.evaluation.held_out_cache, teacher_views=cfg.teacher.views,
+                         seed=cfg.deploy.seed, progress=cfg.evaluation.progress)
+    out = Path(cfg.report.output_dir)
+    write_json_atomic(gap, out / "privileged_gap.json")
+    with atomic_write(out / "privileged_gap.md") as tmp:
+        tmp.write_text(privileged_gap_markdown(gap))
+    show((out / "privileged_gap.md").read_text())
+    return out / "privileged_gap.md"
 
 
 def seed_report(cfg: DictConfig) -> Path:

@@ -128,6 +128,14 @@ class ReportConfig:
 
 
 @dataclass
+class BenchmarkConfig:
+    """``tracegs-benchmark``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
+    deployment noise that the root ``seed`` fixes for every replicate (so plain 3DGS is computed once)."""
+
+    training_seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+
+
+@dataclass
 class TraceGSConfig:
     """Root of every composed config (prepare, train, deploy, evaluate, report, demo)."""
 
@@ -155,6 +163,7 @@ class TraceGSConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
     capture: CaptureConfig = field(default_factory=CaptureConfig)  # tracegs-restore's own scene
+    benchmark: BenchmarkConfig = field(default_factory=BenchmarkConfig)
 
 
 SCHEMA_NAME = "tracegs_schema"

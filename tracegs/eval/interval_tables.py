@@ -69,8 +69,8 @@ def main_difference(per_scene: Mapping, better: str, worse: str, metric: str, vi
     return None if a is None or b is None else paired_interval(a, b)
 
 
-def main_intervals_markdown(per_scene: Mapping, views: Sequence[str]) -> str:
-    """Tables 1/2 with 95% intervals over scenes, the paired differences, and the claims marked."""
+def main_intervals_markdown(per_scene: Mapping, views: Sequence[str], conclusions: bool = True) -> str:
+    """Tables 1/2 with 95% intervals over scenes, the paired differences, and (``conclusions``) the claims marked."""
     methods = methods_of(per_scene)
     metrics = measured_metrics(per_scene, methods)
     scenes = sorted(per_scene)
@@ -93,10 +93,10 @@ def main_intervals_markdown(per_scene: Mapping, views: Sequence[str]) -> str:
             cells += [main_difference(per_scene, a, b, m, v).format(METRIC_DECIMALS[m], signed=True)
                       for m in metrics for v in views]
             lines.append("| " + " | ".join(cells) + " |")
-    conclusions = main_conclusions(per_scene, views, metrics)
-    if conclusions:
+    marked = main_conclusions(per_scene, views, metrics) if conclusions else []
+    if marked:
         lines += ["", "The paper's ordering (holds / reversed / not resolved by the 95% paired interval):", "",
-                  *conclusions]
+                  *marked]
     return "\n".join(lines) + "\n"
 
 

@@ -21,6 +21,7 @@ from tracegs.io import atomic_write
 # The paired differences of Tables 1/2: (minuend, subtrahend).
 MAIN_DIFFERENCES = (("tracegs", "baseline"), ("baseline", "3dgs"))
 
+INPUT = "input"  # the held-out clip table's row of the unrestored R_s (tracegs.eval.clips.INPUT)
 UnitScores = dict[tuple[str, str], float]  # (scene, views) -> a method's scene mean at that view count
 
 
@@ -54,8 +55,9 @@ def _label(method: str) -> str:
     return METHOD_LABELS.get(method, method)
 
 
-def _difference_label(a: str, b: str) -> str:
-    short = {"baseline": "A"}
+def difference_label(a: str, b: str) -> str:
+    """``TRACE-GS − A``: how a paired difference is named in every table."""
+    short = {"baseline": "A", INPUT: "input R_s"}
     return f"{short.get(a, _label(a))} − {short.get(b, _label(b))}"
 
 
@@ -89,7 +91,7 @@ def main_intervals_markdown(per_scene: Mapping, views: Sequence[str], conclusion
         lines += ["", "Paired differences (the same scenes at the same view count), 95% bootstrap interval:", "",
                   "| " + " | ".join(["Difference", *header[1:]]) + " |", "|" + "---|" * len(header)]
         for a, b in pairs:
-            cells = [_difference_label(a, b)]
+            cells = [difference_label(a, b)]
             cells += [main_difference(per_scene, a, b, m, v).format(METRIC_DECIMALS[m], signed=True)
                       for m in metrics for v in views]
             lines.append("| " + " | ".join(cells) + " |")
@@ -197,7 +199,7 @@ def per_step_intervals_markdown(unit_curves: Mapping[tuple[str, str], Mapping[st
     bands = per_step_intervals(unit_curves)
     labels = list(bands)
     pairs = [(a, b) for a, b in pairs if a in bands and b in bands]
-    header = ["step", *(_label(label) for label in labels), *(f"{_label(a)} − {_label(b)}" for a, b in pairs)]
+    header = ["step", *(_label(label) for label in labels), *(difference_label(a, b) for a, b in pairs)]
     lines = ["Clean-frame PSNR (dB) at each reverse step, 95% bootstrap interval over scenes:", "",
              "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for step in range(len(bands[labels[0]])):
@@ -231,7 +233,7 @@ def write_per_step_intervals(unit_curves: Mapping[tuple[str, str], Mapping[str, 
 # ------------------------------------------------------------------------------------ held-out clips
 
 
-def held_out_intervals_markdown(quality: Mapping, input_label: str = "input") -> str:
+def held_out_intervals_markdown(quality: Mapping) -> str:
     """The held-out clip table (``tracegs.eval.clips``) with 95% intervals over scenes, and each restorer's
     paired gain over its input R_s and TRACE-GS - A, paired by scene and student condition (K views, snapshot)."""
     per_scene = quality["per_scene"]
@@ -245,7 +247,7 @@ def held_out_intervals_markdown(quality: Mapping, input_label: str = "input") ->
         return mean_interval(clustered(scores(label, condition), _scene))
 
     def names(label: str) -> str:
-        return "input R_s" if label == input_label else _label(label)
+        return "input R_s" if label == INPUT else _label(label)
 
     columns = [*conditions, None]
     header = ["", *conditions, "mean"]
@@ -255,14 +257,14 @@ def held_out_intervals_markdown(quality: Mapping, input_label: str = "input") ->
     for condition in columns:
         lines.append("| " + " | ".join([condition or "mean", *(interval(label, condition).format()
                                                                for label in labels)]) + " |")
-    restorers = [label for label in labels if label != input_label]
-    pairs = [(label, input_label) for label in restorers]
+    restorers = [label for label in labels if label != INPUT]
+    pairs = [(label, INPUT) for label in restorers]
     if "tracegs" in restorers and "baseline" in restorers:
         pairs.append(("tracegs", "baseline"))
     lines += ["", "Paired differences (same scenes, same condition), 95% bootstrap interval:", "",
               "| " + " | ".join(["difference", *header[1:]]) + " |", "|" + "---|" * len(header)]
     for a, b in pairs:
-        cells = [f"{_label(a) if a != 'baseline' else 'A'} − {names(b) if b != 'baseline' else 'A'}"]
+        cells = [difference_label(a, b)]
         cells += [paired_interval(scores(a, c), scores(b, c), cluster=_scene).format(signed=True) for c in columns]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

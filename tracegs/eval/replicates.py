@@ -17,6 +17,7 @@ from typing import Any
 
 from tracegs.eval.conclusions import MAIN_ORDERING
 from tracegs.eval.interval_tables import (
+    difference_label,
     held_out_intervals_markdown,
     main_conclusions,
     main_difference,
@@ -102,9 +103,7 @@ def seed_spread_markdown(per_seed: Sequence[Mapping], seeds: Sequence[int], aver
             b = unit_scores(averaged, worse, metric, [v])
             scene_sd = statistics.stdev([a[k] - b[k] for k in a]) if len(a) > 1 else float("nan")
             seed_sd = statistics.stdev(values) if len(values) > 1 else float("nan")
-            label = f"{'A' if better == 'baseline' else METHOD_LABELS[better]} − " \
-                    f"{'A' if worse == 'baseline' else METHOD_LABELS[worse]}"
-            lines.append(f"| {label} | {v} | " + " | ".join(_num(x) for x in values)
+            lines.append(f"| {difference_label(better, worse)} | {v} | " + " | ".join(_num(x) for x in values)
                          + f" | {seed_sd:.2f} | {t_interval(values).format(signed=True)} | {scene_sd:.2f} |")
     return "\n".join(lines) + "\n"
 

@@ -30,17 +30,21 @@ from tracegs.errors import TraceGSError
 
 log = logging.getLogger("tracegs")
 
-# Stage timings of `make demo` on the 2-core machine (4 training scenes, 2 test scenes, views 3/6/9),
+# Stage timings of `make demo` on the idle 2-core machine (4 training scenes, 2 test scenes, views 3/6/9),
 # in minutes, and what each scales with: the basis of the wall-time estimate printed before the run.
 PREPARE_PER_TRAIN_SCENE = 5.6 / 4
-PREPARE_PER_TEST_SCENE = 2.3 / 2
+PREPARE_PER_TEST_SCENE = 2.3 / 2  # dominated by the scene's 3DGS fits, not by its number of clips
 TRAIN_PER_SEED = 2.0 + 0.6 + 0.9  # baseline (A), Stage 1, Stage 2
-# The demo's evaluation took 5.4 min for 6 (scene, views) units of 3 methods, with grids, videos, held-out
-# clips and Fig. 6. Plain 3DGS is taken as a third of a unit: it fits the same 600 iterations as the restorer
-# methods but restores no clips.
-EVAL_PER_UNIT = 5.4 / 6
+# Restoring one clip (one condition) with the tiny restorer at 48x72, 9 frames, the deployment schedule:
+# 1.5 s measured in a batch of 7 at load 6 on the 2 cores, so about 0.5 s idle (0.0083 min).
+RESTORE_PER_CLIP = 0.5 / 60
+# The demo's evaluation took 5.4 min: its held-out clips (2 restorers x 16 clips x 6 conditions, ~1.6 min
+# by the figure above) and 6 (scene, views) units of 3 methods with grids, videos and Fig. 6 (~3.8 min).
+# Plain 3DGS is taken as a third of a unit: it fits the same 600 iterations but restores no clips.
+EVAL_PER_UNIT = (5.4 - 2 * 16 * 6 * RESTORE_PER_CLIP) / 6
 EVAL_3DGS_SHARE = 1 / 3
 STEP_OVERHEAD = 0.15  # starting a child process (torch, Hydra) per step
+STUDENT_CONDITIONS = 6  # 3/6/9 views x two snapshots in the held-out cache
 
 
 @dataclass(frozen=True)
@@ -61,8 +65,8 @@ def _merge(defaults: Sequence[str], user: Sequence[str]) -> list[str]:
     return [o for o in defaults if override_key(o) not in given] + list(user)
 
 
-def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path,
-                    user: Sequence[str] = ()) -> list[Step]:
+def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path, user: Sequence[str] = (),
+                    held_out_clips_per_scene: int = 2) -> list[Step]:
     """The commands of one benchmark run, in order (see the module docstring for what is shared)."""
     if not training_seeds:
         raise ValueError("benchmark.training_seeds: list at least one training seed")
@@ -76,6 +80,7 @@ def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path
     steps = [Step("prepare", tuple(_merge([*shared, f"seed={root_seed}", f"data.prepare.cache_dir={train_cache}"],
                                           user)), "prepare (training scenes)"),
              Step("prepare", tuple(_merge([*shared, f"seed={root_seed}", "data.prepare.split=test",
+                                           f"data.prepare.clips_per_scene={held_out_clips_per_scene}",
                                            f"data.prepare.cache_dir={test_cache}"], user)),
                   "prepare (held-out test scenes)")]
     for index, seed in enumerate(training_seeds):
@@ -105,12 +110,17 @@ def privileged_dir(out_dir: Path, seed: int) -> Path:
     return out_dir / "privileged" / f"seed{seed}"
 
 
-def estimate_minutes(train_scenes: int, test_scenes: int, views: int, seeds: int, steps: int) -> float:
-    """Wall time from the demo's measured stage timings (module constants), on the same machine."""
+def estimate_minutes(train_scenes: int, test_scenes: int, views: int, seeds: int, steps: int,
+                     held_out_clips_per_scene: int) -> float:
+    """Wall time from the demo's measured stage timings (module constants), on the same idle machine."""
     units = test_scenes * views
     evaluation = units * EVAL_PER_UNIT + (seeds - 1) * units * EVAL_PER_UNIT * (1 - EVAL_3DGS_SHARE)
+    clips = test_scenes * held_out_clips_per_scene
+    # Per seed: A and TRACE-GS on every student condition; the privileged gap's two restorers on R_d and the
+    # two snapshots of each view count evaluated.
+    restorations = seeds * clips * (2 * STUDENT_CONDITIONS + 2 * (1 + 2 * views))
     return (train_scenes * PREPARE_PER_TRAIN_SCENE + test_scenes * PREPARE_PER_TEST_SCENE
-            + seeds * TRAIN_PER_SEED + evaluation + steps * STEP_OVERHEAD)
+            + seeds * TRAIN_PER_SEED + evaluation + restorations * RESTORE_PER_CLIP + steps * STEP_OVERHEAD)
 
 
 def benchmark(cfg: DictConfig) -> Path:
@@ -123,9 +133,9 @@ def benchmark(cfg: DictConfig) -> Path:
     out_dir = Path(cfg.run_dir).resolve()
     seeds = list(cfg.benchmark.training_seeds)
     user = [o for o in command_line_overrides() if override_key(o).split(".")[0] not in ("benchmark", "seed")]
-    steps = benchmark_steps(cfg.seed, seeds, out_dir, user)
+    steps = benchmark_steps(cfg.seed, seeds, out_dir, user, cfg.benchmark.held_out_clips_per_scene)
     estimate = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
-                                len(cfg.evaluation.views), len(seeds), len(steps))
+                                len(cfg.evaluation.views), len(seeds), len(steps), cfg.benchmark.held_out_clips_per_scene)
     show(f"tracegs-benchmark: {len(steps)} steps, about {estimate:.0f} min on two CPU cores; output in {out_dir}")
     start = time.perf_counter()
     timings: dict[str, float] = {}

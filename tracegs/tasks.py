@@ -363,7 +363,7 @@ def report(cfg: DictConfig) -> Path:
 
 
 def privileged_report(cfg: DictConfig) -> Path:
-    """The privileged gap (eval/privileged.py): A, the Stage-1 adapter and the Stage-2 student (this config's
+    """The privileged gap (eval/privileged.py): the Stage-1 adapter and the Stage-2 student (this config's
     variant) restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
     from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
     from tracegs.io import atomic_write, write_json_atomic
@@ -375,11 +375,12 @@ def privileged_report(cfg: DictConfig) -> Path:
     if not Path(cfg.artifacts.stage1_adapter).exists():
         raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
                                 "(run tracegs-train stage=stage1 with the same settings)")
-    pipelines = {"baseline": build_restorer(cfg, None).pipeline,
-                 "stage1": build_restorer(cfg, cfg.artifacts.stage1_adapter).pipeline,
+    pipelines = {"stage1": build_restorer(cfg, cfg.artifacts.stage1_adapter).pipeline,
                  "tracegs": build_restorer(cfg, cfg.artifacts.student_adapter).pipeline}
+    # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.
     gap = privileged_gap(pipelines, cfg.evaluation.held_out_cache, teacher_views=cfg.teacher.views,
-                         seed=cfg.deploy.seed, progress=cfg.evaluation.progress)
+                         student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,
+                         progress=cfg.evaluation.progress)
     out = Path(cfg.report.output_dir)
     write_json_atomic(gap, out / "privileged_gap.json")
     with atomic_write(out / "privileged_gap.md") as tmp:

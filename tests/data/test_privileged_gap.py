@@ -25,4 +25,7 @@ def test_gap_rows_match_the_clip_scores_and_the_table_reads_them(prepared, backb
     assert "| Baseline (A) from R_d |" in table
     assert "| input (no restoration) | " in table
     assert "[n/a, 1 value]" in table  # one scene: no interval, said so
+    assert gap["conditions"] == ["s3_it8"]
+    with pytest.raises(ValueError, match=r"no student condition at \[9\] views"):
+        privileged_gap({"baseline": pipeline}, cache, student_views=[9], progress=False)
     assert "| input R_d | " in table and " | — |" in table

@@ -40,7 +40,8 @@ def write_seed(root: Path, seed: int) -> tuple[Path, Path]:
     gap = {scene: {"input R_d": {"gt": 24.0 + c}, "input R_s": {"gt": 20.0 + c, "R_d": 21.0 + c},
                    "tracegs | R_d": {"gt": 23.0 + c, "R_d": 25.0 + c},
                    "tracegs | R_s": {"gt": 20.5 + c, "R_d": 21.5 + c}} for scene, c in zip(SCENES, CONTENT)}
-    write_json_atomic({"per_scene": gap, "rows": list(gap[SCENES[0]]), "teacher": "dall", "clips": 16},
+    write_json_atomic({"per_scene": gap, "rows": list(gap[SCENES[0]]), "teacher": "dall", "clips": 16,
+                       "conditions": ["s3_it140", "s3_it340"]},
                       gap_dir / "privileged_gap.json")
     return eval_dir, gap_dir
 

@@ -12,13 +12,14 @@ teacher's input). Reference frames are excluded and scene means come first, as i
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
 from rich.progress import track
 
 from tracegs.data.prepare import condition_key
+from tracegs.data.splits import view_set_key
 from tracegs.eval.clips import _frames, _psnr, held_out_clips, load_clip
 from tracegs.eval.intervals import mean_interval, paired_interval
 from tracegs.eval.labels import RESTORER_LABELS
@@ -30,14 +31,23 @@ REFERENCES = ("gt", TEACHER)  # scored against ground truth and against the teac
 
 @torch.no_grad()
 def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
-                   teacher_views: int | None = None, seed: int = 0, progress: bool = True) -> dict:
+                   teacher_views: int | None = None, student_views: Sequence[int] | None = None, seed: int = 0,
+                   progress: bool = True) -> dict:
     """PSNR (dB) of each restorer's output from R_d and from R_s, against ground truth and against R_d.
+
+    ``student_views`` keeps the student conditions of those view counts (None = every condition cached): each
+    condition is one more clip to restore per restorer.
 
     Returns ``{"per_scene": {scene: {row: {"gt": psnr, "R_d": psnr}}}, "rows": [...], "teacher": key,
     "clips": n}`` where a row is ``"input R_d"``, ``"input R_s"`` or ``"<label> | R_d"`` / ``"<label> | R_s"``;
     R_s rows average the student conditions of a clip.
     """
     conditions, shards = held_out_clips(cache_dir)
+    if student_views is not None:
+        prefixes = tuple(f"s{view_set_key(k)}_it" for k in student_views)  # condition_key(k, snapshot)
+        conditions = [c for c in conditions if c.startswith(prefixes)]
+        if not conditions:
+            raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
     teacher = condition_key(teacher_views)
     keys = [teacher, *conditions]
     # scores[row][reference][scene] -> one value per clip
@@ -71,6 +81,7 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
             record(f"{label} | {STUDENT}", scene, list(restored[1:]), truth, dense)
     scenes = sorted({scene for scene, _ in shards})
     return {
+        "conditions": conditions,
         "per_scene": {scene: {row: {ref: sum(v[scene]) / len(v[scene]) for ref, v in by_ref.items()}
                               for row, by_ref in scores.items()} for scene in scenes},
         "rows": list(scores),
@@ -93,7 +104,7 @@ def privileged_gap_markdown(gap: Mapping) -> str:
         return f"{RESTORER_LABELS.get(label, label)} from {condition}" if condition else row
 
     lines = [f"Held-out clips ({gap['clips']} clips of {len(per_scene)} scenes; R_d = teacher condition "
-             f"{gap['teacher']}, R_s = mean over the student conditions). PSNR (dB), 95% bootstrap interval over "
+             f"{gap['teacher']}, R_s = mean over the student conditions {', '.join(gap['conditions'])}). PSNR (dB), 95% bootstrap interval over "
              "scenes:", "", "| | vs ground truth | vs R_d |", "|---|---|---|"]
     for row in gap["rows"]:
         lines.append(f"| {name(row)} | " + " | ".join(

@@ -15,6 +15,7 @@ run-identity rule exactly as when typed by hand, and every step resumes when the
 from __future__ import annotations
 
 import logging
+import shlex
 import subprocess
 import sys
 import time
@@ -72,7 +73,7 @@ def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path
         raise ValueError("benchmark.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
         raise ValueError(f"benchmark.training_seeds: {list(training_seeds)} repeats a seed")
-    train_cache, test_cache = out_dir / "cache" / "train", out_dir / "cache" / "test"
+    train_cache, test_cache = quoted(out_dir / "cache" / "train"), quoted(out_dir / "cache" / "test")
     shared = ["experiment=benchmark",
               f"data.prepare.seed={derive_seed(root_seed, 'prepare')}",
               f"data.prepare.fit.seed={derive_seed(root_seed, 'fit')}",
@@ -92,14 +93,20 @@ def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path
             Step("train", tuple(_merge([*common, "stage=stage2", "ablation=F"], user)), f"seed {seed}: train Stage 2"),
             Step("evaluate", tuple(_merge([*common, "ablation=F", f"evaluation.methods={methods}",
                                            f"evaluation.held_out_cache={test_cache}",
-                                           f"evaluation.out_dir={eval_dir(out_dir, seed)}"], user)),
+                                           f"evaluation.out_dir={quoted(eval_dir(out_dir, seed))}"], user)),
                  f"seed {seed}: evaluate {methods}"),
             Step("report", tuple(_merge([*common, "ablation=F", "report.kind=privileged",
                                          f"evaluation.held_out_cache={test_cache}",
-                                         f"report.output_dir={privileged_dir(out_dir, seed)}"], user)),
+                                         f"report.output_dir={quoted(privileged_dir(out_dir, seed))}"], user)),
                  f"seed {seed}: privileged gap"),
         ]
     return steps
+
+
+def quoted(path: Path) -> str:
+    """A path as a quoted Hydra override value: run folders are named ``seed0,<overrides>-<digest>`` and
+    commas, brackets and '=' would otherwise be parsed as override syntax."""
+    return "'" + str(path).replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
 def eval_dir(out_dir: Path, seed: int) -> Path:
@@ -140,11 +147,11 @@ def benchmark(cfg: DictConfig) -> Path:
     start = time.perf_counter()
     timings: dict[str, float] = {}
     for index, step in enumerate(steps, 1):
-        log.info("[benchmark %d/%d] %s: %s", index, len(steps), step.label, " ".join(step.command()[2:]))
+        log.info("[benchmark %d/%d] %s: %s", index, len(steps), step.label, shlex.join(step.command()[2:]))
         step_start = time.perf_counter()
         if subprocess.run(step.command(), check=False).returncode != 0:
             raise TraceGSError(f"benchmark step '{step.label}'", "failed (its error is printed above)",
-                               f"rerun it alone: {' '.join(step.command()[1:])}")
+                               f"rerun it alone: {shlex.join(step.command())}")
         timings[step.label] = round(time.perf_counter() - step_start, 1)
     run = {**describe(cfg.seed), "training_seeds": seeds, "wall_s": round(time.perf_counter() - start, 1),
            "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1)}

@@ -66,10 +66,15 @@ def test_the_default_run_fits_the_hour():
 
 
 def test_every_step_composes_and_validates(tmp_path):
-    for step in benchmark_steps(0, [0, 1], tmp_path, ["paths.root_dir=/tmp/elsewhere"]):
+    # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
+    out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
+    for step in benchmark_steps(0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
         cfg = as_job(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
         assert cfg.paths.root_dir == "/tmp/elsewhere"
+        if step.app == "evaluate":
+            assert Path(cfg.evaluation.out_dir).parent == out_dir / "eval"
+            assert cfg.evaluation.held_out_cache == str(out_dir / "cache" / "test")
 
 
 def _step(steps, label):

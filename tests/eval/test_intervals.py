@@ -106,6 +106,17 @@ def test_verdict_of_missing_or_single_values():
     assert verdict(Interval(0.3, math.nan, math.nan, 1)) == NOT_RESOLVED
 
 
+def test_too_few_scenes_mark_nothing():
+    # Two scenes that agree give a bootstrap interval above zero, which a coin does one time in four.
+    two = paired_interval({"a": 1.0, "b": 2.0}, {"a": 0.5, "b": 1.0})
+    assert two.low > 0
+    assert verdict(two) == NOT_RESOLVED
+    lines = ordering_lines(POLICY_ORDERING, lambda worse, better: two, {}, "")
+    assert lines[0] == "- F- > E: **not resolved** (+0.75 [+0.50, +1.00]; 2 scene(s), fewer than the 6 a verdict needs)"
+    six = paired_interval({str(i): 1.0 + i for i in range(6)}, {str(i): 0.5 + i for i in range(6)})
+    assert verdict(six) == HOLDS
+
+
 def test_ordering_lines_mark_each_pair_and_omit_unmeasured_orderings():
     intervals = {("E", "F-"): Interval(0.2, 0.1, 0.3, 8), ("F-", "F"): Interval(-0.2, -0.3, -0.1, 8)}
     lines = ordering_lines(POLICY_ORDERING, lambda worse, better: intervals.get((worse, better)), {}, ", PSNR")

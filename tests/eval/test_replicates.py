@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tracegs.eval.replicates import mean_tree, write_benchmark_report
+from tracegs.eval.replicates import instrument_line, mean_tree, write_benchmark_report
 from tracegs.io import write_json_atomic
 
 SCENES = [f"scene_{100 + i}" for i in range(8)]
@@ -78,6 +78,12 @@ def test_report_assembles_from_three_seeds(tmp_path):
     conclusions = text[text.index("## Conclusions"):]
     assert "- TRACE-GS > Baseline (A), 3 views, PSNR: **holds** (+0.40 [+0.40, +0.40])" in conclusions
     assert "- Baseline (A) > 3DGS, 3 views, PSNR: **holds** (+1.00 [+1.00, +1.00])" in conclusions
+
+
+def test_the_instrument_is_not_judged_on_too_few_scenes():
+    per_scene = {s: {"baseline": {"3": _row(19.0 + c)}, "tracegs": {"3": _row(19.3 + c)}}
+                 for s, c in zip(SCENES[:2], CONTENT)}
+    assert "not assessable from 2 scenes, fewer than 6" in instrument_line(per_scene)
 
 
 def test_a_missing_seed_result_is_named(tmp_path):

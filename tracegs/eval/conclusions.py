@@ -6,6 +6,10 @@ alignment). Each ordering is a chain of adjacent pairs; a pair *holds* when the 
 difference (claimed better - claimed worse, sign flipped for lower-is-better metrics) lies entirely above
 zero, is *reversed* when it lies entirely below zero, and is *not resolved* otherwise. A pair whose
 variants a report does not contain is *not measured*.
+
+A percentile bootstrap over very few scenes covers far less than 95%: with n scenes that all agree in sign,
+its interval excludes zero, yet with no effect at all that happens with probability 2 * 2^-n (a sign test).
+That is below the 5% a 95% interval promises only from 6 scenes on, so fewer scenes mark nothing.
 """
 
 from __future__ import annotations
@@ -38,11 +42,14 @@ GEOMETRY_ORDERING = Ordering(("B", "A", "C", "D"))
 POLICY_ORDERING = Ordering(("E", "F-", "F"))
 
 
+MIN_SCENES = 6  # the fewest scenes whose unanimous sign is significant at 5% (2 * 2^-6 = 3.1%)
+
+
 def verdict(difference: Interval | None, higher_is_better: bool = True) -> str:
     """The mark of one claimed pair from the interval of (claimed better - claimed worse)."""
     if difference is None:
         return NOT_MEASURED
-    if math.isnan(difference.low):
+    if difference.n < MIN_SCENES or math.isnan(difference.low):
         return NOT_RESOLVED
     low, high = (difference.low, difference.high) if higher_is_better else (-difference.high, -difference.low)
     if low > 0:
@@ -67,6 +74,8 @@ def ordering_lines(ordering: Ordering, lookup: DifferenceLookup, labels: Mapping
         difference = lookup(worse, better)
         mark = verdict(difference, higher_is_better)
         shown = f" ({difference.format(decimals, signed=True)})" if difference is not None else ""
+        if difference is not None and difference.n < MIN_SCENES:
+            shown = f"{shown[:-1]}; {difference.n} scene(s), fewer than the {MIN_SCENES} a verdict needs)"
         lines.append(f"- {labels.get(better, better)} > {labels.get(worse, worse)}{context}: **{mark}**{shown}")
     if all(line.endswith(f"**{NOT_MEASURED}**") for line in lines):
         return []

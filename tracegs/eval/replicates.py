@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from tracegs.eval.conclusions import MAIN_ORDERING
+from tracegs.eval.conclusions import MAIN_ORDERING, MIN_SCENES
 from tracegs.eval.interval_tables import (
     difference_label,
     held_out_intervals_markdown,
@@ -115,7 +115,10 @@ def instrument_line(averaged: Mapping, views: str = "3") -> str:
     difference: Interval | None = main_difference(averaged, "tracegs", "baseline", "psnr", views)
     if difference is None:
         return f"Instrument: TRACE-GS − A at {views} views was not measured."
-    met = "met" if difference.half_width <= TARGET_HALF_WIDTH_DB else "not met"
+    if difference.n < MIN_SCENES:
+        met = f"not assessable from {difference.n} scenes, fewer than {MIN_SCENES}"
+    else:
+        met = "met" if difference.half_width <= TARGET_HALF_WIDTH_DB else "not met"
     return (f"Instrument: the 95% interval of TRACE-GS − A at {views} views is {difference.format(signed=True)} dB, "
             f"half-width ±{difference.half_width:.2f} dB (target ≤ ±{TARGET_HALF_WIDTH_DB} dB: {met}).")
 

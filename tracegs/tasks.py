@@ -350,12 +350,44 @@ def report(cfg: DictConfig) -> Path:
         return out / "results.json"
     if kind == "seeds":
         return seed_report(cfg)
+    if kind == "privileged":
+        return privileged_report(cfg)
     # report.kind is checked at composition (tracegs.config.schema.ReportKind): the last kind is "ablation".
     inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", v).evaluation.out_dir
                                          for v in ("A", "B", "C", "D", "E", "F-", "F")]
     table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
     show(table.read_text())
+    intervals = table.with_name("table3_intervals.md")
+    if intervals.is_file():
+        show(intervals.read_text())
     return table
+
+
+def privileged_report(cfg: DictConfig) -> Path:
+    """The privileged gap (eval/privileged.py): the Stage-1 adapter and the Stage-2 student (this config's
+    variant) restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
+    from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
+    from tracegs.io import atomic_write, write_json_atomic
+
+    if cfg.evaluation.held_out_cache is None:
+        raise ValueError("evaluation.held_out_cache: report.kind=privileged needs a prepared held-out cache "
+                         "(tracegs-prepare data.prepare.split=test)")
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter", "student_adapter"])
+    if not Path(cfg.artifacts.stage1_adapter).exists():
+        raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
+                                "(run tracegs-train stage=stage1 with the same settings)")
+    pipelines = {"stage1": build_restorer(cfg, cfg.artifacts.stage1_adapter).pipeline,
+                 "tracegs": build_restorer(cfg, cfg.artifacts.student_adapter).pipeline}
+    # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.
+    gap = privileged_gap(pipelines, cfg.evaluation.held_out_cache, teacher_views=cfg.teacher.views,
+                         student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,
+                         progress=cfg.evaluation.progress)
+    out = Path(cfg.report.output_dir)
+    write_json_atomic(gap, out / "privileged_gap.json")
+    with atomic_write(out / "privileged_gap.md") as tmp:
+        tmp.write_text(privileged_gap_markdown(gap))
+    show((out / "privileged_gap.md").read_text())
+    return out / "privileged_gap.md"
 
 
 def seed_report(cfg: DictConfig) -> Path:
@@ -388,7 +420,9 @@ def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
 
 def per_step_report(cfg: DictConfig) -> Path:
     """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the held-out clips."""
-    from tracegs.eval.clips import held_out_per_step_curves
+    from tracegs.eval.clips import held_out_clip_curves
+    from tracegs.eval.interval_tables import write_per_step_intervals
+    from tracegs.eval.per_step import mean_curves
     from tracegs.eval.report import plot_per_step_quality
     from tracegs.io import write_json_atomic
 
@@ -401,11 +435,15 @@ def per_step_report(cfg: DictConfig) -> Path:
         variant_cfg = compose_run("report", [f"ablation={variant}"])
         method = variant_cfg.ablation.method
         pipelines[variant] = build_restorers(variant_cfg, [method])[method].pipeline
-    curves = held_out_per_step_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
-                                      progress=cfg.evaluation.progress)
+    clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                       progress=cfg.evaluation.progress)
+    curves = mean_curves([c for _, c in clip_curves])
+    by_scene = {(scene, "all"): mean_curves([c for s, c in clip_curves if s == scene])
+                for scene in dict.fromkeys(s for s, _ in clip_curves)}
     out = Path(cfg.report.output_dir)
     write_json_atomic(curves, out / "per_step_variants.json")
-    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png")
+    bands = write_per_step_intervals(by_scene, out, "per_step_variants", pairs=[("F", "E"), ("F", "A")])
+    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
     for variant, curve in curves.items():
         show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
     return figure
@@ -482,6 +520,12 @@ def demo_tables_markdown(out_dir: Path, run: dict) -> str:
              f"torch {machine['torch']}): {run['wall_s'] / 60:.1f} min, peak RSS {run['peak_rss_gib']:.2f} GiB.", "",
              "Deployment on the test scenes:", "",
              results_table_markdown(json.loads((out_dir / "results.json").read_text()))]
+    intervals = out_dir / "intervals.md"
+    if intervals.is_file():
+        scenes = len(json.loads((out_dir / "per_scene.json").read_text()))
+        lines += [f"The same with 95% intervals over its {scenes} test scenes (with this few scenes the intervals "
+                  "are wide; `make benchmark` runs enough scenes and seeds to resolve smaller gaps):", "",
+                  intervals.read_text()]
     held_out = out_dir / "held_out_clips.md"
     if held_out.is_file():
         lines += ["Held-out clips (is the restorer's output closer to ground truth than its input R_s?):", "",
@@ -494,4 +538,6 @@ def demo_tables_markdown(out_dir: Path, run: dict) -> str:
             points = per_step_points(curve)
             lines.append(f"| {method} | " + " | ".join(f"{points[p]:.2f}" for p in ("first", "min", "final")) + " |")
         lines.append("")
+        if (out_dir / "per_step_intervals.md").is_file():
+            lines += [(out_dir / "per_step_intervals.md").read_text()]
     return "\n".join(lines)

@@ -34,6 +34,7 @@ from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import cold_start, refine, render_round_clips
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.errors import NonFiniteError, require_writable_dir
+from tracegs.eval.interval_tables import write_main_intervals, write_per_step_intervals
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.eval.report import (
@@ -379,13 +380,16 @@ def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, view
     }
     write_json_atomic(results, out_dir / "results.json")
     write_json_atomic(per_scene, out_dir / "per_scene.json")
-    curves = [u["per_step"] for u in chosen if u.get("per_step")]
-    if curves:
+    unit_curves = {(u["scene"], str(u["views"])): u["per_step"] for u in chosen if u.get("per_step")}
+    if unit_curves:
         # Fig. 6 protocol: averaged across view settings (and scenes), before 3DGS refinement.
-        mean = mean_curves(curves)
+        mean = mean_curves(list(unit_curves.values()))
         write_json_atomic(mean, out_dir / "per_step.json")
-        plot_per_step_quality({METHOD_LABELS.get(m, m): c for m, c in mean.items()}, out_dir / "fig6_per_step.png")
+        bands = write_per_step_intervals(unit_curves, out_dir, "per_step", pairs=[("tracegs", "baseline")])
+        plot_per_step_quality({METHOD_LABELS.get(m, m): c for m, c in mean.items()}, out_dir / "fig6_per_step.png",
+                              bands={METHOD_LABELS.get(m, m): band for m, band in bands.items()})
     write_results_tables(results, out_dir, stem="table", views=[str(k) for k in views])
+    write_main_intervals(per_scene, out_dir, [str(k) for k in views])
     return results
 
 

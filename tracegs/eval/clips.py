@@ -95,11 +95,16 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}
     labels = [INPUT, *pipelines]
+    scenes = sorted({scene for scene, _ in shards})
     return {
         "conditions": per_condition,
         "mean": {label: sum(row[label] for row in per_condition.values()) / len(per_condition) for label in labels},
         "clips": len(shards),
-        "scenes": sorted({scene for scene, _ in shards}),
+        "scenes": scenes,
+        # Each scene's mean over its clips, per condition: the unit of the report's intervals over scenes.
+        "per_scene": {scene: {cond: {label: sum(by_scene[scene]) / len(by_scene[scene])
+                                     for label, by_scene in rows.items()} for cond, rows in scores.items()}
+                      for scene in scenes},
     }
 
 
@@ -108,15 +113,22 @@ def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache
                              seed: int = 0, progress: bool = True) -> dict[str, list[float]]:
     """Fig. 6 on the held-out clips: each pipeline's per-step PSNR curve (``eval.per_step``), averaged over
     every clip and student condition. The same clips, conditions and noise seeds go to every pipeline."""
+    return mean_curves([curves for _, curves in held_out_clip_curves(pipelines, cache_dir, seed, progress)])
+
+
+@torch.no_grad()
+def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
+                         seed: int = 0, progress: bool = True) -> list[tuple[str, dict[str, list[float]]]]:
+    """(scene, each pipeline's per-step curve averaged over the student conditions) of every held-out clip."""
     conditions, shards = held_out_clips(cache_dir)
     curves = []
-    for index, (_, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
+    for index, (scene, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
         tensors, metadata = load_clip(path)
         frames = torch.stack([_pixels(tensors[f"frames/{c}"]) for c in conditions])
         truth = _pixels(tensors["frames/gt"]).expand(len(conditions), -1, -1, -1, -1)
         refs = _pixels(tensors["frames/ref"]).expand(len(conditions), -1, -1, -1, -1)
         caption = metadata.get("caption", "")
-        curves.append({label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
-                                            seed=seed + index)
-                       for label, pipeline in pipelines.items()})
-    return mean_curves(curves)
+        curves.append((scene, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
+                                                    seed=seed + index)
+                               for label, pipeline in pipelines.items()}))
+    return curves

@@ -20,12 +20,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from tracegs.eval.interval_tables import (
+    ablation_intervals_markdown,
+    held_out_intervals_markdown,
+    write_per_scene_csv,
+)
+from tracegs.eval.labels import METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
 from tracegs.eval.metrics import METRIC_NAMES
 from tracegs.io import atomic_directory, atomic_write, write_json_atomic
 
-METHOD_LABELS = {"3dgs": "3DGS", "baseline": "Baseline (A)", "tracegs": "TRACE-GS"}
-METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
-METRIC_DECIMALS = {"psnr": 2, "ssim": 3, "lpips": 3}
 DEFAULT_METHODS = ("3dgs", "baseline", "tracegs")
 DEFAULT_VIEWS = ("3", "6", "9")
 META_KEY = "meta"
@@ -112,12 +115,7 @@ def ablation_rows(variant_results: Mapping[str, Mapping], method: str = "tracegs
     """
     rows = {}
     for variant, results in variant_results.items():
-        chosen = method if method in results else None
-        if chosen is None:
-            candidates = [m for m in methods_in(results) if m != "3dgs"]
-            if len(candidates) != 1:
-                raise ValueError(f"variant {variant!r}: cannot tell which method to report among {candidates}")
-            chosen = candidates[0]
+        chosen = variant_method(variant, results, method)
         per_view = list(results[chosen].values())
         rows[variant] = {
             metric: (None if any(r.get(metric) is None for r in per_view)
@@ -128,9 +126,20 @@ def ablation_rows(variant_results: Mapping[str, Mapping], method: str = "tracegs
     return rows
 
 
+def variant_method(variant: str, results: Mapping, method: str = "tracegs") -> str:
+    """The method that stands for ``variant`` in its results: ``method`` if evaluated, else its only restorer."""
+    if method in results:
+        return method
+    candidates = [m for m in methods_in(results) if m != "3dgs"]
+    if len(candidates) != 1:
+        raise ValueError(f"variant {variant!r}: cannot tell which method to report among {candidates}")
+    return candidates[0]
+
+
 def write_ablation_table(variant_files: Mapping[str, str | Path], out_dir: str | Path,
                          stem: str = "table3") -> dict[str, Path]:
-    """Table 3 from an ablation sweep's per-variant result files, as markdown and CSV."""
+    """Table 3 from an ablation sweep's per-variant result files, as markdown and CSV; with each variant's
+    ``per_scene.json`` beside its results, also ``<stem>_intervals.md`` and ``<stem>_per_scene.csv``."""
     loaded = {variant: load_results(path) for variant, path in variant_files.items()}
     rows = ablation_rows(loaded)
     lpips_notes = {r.get(META_KEY, {}).get("lpips", "not recorded") for r in loaded.values()}
@@ -149,6 +158,17 @@ def write_ablation_table(variant_files: Mapping[str, str | Path], out_dir: str |
         writer.writerow(["variant", "views_averaged", *METRIC_NAMES])
         for variant, row in rows.items():
             writer.writerow([variant, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
+    scene_files = {variant: Path(path).parent / "per_scene.json" for variant, path in variant_files.items()}
+    if all(f.is_file() for f in scene_files.values()):
+        per_scene = {variant: load_results(f) for variant, f in scene_files.items()}
+        variants = {v: (per_scene[v], variant_method(v, loaded[v])) for v in loaded}
+        paths["intervals"] = out_dir / f"{stem}_intervals.md"
+        with atomic_write(paths["intervals"]) as tmp:
+            tmp.write_text(ablation_intervals_markdown(variants))
+        paths["per_scene"] = write_per_scene_csv(
+            {scene: {v: per_scene[v][scene][method] for v, (_, method) in variants.items()}
+             for scene in sorted(set.intersection(*(set(p) for p in per_scene.values())))},
+            out_dir / f"{stem}_per_scene.csv", column="variant")
     return paths
 
 
@@ -180,11 +200,12 @@ def held_out_table_markdown(quality: Mapping) -> str:
     rows = [*quality["conditions"].items(), ("mean", quality["mean"])]
     for condition, row in rows:
         lines.append("| " + " | ".join([condition] + [_fmt(row[label], "psnr") for label in labels]) + " |")
-    return (
+    table = (
         "\n".join(lines)
         + f"\n\nPSNR (dB) against ground truth on {quality['clips']} held-out clips of "
         f"{', '.join(quality['scenes'])}; reference frames excluded; scene means, then the mean over scenes.\n"
     )
+    return table + ("\n" + held_out_intervals_markdown(quality) if "per_scene" in quality else "")
 
 
 def write_held_out_report(quality: Mapping, out_dir: str | Path) -> Path:
@@ -302,8 +323,10 @@ def save_comparison_video(frames: Mapping[str, Tensor], path_stem: str | Path, f
 
 def plot_per_step_quality(curves: Mapping[str, Sequence[float]], path: str | Path,
                           ylabel: str = "PSNR (dB) of predicted clean frames",
-                          title: str = "Per-step restoration quality along the reverse trajectory") -> Path:
-    """Fig. 6: one line per variant (e.g. on-policy F vs off-policy E), x = denoising step 1..M."""
+                          title: str = "Per-step restoration quality along the reverse trajectory",
+                          bands: Mapping[str, tuple[Sequence[float], Sequence[float]]] | None = None) -> Path:
+    """Fig. 6: one line per variant (e.g. on-policy F vs off-policy E), x = denoising step 1..M; ``bands[label]``
+    = (low, high) per step shades that curve's 95% interval over scenes."""
     # A bare Figure renders through Agg without touching pyplot's global backend state.
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
@@ -313,13 +336,16 @@ def plot_per_step_quality(curves: Mapping[str, Sequence[float]], path: str | Pat
     fig = Figure(figsize=(5.5, 3.5), dpi=120)
     ax = fig.add_subplot()
     for label, values in curves.items():
-        ax.plot(range(1, len(values) + 1), list(values), marker="o", markersize=3, label=label)
+        steps = range(1, len(values) + 1)
+        (line,) = ax.plot(steps, list(values), marker="o", markersize=3, label=label)
+        if bands and label in bands:
+            ax.fill_between(steps, *bands[label], color=line.get_color(), alpha=0.2, linewidth=0)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("denoising step (reverse trajectory)")
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(title="shaded: 95% interval over scenes" if bands else None, title_fontsize=7)
     fig.tight_layout()
     path = Path(path)
     with atomic_write(path) as tmp:

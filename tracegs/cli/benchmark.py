@@ -1,0 +1,9 @@
+"""`tracegs-benchmark`: the embedded benchmark over training seeds, ending with one report (conf/benchmark.yaml)."""
+
+from tracegs.benchmark import benchmark
+from tracegs.cli.app import hydra_app
+
+main = hydra_app("benchmark")(benchmark)
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""The privileged gap on held-out clips: how much better a restorer does from the teacher's condition.
+
+Stage 2 distils a teacher that sees R_d, the render of a 3DGS fitted to the privileged view set (main paper
+Sec. 3, the teacher of Eq. 6-7), into a student that sees only R_s. Distillation can only transfer what the
+privileged condition adds: if restoring from R_d is no closer to ground truth than restoring from R_s, there is
+little to distil at this scale. For every held-out clip each restorer (A, the Stage-1 adapter, the Stage-2
+student) restores both its R_d and each student condition R_s (K views, snapshot) with the same noise seed;
+each output is scored against ground truth and against R_d itself (how close the student gets to the
+teacher's input). Reference frames are excluded and scene means come first, as in ``tracegs.eval.clips``.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+from rich.progress import track
+
+from tracegs.data.prepare import condition_key
+from tracegs.data.splits import view_set_key
+from tracegs.eval.clips import _frames, _psnr, held_out_clips, load_clip
+from tracegs.eval.intervals import mean_interval, paired_interval
+from tracegs.eval.labels import RESTORER_LABELS
+from tracegs.restorer.sampler import RestorationPipeline
+
+TEACHER, STUDENT = "R_d", "R_s"
+REFERENCES = ("gt", TEACHER)  # scored against ground truth and against the teacher's condition
+
+
+@torch.no_grad()
+def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
+                   teacher_views: int | None = None, student_views: Sequence[int] | None = None, seed: int = 0,
+                   progress: bool = True) -> dict:
+    """PSNR (dB) of each restorer's output from R_d and from R_s, against ground truth and against R_d.
+
+    ``student_views`` keeps the student conditions of those view counts (None = every condition cached): each
+    condition is one more clip to restore per restorer.
+
+    Returns ``{"per_scene": {scene: {row: {"gt": psnr, "R_d": psnr}}}, "rows": [...], "teacher": key,
+    "clips": n}`` where a row is ``"input R_d"``, ``"input R_s"`` or ``"<label> | R_d"`` / ``"<label> | R_s"``;
+    R_s rows average the student conditions of a clip.
+    """
+    conditions, shards = held_out_clips(cache_dir)
+    if student_views is not None:
+        prefixes = tuple(f"s{view_set_key(k)}_it" for k in student_views)  # condition_key(k, snapshot)
+        conditions = [c for c in conditions if c.startswith(prefixes)]
+        if not conditions:
+            raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
+    teacher = condition_key(teacher_views)
+    keys = [teacher, *conditions]
+    # scores[row][reference][scene] -> one value per clip
+    scores: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+
+    def record(row: str, scene: str, frames: list[torch.Tensor], truth: torch.Tensor, dense: torch.Tensor | None) -> None:
+        """``dense=None``: score against ground truth only (R_d against itself is no measurement)."""
+        for reference, target in zip(REFERENCES, (truth, dense)):
+            if target is not None:
+                scores[row][reference][scene].append(sum(_psnr(f, target) for f in frames) / len(frames))
+
+    for index, (scene, path) in enumerate(track(shards, description="privileged gap", disable=not progress)):
+        tensors, _ = load_clip(path)
+        if f"latent/{teacher}" not in tensors:
+            raise KeyError(f"{path}: no teacher condition {teacher} (prepare with data.prepare.dense_views "
+                           "including the teacher's views)")
+        truth, dense = _frames(tensors, "frames/gt"), _frames(tensors, f"frames/{teacher}")
+        record(f"input {TEACHER}", scene, [dense], truth, None)
+        record(f"input {STUDENT}", scene, [_frames(tensors, f"frames/{c}") for c in conditions], truth, dense)
+        latents = torch.stack([tensors[f"latent/{k}"].float() for k in keys])
+        batch = len(keys)
+        for label, pipeline in pipelines.items():
+            restored = pipeline.backbone.codec.decode(pipeline.restore_latents(
+                latents,
+                tensors["ref_2d"].float().expand(batch, -1, -1),
+                tensors["ref_3d"].float().expand(batch, -1, -1),
+                tensors["text"].float().expand(batch, -1, -1),
+                seed=seed + index,
+            )).cpu()[:, 1:-1]
+            record(f"{label} | {TEACHER}", scene, [restored[0]], truth, dense)
+            record(f"{label} | {STUDENT}", scene, list(restored[1:]), truth, dense)
+    scenes = sorted({scene for scene, _ in shards})
+    return {
+        "conditions": conditions,
+        "per_scene": {scene: {row: {ref: sum(v[scene]) / len(v[scene]) for ref, v in by_ref.items()}
+                              for row, by_ref in scores.items()} for scene in scenes},
+        "rows": list(scores),
+        "teacher": teacher,
+        "clips": len(shards),
+    }
+
+
+def privileged_gap_markdown(gap: Mapping) -> str:
+    """The gap table: each row against GT and against R_d (95% intervals over scenes), then per restorer the
+    paired gap (output from R_d - output from R_s, same scenes) against ground truth."""
+    per_scene = gap["per_scene"]
+    first = next(iter(per_scene))
+
+    def scores(row: str, reference: str) -> dict[str, float]:
+        return {scene: rows[row][reference] for scene, rows in per_scene.items()}
+
+    def name(row: str) -> str:
+        label, _, condition = row.partition(" | ")
+        return f"{RESTORER_LABELS.get(label, label)} from {condition}" if condition else row
+
+    lines = [f"Held-out clips ({gap['clips']} clips of {len(per_scene)} scenes; R_d = teacher condition "
+             f"{gap['teacher']}, R_s = mean over the student conditions {', '.join(gap['conditions'])}). PSNR (dB), 95% bootstrap interval over "
+             "scenes:", "", "| | vs ground truth | vs R_d |", "|---|---|---|"]
+    for row in gap["rows"]:
+        lines.append(f"| {name(row)} | " + " | ".join(
+            mean_interval(list(scores(row, ref).values())).format() if ref in per_scene[first][row] else "—"
+            for ref in REFERENCES) + " |")
+    restorers = [row.partition(" | ")[0] for row in gap["rows"] if row.endswith(f"| {TEACHER}")]
+    lines += ["", "Privileged gap: the same restorer from R_d minus from R_s, against ground truth (paired by "
+              "scene), and the input gap R_d - R_s:", "", "| restorer | gap vs ground truth |", "|---|---|"]
+    lines.append("| input (no restoration) | " + paired_interval(
+        scores(f"input {TEACHER}", "gt"), scores(f"input {STUDENT}", "gt")).format(signed=True) + " |")
+    for label in restorers:
+        lines.append(f"| {RESTORER_LABELS.get(label, label)} | " + paired_interval(
+            scores(f"{label} | {TEACHER}", "gt"), scores(f"{label} | {STUDENT}", "gt")).format(signed=True) + " |")
+    return "\n".join(lines) + "\n"

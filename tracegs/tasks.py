@@ -419,11 +419,16 @@ def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
 
 
 def per_step_report(cfg: DictConfig) -> Path:
-    """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the held-out clips."""
-    from tracegs.eval.clips import held_out_clip_curves
+    """Fig. 6 across variants (default on-policy F vs off-policy E, plus A) on the clips of a prepared cache,
+    with each variant's final restoration scored against its input R_s (``held_out_clips.md``).
+
+    Any split's cache works: the test split's held-out clips, or the validation split's
+    (``tracegs-prepare data.prepare.split=val``), on which the embedded default's settings are chosen.
+    """
+    from tracegs.eval.clips import clip_restoration_psnr, held_out_clip_curves
     from tracegs.eval.interval_tables import write_per_step_intervals
     from tracegs.eval.per_step import mean_curves
-    from tracegs.eval.report import plot_per_step_quality
+    from tracegs.eval.report import plot_per_step_quality, write_held_out_report
     from tracegs.io import write_json_atomic
 
     if cfg.evaluation.held_out_cache is None:
@@ -446,6 +451,9 @@ def per_step_report(cfg: DictConfig) -> Path:
     figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
     for variant, curve in curves.items():
         show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+    quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                    progress=cfg.evaluation.progress)
+    show(write_held_out_report(quality, out).read_text())
     return figure
 
 

@@ -56,14 +56,16 @@ def test_walk_finds_every_group():
     expected = {"backbone", "data", "splat", "stage", "teacher", "policy", "loss", "trainer", "experiment",
                 "ablation", "debug", "deploy", "evaluation", "hydra/launcher"}
     assert expected <= groups
-    assert set(PRIMARY) == {"prepare", "train", "deploy", "evaluate", "report", "demo", "restore"}
+    assert set(PRIMARY) == {"prepare", "train", "deploy", "evaluate", "report", "demo", "restore", "benchmark"}
 
 
 @pytest.mark.parametrize("name", PRIMARY)
 def test_entry_points_share_one_defaults_list(name):
-    """Each entry point's defaults list is the shared file and itself: a group default lives in one place."""
-    defaults = OmegaConf.load(CONF / f"{name}.yaml").defaults
-    assert list(defaults) == [SHARED, "_self_"]
+    """Each entry point's defaults list is the shared file and itself: a group default lives in one place.
+    An entry point may only choose another option of a shared group (``override``), never add a default."""
+    defaults = list(OmegaConf.load(CONF / f"{name}.yaml").defaults)
+    assert defaults[0] == SHARED and defaults[-1] == "_self_"
+    assert all(next(iter(entry)).startswith("override ") for entry in defaults[1:-1])
 
 
 def test_task_and_modes_are_checked_at_composition():

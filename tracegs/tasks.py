@@ -167,13 +167,17 @@ def train(cfg: DictConfig) -> Path | None:
 # ---------------------------------------------------------------------------------------- restorers
 def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
     """Method name -> restorer (None = plain 3DGS), the diffusion methods on one backbone (deploy/assembly.py)."""
-    from tracegs.deploy.assembly import RestorerArtifacts
+    from tracegs.deploy.assembly import RestorerArtifacts, restorer_holdings
     from tracegs.deploy.assembly import build_restorers as assemble
+    from tracegs.restorer.memory import holdings_table, loads_pretrained_components
 
     locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    backbone = section(cfg.backbone)
+    if loads_pretrained_components(backbone):
+        show(holdings_table(restorer_holdings(backbone, methods, cfg.deploy.captions.blip2_path)))
     artifacts = RestorerArtifacts(baseline_weights=cfg.artifacts.baseline_weights,
                                   student_adapter=cfg.artifacts.student_adapter, ablation=cfg.ablation.name)
-    return assemble(section(cfg.backbone), artifacts, methods, batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
+    return assemble(backbone, artifacts, methods, batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
 
 
 # ------------------------------------------------------------------------------------------- scenes

@@ -25,6 +25,11 @@ def require_captioner(cfg: CaptionConfig, field: str) -> None:
         raise FileNotFoundError(f"{field}.blip2_path={cfg.blip2_path!r}: no BLIP-2 weights there")
 
 
+def captioner_dtype(device: str) -> torch.dtype:
+    """BLIP-2 runs in bf16 when the run has a GPU (inference only), in float32 on a CPU-only machine."""
+    return torch.bfloat16 if torch.device(device).type == "cuda" else torch.float32
+
+
 # path -> (processor, model): each BLIP-2 is loaded once per process; its home is the CPU (release_captioner).
 _CAPTIONERS: dict[str, tuple] = {}
 
@@ -34,7 +39,7 @@ def _blip2(path: str, device: str):
     if path not in _CAPTIONERS:
         from transformers import Blip2ForConditionalGeneration, Blip2Processor
 
-        dtype = torch.bfloat16 if torch.cuda.is_available() else torch.float32
+        dtype = captioner_dtype("cuda" if torch.cuda.is_available() else "cpu")
         processor = Blip2Processor.from_pretrained(path, local_files_only=True)
         model = Blip2ForConditionalGeneration.from_pretrained(path, local_files_only=True, torch_dtype=dtype)
         _CAPTIONERS[path] = (processor, model.eval())

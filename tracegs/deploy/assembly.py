@@ -17,11 +17,15 @@ from pathlib import Path
 
 import torch
 
+from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
+from tracegs.restorer.memory import Holding, deployment_holdings
 from tracegs.restorer.sampler import RestorationPipeline
+
+STUDENT_LABEL = "student"
 
 
 @dataclass
@@ -42,6 +46,11 @@ class RestorerArtifacts:
     baseline_weights: str | None = None
     student_adapter: str | None = None
     ablation: str = "C"
+
+
+def accelerator() -> str:
+    """The device deployment runs the restorer on."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def digest(path: Path) -> str:
@@ -65,7 +74,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
         cfg = replace(cfg, transformer=replace(cfg.transformer, pretrained_path=baseline_weights))
     base = cfg.transformer.pretrained_path
     identity = f"base={digest(Path(base))}" if base else "base=random-init"
-    backbone = build_backbone(cfg, device=device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    backbone = build_backbone(cfg, device=device or accelerator())
     restorers = {}
     for name, file in adapter_files.items():
         if file is not None:
@@ -91,6 +100,18 @@ def build_restorers(cfg: BackboneConfig, artifacts: RestorerArtifacts, methods: 
                 raise FileNotFoundError(
                     f"artifacts.student_adapter: no student adapter at {artifacts.student_adapter} "
                     f"(run tracegs-train stage=stage2 ablation={artifacts.ablation} with the same settings)")
-            files[method] = AdapterFile(student, "artifacts.student_adapter", "student")
+            files[method] = AdapterFile(student, "artifacts.student_adapter", STUDENT_LABEL)
     restorers = shared_restorers(cfg, artifacts.baseline_weights, files, batch, steps, device) if files else {}
     return {m: restorers.get(m) for m in methods}
+
+
+def restorer_holdings(cfg: BackboneConfig, methods: Sequence[str], captioner: str | None,
+                      device: str | None = None) -> list[Holding]:
+    """What ``build_restorers(cfg, ..., methods)`` and the run's captioner will hold on each device, counted on
+    the meta device before anything is loaded (restorer/memory.py): the diffusion methods share one backbone,
+    so the base, the VAE and the encoders appear once and each adapter is one more LoRA on the base."""
+    if all(m == "3dgs" for m in methods):
+        return []
+    device = device or accelerator()
+    return deployment_holdings(cfg, [STUDENT_LABEL] if "tracegs" in methods else [],
+                               None if captioner is None else (captioner, captioner_dtype(device)), device)

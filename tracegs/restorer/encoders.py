@@ -32,7 +32,7 @@ def on_device(model: torch.nn.Module, device: torch.device | str, offload: bool)
     """Run a frozen encoder on ``device``. With ``offload`` (``backbone.offload_encoders``) the encoder lives on
     the CPU and visits ``device`` only for this call, then is released there (moved back, cache emptied), so
     the transformer denoises without it beside it. On a CPU ``device`` nothing moves."""
-    if not offload or torch.device(device).type == "cpu":
+    if encoder_placement(device, offload)[1] is None:
         yield
         return
     model.to(device)
@@ -44,9 +44,16 @@ def on_device(model: torch.nn.Module, device: torch.device | str, offload: bool)
             torch.cuda.empty_cache()
 
 
-def _home(device: torch.device | str, offload: bool) -> torch.device | str:
-    """Where an encoder's weights live between calls."""
-    return "cpu" if offload else device
+def encoder_placement(device: torch.device | str, offload: bool) -> tuple[str, str | None]:
+    """(home, visits) of a frozen encoder run on ``device``: where its weights live between calls, and the
+    device they move to only while encoding (None: they never move)."""
+    if offload and torch.device(device).type != "cpu":
+        return "cpu", str(device)
+    return str(device), None
+
+
+def _home(device: torch.device | str, offload: bool) -> str:
+    return encoder_placement(device, offload)[0]
 
 
 def _check_reference_images(ref_images: torch.Tensor) -> None:

@@ -165,12 +165,16 @@ def device_totals(holdings: Sequence[Holding]) -> dict[str, int]:
     return totals
 
 
+def _size(n: int) -> str:
+    return f"{n / GIB:.3f} GiB" if n >= GIB else f"{n / 2**20:.3f} MiB"
+
+
 def holdings_table(holdings: Sequence[Holding]) -> str:
     """The per-component, per-device figure printed at the start of a paper-scale deployment / evaluation."""
     lines = ["weights each component holds (counted on the meta device):"]
     for h in holdings:
         where = h.home if h.visits is None else f"{h.home}, on {h.visits} only while it runs"
-        lines.append(f"  {h.component:<26} {h.dtype:<9} {h.bytes / GIB:8.3f} GiB  {where}")
+        lines.append(f"  {h.component:<26} {h.dtype:<9} {_size(h.bytes):>12}  {where}")
     lines.append("  peak per device (weights only, before activations): " + ", ".join(
-        f"{device} {total / GIB:.3f} GiB" for device, total in sorted(device_totals(holdings).items())))
+        f"{device} {_size(total)}" for device, total in sorted(device_totals(holdings).items())))
     return "\n".join(lines)

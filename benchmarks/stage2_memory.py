@@ -147,28 +147,6 @@ def _make_adapter(backbone, path: Path) -> None:
     save_adapter(model, "aligned", path)
 
 
-def component_bytes(backbone) -> dict[str, int]:
-    """Bytes per training-rank component at ``backbone``'s shapes, counted on the meta device."""
-    import torch
-
-    from tracegs.restorer.adapters import adapter_parameters, add_adapter, clone_adapter
-    from tracegs.restorer.build import create_transformer
-
-    model = create_transformer(backbone.transformer, "meta").to(getattr(torch, backbone.transformer.dtype))
-    base = sum(p.numel() * p.element_size() for p in model.parameters())
-    add_adapter(model, "student", backbone.lora)
-    clone_adapter(model, "student", "teacher", trainable=False)
-    student = sum(p.numel() * p.element_size() for p in adapter_parameters(model, "student"))
-    return {
-        "transformer_base": base,
-        "student_adapter": student,
-        "teacher_adapter": sum(p.numel() * p.element_size() for p in adapter_parameters(model, "teacher")),
-        "student_grads": student,
-        "adamw_state": 2 * student,
-        "adapter_params": sum(p.numel() for p in adapter_parameters(model, "student")),
-    }
-
-
 def encoder_bytes() -> dict[str, int]:
     """bf16 bytes of the frozen encoders at their published configurations (meta device): what a training rank
     used to load besides the transformer. VGGT is not on PyPI; its 1.26 B parameters are quoted from its card."""
@@ -176,8 +154,10 @@ def encoder_bytes() -> dict[str, int]:
     from diffusers import AutoencoderKLCogVideoX
     from transformers import Dinov2Config, Dinov2Model, T5Config, T5EncoderModel
 
+    from tracegs.restorer.memory import module_bytes
+
     def size(model) -> int:
-        return sum(p.numel() * 2 for p in model.parameters())
+        return module_bytes(model.to(torch.bfloat16))
 
     with torch.device("meta"):
         t5 = T5EncoderModel(T5Config(vocab_size=32128, d_model=4096, d_kv=64, d_ff=10240, num_layers=24,
@@ -191,6 +171,8 @@ def encoder_bytes() -> dict[str, int]:
 
 def main(argv: list[str] | None = None) -> dict:
     import torch
+
+    from tracegs.restorer.memory import training_component_bytes
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", choices=("auto", "paper", "rehearsal"), default="auto")
@@ -211,7 +193,7 @@ def main(argv: list[str] | None = None) -> dict:
             peaks[mode] = (_step_peak_mib(scale, mode, args.rollout, args.batch, str(adapter)) if scale == "paper"
                            else _cpu_peak_mib(scale, mode, args.rollout, args.batch, adapter))
     paper_backbone, _ = compose_experiment("paper")
-    components = component_bytes(paper_backbone)
+    components = training_component_bytes(paper_backbone)
     encoders = encoder_bytes()
     print(f"Stage-2 step at {scale} shapes, batch {args.batch}, N={args.rollout}, guidance "
           f"{backbone.sampler.guidance_scale}: peak " + ", ".join(f"{m} {v:.1f} MiB" for m, v in peaks.items()))

@@ -7,7 +7,6 @@ component receives typed hyperparameters and never the whole Hydra tree.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import resource
 import sys
@@ -166,54 +165,19 @@ def train(cfg: DictConfig) -> Path | None:
 
 
 # ---------------------------------------------------------------------------------------- restorers
-def _digest(path: Path) -> str:
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    sha = hashlib.sha256()
-    for file in files:
-        sha.update(file.read_bytes())
-    return sha.hexdigest()[:16]
-
-
-def build_restorer(cfg: DictConfig, student_adapter: str | None):
-    """The deployed restorer: variant A's weights, plus a student adapter (None = variant A itself)."""
-    from tracegs.deploy.restorers import DiffusionRestorer
-    from tracegs.restorer import adapters
-    from tracegs.restorer.build import build_backbone
-    from tracegs.restorer.sampler import RestorationPipeline
-
-    backbone_cfg = section(cfg.backbone)
-    baseline = cfg.artifacts.baseline_weights
-    if baseline is not None:
-        if not Path(baseline).is_dir():
-            raise FileNotFoundError(
-                f"artifacts.baseline_weights: no baseline restorer at {baseline} (run tracegs-train stage=baseline)"
-            )
-        backbone_cfg.transformer.pretrained_path = baseline
-    identity = [f"base={_digest(Path(backbone_cfg.transformer.pretrained_path))}"
-                if backbone_cfg.transformer.pretrained_path else "base=random-init"]
-    backbone = build_backbone(backbone_cfg, device="cuda" if torch.cuda.is_available() else "cpu")
-    adapter = None
-    if student_adapter is not None:
-        student = Path(student_adapter)
-        if not student.exists():
-            raise FileNotFoundError(
-                f"artifacts.student_adapter: no student adapter at {student} "
-                f"(run tracegs-train stage=stage2 ablation={cfg.ablation.name} with the same settings)"
-            )
-        adapter = "student"
-        adapters.load_adapter(backbone.transformer, adapter, student, trainable=False, expected=backbone_cfg.lora,
-                              field="artifacts.student_adapter")
-        identity.append(f"student={_digest(student)}")
-    pipeline = RestorationPipeline(backbone, adapter=adapter)
-    return DiffusionRestorer(pipeline, batch=cfg.deploy.clip_batch, identity=" ".join(identity), steps=cfg.deploy.steps)
-
-
 def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
-    """Method name -> restorer (None = plain 3DGS, no restoration)."""
+    """Method name -> restorer (None = plain 3DGS), the diffusion methods on one backbone (deploy/assembly.py)."""
+    from tracegs.deploy.assembly import RestorerArtifacts, restorer_holdings
+    from tracegs.deploy.assembly import build_restorers as assemble
+    from tracegs.restorer.memory import holdings_table, loads_pretrained_components
+
     locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
-    builders = {"3dgs": lambda: None, "baseline": lambda: build_restorer(cfg, None),
-                "tracegs": lambda: build_restorer(cfg, cfg.artifacts.student_adapter)}
-    return {m: builders[m]() for m in methods}
+    backbone = section(cfg.backbone)
+    if loads_pretrained_components(backbone):
+        show(holdings_table(restorer_holdings(backbone, methods, cfg.deploy.captions.blip2_path)))
+    artifacts = RestorerArtifacts(baseline_weights=cfg.artifacts.baseline_weights,
+                                  student_adapter=cfg.artifacts.student_adapter, ablation=cfg.ablation.name)
+    return assemble(backbone, artifacts, methods, batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
 
 
 # ------------------------------------------------------------------------------------------- scenes
@@ -366,6 +330,7 @@ def report(cfg: DictConfig) -> Path:
 def privileged_report(cfg: DictConfig) -> Path:
     """The privileged gap (eval/privileged.py): the Stage-1 adapter and the Stage-2 student (this config's
     variant) restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
+    from tracegs.deploy.assembly import AdapterFile, shared_restorers
     from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
     from tracegs.io import atomic_write, write_json_atomic
 
@@ -376,8 +341,11 @@ def privileged_report(cfg: DictConfig) -> Path:
     if not Path(cfg.artifacts.stage1_adapter).exists():
         raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
                                 "(run tracegs-train stage=stage1 with the same settings)")
-    pipelines = {"stage1": build_restorer(cfg, cfg.artifacts.stage1_adapter).pipeline,
-                 "tracegs": build_restorer(cfg, cfg.artifacts.student_adapter).pipeline}
+    pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
+        section(cfg.backbone), cfg.artifacts.baseline_weights,
+        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1"),
+         "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
+        batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
     # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.
     gap = privileged_gap(pipelines, cfg.evaluation.held_out_cache, teacher_views=cfg.teacher.views,
                          student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,

@@ -11,10 +11,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import stage2_memory  # noqa: E402  (a script directory, not a package)
 
+from tracegs.restorer.memory import training_component_bytes  # noqa: E402
+
 
 def test_paper_component_bytes_on_the_meta_device():
     backbone, _ = stage2_memory.compose_experiment("paper")
-    sizes = stage2_memory.component_bytes(backbone)
+    sizes = training_component_bytes(backbone)
     assert sizes["adapter_params"] == 66_060_288  # supplement: 66.06 M-parameter adapters (rank 32)
     assert sizes["student_adapter"] == 4 * sizes["adapter_params"]  # float32 factors on the bf16 base
     assert sizes["adamw_state"] == 2 * sizes["student_adapter"]

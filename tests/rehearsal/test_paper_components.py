@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 
 import pytest
 import torch
@@ -96,3 +97,24 @@ def test_gsplat_without_cuda_is_refused_before_any_work(tmp_path, entry_point):
     assert run.returncode == 2, run.stderr[-2000:]
     assert "data.prepare.fit.backend='gsplat' needs CUDA" in run.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no weights read, no data or outputs written
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_offloaded_encoders_stay_on_the_cpu_between_encodes(rehearsal_root, vggt_double):
+    """``backbone.offload_encoders``: T5, DINOv2 and VGGT live on the CPU, encode on the GPU, and give the tokens
+    the resident encoders give."""
+    cfg = backbone_config(rehearsal_root)
+    resident = build_backbone(replace(cfg, offload_encoders=False), device="cuda")
+    offloaded = build_backbone(replace(cfg, offload_encoders=True), device="cuda")
+    encoders = (offloaded.text_encoder.model, offloaded.reference_encoder.dino.model,
+                offloaded.reference_encoder.vggt.model)
+    refs = torch.rand(1, 2, 3, 64, 96, device="cuda")
+
+    def tokens(backbone):
+        return [*backbone.reference_encoder(refs), backbone.text_encoder.encode(["a garden"])]
+
+    want, got = tokens(resident), tokens(offloaded)
+    assert all(next(m.parameters()).device.type == "cpu" for m in encoders)  # released after encoding
+    assert all(t.device.type == "cuda" for t in got)
+    assert all(torch.equal(a, b) for a, b in zip(want, got))

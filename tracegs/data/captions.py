@@ -10,7 +10,6 @@ captions it was trained on.
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import torch
@@ -26,15 +25,35 @@ def require_captioner(cfg: CaptionConfig, field: str) -> None:
         raise FileNotFoundError(f"{field}.blip2_path={cfg.blip2_path!r}: no BLIP-2 weights there")
 
 
-@functools.lru_cache(maxsize=1)
-def _blip2(path: str, device: str):
-    """The frozen BLIP-2 captioner, loaded once per process (bf16 on CUDA)."""
-    from transformers import Blip2ForConditionalGeneration, Blip2Processor
+def captioner_dtype(device: str) -> torch.dtype:
+    """BLIP-2 runs in bf16 when the run has a GPU (inference only), in float32 on a CPU-only machine."""
+    return torch.bfloat16 if torch.device(device).type == "cuda" else torch.float32
 
-    dtype = torch.bfloat16 if device == "cuda" else torch.float32
-    processor = Blip2Processor.from_pretrained(path, local_files_only=True)
-    model = Blip2ForConditionalGeneration.from_pretrained(path, local_files_only=True, torch_dtype=dtype)
-    return processor, model.to(device).eval()
+
+# path -> (processor, model): each BLIP-2 is loaded once per process; its home is the CPU (release_captioner).
+_CAPTIONERS: dict[str, tuple] = {}
+
+
+def _blip2(path: str, device: str):
+    """The frozen BLIP-2 captioner on ``device`` (bf16 when a GPU is present)."""
+    if path not in _CAPTIONERS:
+        from transformers import Blip2ForConditionalGeneration, Blip2Processor
+
+        dtype = captioner_dtype("cuda" if torch.cuda.is_available() else "cpu")
+        processor = Blip2Processor.from_pretrained(path, local_files_only=True)
+        model = Blip2ForConditionalGeneration.from_pretrained(path, local_files_only=True, torch_dtype=dtype)
+        _CAPTIONERS[path] = (processor, model.eval())
+    processor, model = _CAPTIONERS[path]
+    return processor, model.to(device)
+
+
+def release_captioner() -> None:
+    """Move every loaded BLIP-2 off the accelerator. Deployment calls this after captioning a round's clips,
+    before the restorer denoises them; the next ``clip_caption`` brings the captioner back. No GPU: no-op."""
+    if _CAPTIONERS and torch.cuda.is_available():
+        for _, model in _CAPTIONERS.values():
+            model.to("cpu")
+        torch.cuda.empty_cache()
 
 
 @torch.no_grad()

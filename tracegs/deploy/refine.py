@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from tracegs.data.captions import clip_caption
+from tracegs.data.captions import clip_caption, release_captioner
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
 from tracegs.splat.config import GaussianFitConfig
@@ -67,6 +67,7 @@ def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_i
         clips.append(Clip(frames=frames, cameras=list(cams), references=torch.stack([captured[a].image,
                                                                                         captured[b].image]),
                           caption=clip_caption(cfg.captions, frames[0], caption)))
+    release_captioner()  # the round is captioned: BLIP-2 leaves the accelerator before the restorer denoises
     return clips
 
 

@@ -12,7 +12,7 @@ from tracegs.errors import InputFileError, one_line
 from .codec import Codec, build_codec
 from .config import BackboneConfig, TransformerConfig
 from .encoders import TextEncoder, build_reference_encoder, build_text_encoder
-from .loading import require_local_dir
+from .loading import require_local_dir, torch_dtype
 from .schedules import NoiseSchedule, build_schedule
 from .transformer import ReferenceGuidedTransformer
 
@@ -140,11 +140,10 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu", enco
     T5 (several GB per rank at paper scale) are neither loaded nor required to be installed.
     """
     codec = build_codec(cfg.codec, device) if encoders else None
-    reference_encoder = build_reference_encoder(cfg.reference_encoder, device) if encoders else None
+    offload = cfg.offload_encoders
+    reference_encoder = build_reference_encoder(cfg.reference_encoder, device, offload) if encoders else None
     _check_compatible(cfg, codec, reference_encoder)
-    dtype = getattr(torch, cfg.transformer.dtype, None)
-    if not isinstance(dtype, torch.dtype):
-        raise ValueError(f"transformer.dtype={cfg.transformer.dtype!r} is not a torch dtype name")
+    dtype = torch_dtype(cfg.transformer.dtype, "transformer.dtype")
     if cfg.transformer.pretrained_path:
         transformer = load_transformer(cfg.transformer, device, dtype)
     else:
@@ -158,7 +157,7 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu", enco
         transformer=transformer,
         codec=codec,
         reference_encoder=reference_encoder,
-        text_encoder=build_text_encoder(cfg.text_encoder, device) if encoders else None,
+        text_encoder=build_text_encoder(cfg.text_encoder, device, offload) if encoders else None,
         schedule=build_schedule(cfg.schedule),
         cfg=cfg,
     )

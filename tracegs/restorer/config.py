@@ -87,6 +87,8 @@ class ReferenceEncoderConfig:
     image_size: int = 518  # both DINOv2 and VGGT see the views at this square size (patch 14 -> 37x37 tokens)
     image_mean: list[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])
     image_std: list[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])
+    # Weights of DINOv2 and VGGT (frozen, inference only); paper scale "bfloat16". Tokens leave as float32.
+    dtype: str = "float32"
 
 
 @dataclass
@@ -102,6 +104,7 @@ class TextEncoderConfig:
     tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
     seed: int = 0
+    dtype: str = "float32"  # T5 weights (frozen, inference only); paper scale "bfloat16". Embeddings leave as float32.
 
 
 @dataclass
@@ -150,6 +153,9 @@ class BackboneConfig:
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    # Keep the text and reference encoders on the CPU and move them to the accelerator only while they encode a
+    # batch of clips (sampler.RestorationPipeline): the transformer denoises without T5 / DINOv2 / VGGT beside it.
+    offload_encoders: bool = False
 
 
 def paper_backbone_config(
@@ -188,10 +194,11 @@ def paper_backbone_config(
         lora=LoraConfig(rank=32, alpha=32),
         codec=CodecConfig(kind="cogvideox", latent_channels=16, pretrained_path=vae_path),
         reference_encoder=ReferenceEncoderConfig(
-            kind="dinov2_vggt", dino_path=dino_path, vggt_path=vggt_path
+            kind="dinov2_vggt", dino_path=dino_path, vggt_path=vggt_path, dtype="bfloat16"
         ),
         text_encoder=TextEncoderConfig(kind="t5", dim=4096, max_length=226, pretrained_path=t5_path,
-                                       tokenizer_path=tokenizer_path),
+                                       tokenizer_path=tokenizer_path, dtype="bfloat16"),
         schedule=ScheduleConfig(kind="vpred_ddim", deploy_steps=50),
         sampler=SamplerConfig(guidance_scale=6.0),
+        offload_encoders=True,
     )

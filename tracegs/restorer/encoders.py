@@ -8,21 +8,52 @@ embedding used for caption dropout and the unconditional branch of classifier-fr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
 from .config import ReferenceEncoderConfig, TextEncoderConfig
-from .loading import MissingPackageError, require_local_dir
+from .loading import MissingPackageError, require_local_dir, torch_dtype
 
 VGGT_INSTALL_HINT = (
     "reference_encoder.kind=dinov2_vggt needs the 'vggt' package, which is not on PyPI: install it with "
     "`pip install git+https://github.com/facebookresearch/vggt` (or set reference_encoder.kind=embedded)"
 )
+
+
+@contextlib.contextmanager
+def on_device(model: torch.nn.Module, device: torch.device | str, offload: bool) -> Iterator[None]:
+    """Run a frozen encoder on ``device``. With ``offload`` (``backbone.offload_encoders``) the encoder lives on
+    the CPU and visits ``device`` only for this call, then is released there (moved back, cache emptied), so
+    the transformer denoises without it beside it. On a CPU ``device`` nothing moves."""
+    if encoder_placement(device, offload)[1] is None:
+        yield
+        return
+    model.to(device)
+    try:
+        yield
+    finally:
+        model.to("cpu")
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+
+
+def encoder_placement(device: torch.device | str, offload: bool) -> tuple[str, str | None]:
+    """(home, visits) of a frozen encoder run on ``device``: where its weights live between calls, and the
+    device they move to only while encoding (None: they never move)."""
+    if offload and torch.device(device).type != "cpu":
+        return "cpu", str(device)
+    return str(device), None
+
+
+def _home(device: torch.device | str, offload: bool) -> str:
+    return encoder_placement(device, offload)[0]
 
 
 def _check_reference_images(ref_images: torch.Tensor) -> None:
@@ -78,16 +109,19 @@ class EmbeddedReferenceEncoder:
 class Dinov2Encoder:
     """DINOv2 through transformers from a local directory; per-view patch tokens (CLS dropped)."""
 
-    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
         from transformers import Dinov2Model
 
         path = require_local_dir(cfg.dino_path, "reference_encoder.dino_path")
-        self.model = Dinov2Model.from_pretrained(path).to(device).eval().requires_grad_(False)
-        self.cfg = cfg
+        dtype = torch_dtype(cfg.dtype, "reference_encoder.dtype")
+        self.model = Dinov2Model.from_pretrained(path, torch_dtype=dtype).to(_home(device, offload))
+        self.model.eval().requires_grad_(False)
+        self.cfg, self.device, self.offload = cfg, device, offload
         self.dim = int(self.model.config.hidden_size)
 
     def to(self, device: torch.device | str) -> Dinov2Encoder:
-        self.model.to(device)
+        self.device = device
+        self.model.to(_home(device, self.offload))
         return self
 
     @torch.no_grad()
@@ -99,21 +133,26 @@ class Dinov2Encoder:
         )
         mean = torch.tensor(self.cfg.image_mean, device=x.device).view(1, 3, 1, 1)
         std = torch.tensor(self.cfg.image_std, device=x.device).view(1, 3, 1, 1)
-        out = self.model(pixel_values=((x - mean) / std).to(self.model.dtype)).last_hidden_state
+        with on_device(self.model, self.device, self.offload):
+            pixels = ((x - mean) / std).to(self.device, self.model.dtype)
+            out = self.model(pixel_values=pixels).last_hidden_state
         return out[:, 1:].float()
 
 
 class VggtEncoder:
     """VGGT aggregator tokens of the reference pair, processed jointly (needs the ``vggt`` package)."""
 
-    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
         try:
             from vggt.models.vggt import VGGT
         except ImportError as err:
             raise MissingPackageError(VGGT_INSTALL_HINT) from err
         path = require_local_dir(cfg.vggt_path, "reference_encoder.vggt_path")
-        self.model = VGGT.from_pretrained(str(path)).to(device).eval().requires_grad_(False)
-        self.cfg = cfg
+        # VGGT's from_pretrained (huggingface_hub's mixin) loads float32; the cast follows.
+        dtype = torch_dtype(cfg.dtype, "reference_encoder.dtype")
+        self.model = VGGT.from_pretrained(str(path)).to(_home(device, offload), dtype)
+        self.model.eval().requires_grad_(False)
+        self.cfg, self.device, self.offload = cfg, device, offload
         # The aggregator concatenates frame- and global-attention tokens: 2 x embed_dim features. VGGT's hub
         # config.json records embed_dim; without one the model is VGGT's default (1024, VGGT-1B).
         config = path / "config.json"
@@ -121,7 +160,8 @@ class VggtEncoder:
         self.dim = 2 * int(embed_dim)
 
     def to(self, device: torch.device | str) -> VggtEncoder:
-        self.model.to(device)
+        self.device = device
+        self.model.to(_home(device, self.offload))
         return self
 
     @torch.no_grad()
@@ -132,16 +172,18 @@ class VggtEncoder:
         x = F.interpolate(
             ref_images.flatten(0, 1).float(), size=(size, size), mode="bilinear", align_corners=False
         )
-        tokens, patch_start = self.model.aggregator(x.view(b, v, 3, size, size))
+        with on_device(self.model, self.device, self.offload):
+            pixels = x.view(b, v, 3, size, size).to(self.device, next(self.model.parameters()).dtype)
+            tokens, patch_start = self.model.aggregator(pixels)
         return tokens[-1][:, :, patch_start:].float()
 
 
 class PretrainedReferenceEncoder:
     """DINOv2 per view + VGGT on the pair, on the same patch grid so the token sets can be added."""
 
-    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
-        self.vggt = VggtEncoder(cfg, device)  # first: fail fast with the install hint
-        self.dino = Dinov2Encoder(cfg, device)
+    def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
+        self.vggt = VggtEncoder(cfg, device, offload)  # first: fail fast with the install hint
+        self.dino = Dinov2Encoder(cfg, device, offload)
         # Both checked against transformer.ref_2d_dim / ref_3d_dim when the backbone is built.
         self.dim_2d = self.dino.dim
         self.dim_3d = self.vggt.dim
@@ -162,11 +204,12 @@ class PretrainedReferenceEncoder:
         return ref_2d.flatten(1, 2), ref_3d.flatten(1, 2)
 
 
-def build_reference_encoder(cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu"):
+def build_reference_encoder(cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
+    """``offload``: weights live on the CPU and visit ``device`` only while encoding (``on_device``)."""
     if cfg.kind == "embedded":
         return EmbeddedReferenceEncoder(cfg)
     if cfg.kind == "dinov2_vggt":
-        return PretrainedReferenceEncoder(cfg, device)
+        return PretrainedReferenceEncoder(cfg, device, offload)
     raise ValueError(f"reference_encoder.kind must be 'embedded' or 'dinov2_vggt', got {cfg.kind!r}")
 
 
@@ -218,20 +261,24 @@ def tokenizer_dir(cfg: TextEncoderConfig, encoder_dir: Path) -> Path:
 class T5TextEncoder(TextEncoder):
     """T5 encoder + tokenizer from a local directory, padded to ``max_length`` like CogVideoX's pipelines."""
 
-    def __init__(self, cfg: TextEncoderConfig, device: torch.device | str = "cpu"):
+    def __init__(self, cfg: TextEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
         from transformers import AutoTokenizer, T5EncoderModel
 
         super().__init__(cfg)
         path = require_local_dir(cfg.pretrained_path, "text_encoder.pretrained_path")
         self.tokenizer = AutoTokenizer.from_pretrained(tokenizer_dir(cfg, path))
-        self.model = T5EncoderModel.from_pretrained(path).to(device).eval().requires_grad_(False)
+        dtype = torch_dtype(cfg.dtype, "text_encoder.dtype")
+        self.model = T5EncoderModel.from_pretrained(path, torch_dtype=dtype).to(_home(device, offload))
+        self.model.eval().requires_grad_(False)
+        self.device, self.offload = device, offload
         if self.model.config.d_model != cfg.dim:
             raise ValueError(
                 f"text_encoder.dim={cfg.dim} but the T5 at {path} has d_model={self.model.config.d_model}"
             )
 
     def to(self, device: torch.device | str) -> T5TextEncoder:
-        self.model.to(device)
+        self.device = device
+        self.model.to(_home(device, self.offload))
         return self
 
     @torch.no_grad()
@@ -243,13 +290,16 @@ class T5TextEncoder(TextEncoder):
             truncation=True,
             add_special_tokens=True,
             return_tensors="pt",
-        ).input_ids.to(self.model.device)
-        return self.model(ids).last_hidden_state.float()
+        ).input_ids.to(self.device)
+        with on_device(self.model, self.device, self.offload):
+            return self.model(ids).last_hidden_state.float()
 
 
-def build_text_encoder(cfg: TextEncoderConfig, device: torch.device | str = "cpu") -> TextEncoder:
+def build_text_encoder(cfg: TextEncoderConfig, device: torch.device | str = "cpu", offload: bool = False
+                       ) -> TextEncoder:
+    """``offload``: weights live on the CPU and visit ``device`` only while encoding (``on_device``)."""
     if cfg.kind == "embedded":
         return EmbeddedTextEncoder(cfg)
     if cfg.kind == "t5":
-        return T5TextEncoder(cfg, device)
+        return T5TextEncoder(cfg, device, offload)
     raise ValueError(f"text_encoder.kind must be 'embedded' or 't5', got {cfg.kind!r}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 
 class MissingPretrainedError(FileNotFoundError):
     """A config field names a pretrained directory that does not exist."""
@@ -22,3 +24,11 @@ def require_local_dir(path: str | None, field: str) -> Path:
     if not directory.is_dir():
         raise MissingPretrainedError(f"{field}={path!r} is not a directory")
     return directory
+
+
+def torch_dtype(name: str, field: str) -> torch.dtype:
+    """The torch dtype a config field names ("float32", "bfloat16", ...), or a one-line error naming the field."""
+    dtype = getattr(torch, name, None)
+    if not isinstance(dtype, torch.dtype):
+        raise ValueError(f"{field}={name!r} is not a torch dtype name")
+    return dtype

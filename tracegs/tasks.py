@@ -246,7 +246,7 @@ def ground_truth_renderer(cfg: DictConfig):
 # --------------------------------------------------------------------------------- deploy / evaluate
 def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
-    from tracegs.deploy.evaluate import evaluate as run_evaluation
+    from tracegs.eval.evaluate import evaluate as run_evaluation
     from tracegs.splat.render import require_available
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
@@ -283,7 +283,7 @@ def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
 
 def deploy(cfg: DictConfig) -> list[Path]:
     """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
-    from tracegs.deploy.evaluate import deploy_scenes
+    from tracegs.deploy.scenes import deploy_scenes
     from tracegs.splat.render import require_available
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
@@ -302,8 +302,8 @@ def restore(cfg: DictConfig) -> Path:
     import json
     from dataclasses import replace
 
-    from tracegs.deploy.evaluate import evaluate as run_evaluation
-    from tracegs.deploy.evaluate import unit_path
+    from tracegs.eval.evaluate import evaluate as run_evaluation
+    from tracegs.eval.merge import unit_path
     from tracegs.eval.report import results_table_markdown
 
     if cfg.capture.path is None:
@@ -336,7 +336,7 @@ def restore(cfg: DictConfig) -> Path:
 def report(cfg: DictConfig) -> Path:
     """Merge evaluation shards (main), prepare shards (prepare) or an ablation sweep (ablation)."""
     from tracegs.data.prepare import merge_manifests
-    from tracegs.deploy.evaluate import merge_results
+    from tracegs.eval.merge import merge_results
     from tracegs.eval.report import write_ablation_report
 
     kind = cfg.report.kind

@@ -117,10 +117,10 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
     """Generate the synthetic benchmark if selected, then build the paired-clip cache."""
-    from tracegs.data.prepare import run_prepare, validate_config
+    from tracegs.data.prepare import require_inputs, run_prepare
     from tracegs.restorer.build import build_backbone
 
-    validate_config(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
+    require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     backbone = build_backbone(section(cfg.backbone), device="cuda" if torch.cuda.is_available() else "cpu")
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None

@@ -37,7 +37,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
-from tracegs.data.config import SPLITS, PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -65,7 +65,6 @@ from tracegs.splat.ply import load_ply, save_ply
 from tracegs.splat.render import render_clip, require_available
 from tracegs.splat.trajectory import reference_pairs, round_trajectory
 
-PSEUDO_SOURCES = ("gt", "restorer", "dense")
 MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
 
 
@@ -103,27 +102,13 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
     return ScenePlan(scene, split, fits)
 
 
-def validate_config(cfg: PrepareConfig) -> None:
+def require_inputs(cfg: PrepareConfig) -> None:
+    """What preparation needs from this machine and disk: the rasterizer, the adapter file, the captioner.
+    The settings' own rules are checked once, on the composed config (tracegs.config.validate)."""
     require_available(cfg.fit.backend, "data.prepare.fit.backend")
-    if cfg.pseudo_target not in PSEUDO_SOURCES:
-        raise PrepareError(f"prepare.pseudo_target={cfg.pseudo_target!r} must be one of {PSEUDO_SOURCES}")
     if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):
         raise PrepareError(f"prepare.pseudo_adapter={cfg.pseudo_adapter!r}: adapter file not found")
-    bad = [s for s in cfg.student_snapshots if not 0 < s < cfg.fit.iterations]
-    if bad:
-        raise PrepareError(f"prepare.student_snapshots {bad} must lie in (0, fit.iterations={cfg.fit.iterations})")
-    if not 0 <= cfg.shard_index < cfg.num_shards:
-        raise PrepareError(f"prepare.shard_index={cfg.shard_index} must lie in [0, num_shards={cfg.num_shards})")
-    if cfg.frames_per_clip < 3:
-        raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
     require_captioner(cfg.captions, "data.prepare.captions")
-    if cfg.trajectory.frames_per_clip != cfg.frames_per_clip:
-        raise PrepareError(f"prepare.trajectory.frames_per_clip={cfg.trajectory.frames_per_clip} must equal "
-                           f"prepare.frames_per_clip={cfg.frames_per_clip}")
-    if not cfg.student_views:
-        raise PrepareError("prepare.student_views is empty")
-    if cfg.split not in SPLITS:
-        raise PrepareError(f"prepare.split={cfg.split!r} must be one of {', '.join(SPLITS)}")
 
 
 def shard_scenes(names: list[str], shard_index: int, num_shards: int) -> list[str]:
@@ -493,7 +478,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     evaluation reads). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
-    validate_config(prepare)
+    require_inputs(prepare)
     require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir")
     require_writable_dir(prepare.work_dir, "data.prepare.work_dir")
     if synthetic is not None:

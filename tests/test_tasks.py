@@ -32,8 +32,7 @@ SMALLEST = (
     "deploy.repair_iters=[5,10,15]",
     "deploy.max_clips_per_round=1",
     "evaluation.views=[3]",
-    "backbone.schedule.deploy_steps=2",
-    "stage.rollout_steps=1",
+    "backbone.schedule.deploy_steps=5",  # M = the embedded Stage-2 rollout N (a stage's own setting)
 )
 
 
@@ -92,7 +91,7 @@ def test_report_per_step_compares_the_trained_variants(demo, run, tmp_path):
     run("report", root, "report.kind=per_step", "report.inputs=[A,F]", "data.prepare.split=test",
         "evaluation.held_out_cache=${data.prepare.cache_dir}", f"report.output_dir={tmp_path}")
     curves = json.loads((tmp_path / "per_step_variants.json").read_text())
-    assert set(curves) == {"A", "F"} and all(len(c) == 2 for c in curves.values())  # one value per reverse step
+    assert set(curves) == {"A", "F"} and all(len(c) == 5 for c in curves.values())  # one value per reverse step
     assert (tmp_path / "fig6_per_step_variants.png").is_file()
 
 

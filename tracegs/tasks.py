@@ -489,7 +489,9 @@ def demo(cfg: DictConfig) -> Path:
     timings: dict[str, float] = {}
     for index, (name, extra) in enumerate(DEMO_STEPS, 1):
         if name == "evaluate":
-            extra = (*extra, f"evaluation.out_dir={out_dir}")
+            # Quoted: the demo's folder name spells its overrides (``seed0,data=mipnerf360-...``), and an
+            # unquoted ',' or '=' is override syntax.
+            extra = (*extra, f"evaluation.out_dir='{out_dir}'")
         step_cfg = compose_run(name, extra)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
         log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))

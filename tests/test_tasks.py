@@ -38,10 +38,13 @@ SMALLEST = (
 
 @pytest.fixture(scope="module")
 def run(entry_point):
-    """``tracegs-<app>`` at the smallest size with its folders under ``root``; it must succeed."""
+    """``tracegs-<app>`` at the smallest size with its folders under ``root`` (``extra`` overrides replace
+    the smallest size's of the same key); it must succeed."""
 
     def run_app(app: str, root: Path, *extra: str):
-        result = entry_point(app, [f"paths.root_dir={root}", *SMALLEST, *extra], root)
+        replaced = {o.split("=", 1)[0] for o in extra}
+        smallest = [o for o in SMALLEST if o.split("=", 1)[0] not in replaced]
+        result = entry_point(app, [f"paths.root_dir={root}", *smallest, *extra], root)
         assert result.returncode == 0, result.stderr[-3000:]
         return result
 
@@ -49,17 +52,24 @@ def run(entry_point):
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory, run) -> tuple[Path, Path]:
-    """(launch folder, demo folder) of one smallest-size ``tracegs-demo``."""
+def demo(tmp_path_factory, run) -> tuple[Path, Path, Path]:
+    """(launch folder, demo folder, its held-out cache) of one smallest-size ``tracegs-demo``."""
     root = tmp_path_factory.mktemp("tasks")
     result = run("demo", root)
     folder = re.search(r"plots in (\S+)", result.stdout + result.stderr)
     assert folder, result.stdout[-2000:]
-    return root, Path(folder.group(1))
+    (cache,) = (root / "data" / "cache").glob("synthetic-tiny-test-*")
+    return root, Path(folder.group(1)), cache
+
+
+@pytest.fixture
+def held_out(demo) -> tuple[str, ...]:
+    """The overrides that point a report at the demo's held-out cache (quoted: run folders hold ',' and '=')."""
+    return "data.prepare.split=test", f"evaluation.held_out_cache='{demo[2]}'"
 
 
 def test_demo_runs_every_step_and_writes_its_tables(demo):
-    _, out = demo
+    out = demo[1]
     run_record = json.loads((out / "run.json").read_text())
     assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test", "train stage=baseline",
                                           "train stage=stage1", "train stage=stage2 ablation=F",
@@ -71,31 +81,32 @@ def test_demo_runs_every_step_and_writes_its_tables(demo):
     assert "Deployment on the test scenes" in (out / "tables.md").read_text()
 
 
-def test_report_prepare_merges_the_cache_manifest(demo, run):
-    root, _ = demo
-    result = run("report", root, "report.kind=prepare")
-    manifests = list(root.rglob("manifest.json"))
-    assert manifests and all(json.loads(m.read_text())["scenes"] for m in manifests), result.stdout
+def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
+    root = demo[0]
+    held_out = ("data.prepare.split=test", "data.synthetic.test_seeds=[100,101]", "data.prepare.num_shards=2")
+    for shard in (0, 1):
+        run("prepare", root, *held_out, f"data.prepare.shard_index={shard}")
+    run("report", root, *held_out, "report.kind=prepare")
+    (shards,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
+    assert set(json.loads((shards / "manifest.json").read_text())["scenes"]) == {"scene_100", "scene_101"}
 
 
-def test_report_privileged_restores_from_both_view_sets(demo, run, tmp_path):
-    root, _ = demo
-    run("report", root, "report.kind=privileged", "data.prepare.split=test",
-        "evaluation.held_out_cache=${data.prepare.cache_dir}", f"report.output_dir={tmp_path}")
+def test_report_privileged_restores_from_both_view_sets(demo, held_out, run, tmp_path):
+    root = demo[0]
+    run("report", root, "report.kind=privileged", *held_out, f"report.output_dir={tmp_path}")
     gap = json.loads((tmp_path / "privileged_gap.json").read_text())
     assert gap and (tmp_path / "privileged_gap.md").read_text().strip()
 
 
-def test_report_per_step_compares_the_trained_variants(demo, run, tmp_path):
-    root, _ = demo
-    run("report", root, "report.kind=per_step", "report.inputs=[A,F]", "data.prepare.split=test",
-        "evaluation.held_out_cache=${data.prepare.cache_dir}", f"report.output_dir={tmp_path}")
+def test_report_per_step_compares_the_trained_variants(demo, held_out, run, tmp_path):
+    root = demo[0]
+    run("report", root, "report.kind=per_step", "report.inputs=[A,F]", *held_out, f"report.output_dir={tmp_path}")
     curves = json.loads((tmp_path / "per_step_variants.json").read_text())
     assert set(curves) == {"A", "F"} and all(len(c) == 5 for c in curves.values())  # one value per reverse step
     assert (tmp_path / "fig6_per_step_variants.png").is_file()
 
 
 def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):
-    root, out = demo
-    run("report", root, "report.kind=seeds", f"report.inputs=[{out},{out}]", f"report.output_dir={tmp_path}")
+    root, out = demo[:2]
+    run("report", root, "report.kind=seeds", f"report.inputs=['{out}','{out}']", f"report.output_dir={tmp_path}")
     assert "|" in (tmp_path / "seeds.md").read_text()

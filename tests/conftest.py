@@ -93,7 +93,7 @@ def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
     return run
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")  # a plain function: module fixtures may use it too
 def entry_point():
     return run_entry_point
 

@@ -116,10 +116,10 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
 # ----------------------------------------------------------------------------------------- prepare
 def prepare(cfg: DictConfig) -> Path:
     """Generate the synthetic benchmark if selected, then build the paired-clip cache."""
-    from tracegs.data.prepare import run_prepare, validate_config
+    from tracegs.data.prepare import require_inputs, run_prepare
     from tracegs.restorer.build import build_backbone
 
-    validate_config(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
+    require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     backbone = build_backbone(section(cfg.backbone), device="cuda" if torch.cuda.is_available() else "cpu")
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
@@ -210,7 +210,7 @@ def ground_truth_renderer(cfg: DictConfig):
 # --------------------------------------------------------------------------------- deploy / evaluate
 def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
-    from tracegs.deploy.evaluate import evaluate as run_evaluation
+    from tracegs.eval.evaluate import evaluate as run_evaluation
     from tracegs.splat.render import require_available
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
@@ -247,7 +247,7 @@ def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
 
 def deploy(cfg: DictConfig) -> list[Path]:
     """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
-    from tracegs.deploy.evaluate import deploy_scenes
+    from tracegs.deploy.scenes import deploy_scenes
     from tracegs.splat.render import require_available
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
@@ -266,8 +266,8 @@ def restore(cfg: DictConfig) -> Path:
     import json
     from dataclasses import replace
 
-    from tracegs.deploy.evaluate import evaluate as run_evaluation
-    from tracegs.deploy.evaluate import unit_path
+    from tracegs.eval.evaluate import evaluate as run_evaluation
+    from tracegs.eval.merge import unit_path
     from tracegs.eval.report import results_table_markdown
 
     if cfg.capture.path is None:
@@ -300,7 +300,7 @@ def restore(cfg: DictConfig) -> Path:
 def report(cfg: DictConfig) -> Path:
     """Merge evaluation shards (main), prepare shards (prepare) or an ablation sweep (ablation)."""
     from tracegs.data.prepare import merge_manifests
-    from tracegs.deploy.evaluate import merge_results
+    from tracegs.eval.merge import merge_results
     from tracegs.eval.report import write_ablation_report
 
     kind = cfg.report.kind
@@ -465,7 +465,9 @@ def demo(cfg: DictConfig) -> Path:
     timings: dict[str, float] = {}
     for index, (name, extra) in enumerate(DEMO_STEPS, 1):
         if name == "evaluate":
-            extra = (*extra, f"evaluation.out_dir={out_dir}")
+            # Quoted: the demo's folder name spells its overrides (``seed0,data=mipnerf360-...``), and an
+            # unquoted ',' or '=' is override syntax.
+            extra = (*extra, f"evaluation.out_dir='{out_dir}'")
         step_cfg = compose_run(name, extra)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
         log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))

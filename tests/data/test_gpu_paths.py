@@ -14,8 +14,9 @@ from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import run_prepare
 from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark, ground_truth_model
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.deploy.evaluate import deploy_scenes, evaluate
 from tracegs.deploy.restorers import GroundTruthRestorer
+from tracegs.deploy.scenes import deploy_scenes
+from tracegs.eval.evaluate import evaluate
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig

@@ -11,7 +11,8 @@ from tracegs.config.schema import register_configs
 from tracegs.data.colmap import SceneFormatError, list_scenes, read_scene_list
 from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.deploy.evaluate import deploy_scenes, evaluate
+from tracegs.deploy.scenes import deploy_scenes
+from tracegs.eval.evaluate import evaluate
 from tracegs.splat.config import GaussianFitConfig
 
 PUBLISHED = {

@@ -7,7 +7,7 @@ from tracegs.data.colmap import load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
 from tracegs.data.prepare import plan_scene
 from tracegs.data.splits import SplitError, make_split
-from tracegs.deploy.evaluate import load_unit
+from tracegs.deploy.scenes import load_unit
 
 
 def test_every_eighth_is_held_out_and_view_sets_are_nested_and_spread():

@@ -23,10 +23,12 @@ from torch import nn
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig
 from tracegs.data.synthetic import generate_scene, ground_truth_model, render_ground_truth, scene_name
-from tracegs.deploy.callback import DeploymentRefinement, module_restorer_factory
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.deploy.evaluate import deploy_scenes, evaluate, merge_results, unit_path
 from tracegs.deploy.restorers import DiffusionRestorer, GroundTruthRestorer
+from tracegs.deploy.scenes import deploy_scenes
+from tracegs.eval.callback import DeploymentRefinement, module_restorer_factory
+from tracegs.eval.evaluate import evaluate
+from tracegs.eval.merge import merge_results, unit_path
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline

@@ -4,7 +4,8 @@ import json
 
 import pytest
 
-from tracegs.deploy.evaluate import evaluation_units, merge_results, unit_path
+from tracegs.deploy.scenes import evaluation_units
+from tracegs.eval.merge import merge_results, unit_path
 from tracegs.io import write_json_atomic
 
 

@@ -6,8 +6,8 @@ import csv
 import json
 from pathlib import Path
 
-from tracegs.deploy.evaluate import merge_results, unit_path
 from tracegs.eval.interval_tables import held_out_intervals_markdown
+from tracegs.eval.merge import merge_results, unit_path
 from tracegs.eval.report import held_out_table_markdown, write_ablation_report
 from tracegs.io import write_json_atomic
 

@@ -12,7 +12,6 @@ from omegaconf import OmegaConf
 from tracegs.deploy.assembly import restorer_holdings
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
-from tracegs.restorer.config import paper_backbone_config
 from tracegs.restorer.memory import GIB, device_totals, holdings_table, module_bytes, training_component_bytes
 
 METHODS = ["3dgs", "baseline", "tracegs"]
@@ -80,8 +79,13 @@ def _paper_weights_configs(folder):
 
 def test_paper_figure_at_paper_shapes_on_the_meta_device(tmp_path, vggt_double):
     _paper_weights_configs(tmp_path)
-    cfg = paper_backbone_config(vae_path=str(tmp_path / "vae"), dino_path=str(tmp_path / "dinov2-large"),
-                                vggt_path=str(tmp_path / "VGGT-1B"), t5_path=str(tmp_path / "text_encoder"))
+    # The paper's backbone as users compose it (conf/backbone/cogvideox5b.yaml), its folders pointed here.
+    cfg = OmegaConf.to_object(rehearsal_config(tmp_path, "evaluate", ("experiment=paper",
+        "backbone.transformer.pretrained_path=null", f"backbone.codec.pretrained_path={tmp_path / 'vae'}",
+        f"backbone.reference_encoder.dino_path={tmp_path / 'dinov2-large'}",
+        f"backbone.reference_encoder.vggt_path={tmp_path / 'VGGT-1B'}",
+        f"backbone.text_encoder.pretrained_path={tmp_path / 'text_encoder'}",
+        "backbone.text_encoder.tokenizer_path=null")).backbone)
     holdings = {h.component: h for h in restorer_holdings(
         cfg, METHODS, str(tmp_path / "blip2-opt-2.7b"), device="cuda")}
     training = training_component_bytes(cfg)

@@ -3,7 +3,11 @@ import math
 import pytest
 import torch
 from diffusers import CogVideoXTransformer3DModel
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
+from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
 from tracegs.restorer import adapters
 from tracegs.restorer.build import (
     CheckpointMismatchError,
@@ -11,7 +15,15 @@ from tracegs.restorer.build import (
     load_transformer,
     transformer_kwargs,
 )
-from tracegs.restorer.config import TransformerConfig, paper_backbone_config
+from tracegs.restorer.config import BackboneConfig, TransformerConfig
+
+
+def paper_backbone() -> BackboneConfig:
+    """The paper's backbone exactly as users run it: conf/backbone/cogvideox5b.yaml, composed by Hydra."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["experiment=paper"])
+    return OmegaConf.to_object(cfg.backbone)
 
 
 def test_tiny_forward_backward_shapes(backbone, make_inputs):
@@ -85,7 +97,7 @@ def test_text_length_must_match_config(backbone, make_inputs):
 
 
 def test_paper_configuration_on_meta_device():
-    cfg = paper_backbone_config()
+    cfg = paper_backbone()
     model = create_transformer(cfg.transformer, "meta")
     assert next(model.parameters()).is_meta
     assert len(model.transformer_blocks) == 42 and model.config.num_layers == 42

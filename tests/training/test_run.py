@@ -21,8 +21,8 @@ from training_support import (
     WIDTH,
 )
 
+from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
-from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
 from tracegs.errors import ConfigMismatchError
 from tracegs.restorer.adapters import read_adapter

@@ -15,9 +15,9 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from tracegs.config.identity import register_resolvers
-from tracegs.config.modes import Mode
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
+from tracegs.modes import Mode
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (

@@ -88,6 +88,13 @@ def _validate_data(cfg: DictConfig) -> None:
     )
     missing = sorted(set(prepare.student_snapshots) - set(snapshots))
     _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among data.prepare.fit.snapshot_iters {snapshots}")
+    # A student condition R_s is an intermediate snapshot: the final one is the dense fits' (and R_d's).
+    final = [s for s in prepare.student_snapshots if not 0 < s < fit.iterations]
+    _require(not final, "data.prepare.student_snapshots",
+             f"{final} must lie in (0, data.prepare.fit.iterations={fit.iterations})")
+    _require(0 <= prepare.shard_index < prepare.num_shards, "data.prepare.shard_index",
+             f"{prepare.shard_index} must lie in [0, data.prepare.num_shards={prepare.num_shards})")
+    _require(len(prepare.student_views) > 0, "data.prepare.student_views", "is empty")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
     dense_counts = [v for v in prepare.dense_views if v is not None]
     _check_increasing(dense_counts, "data.prepare.dense_views")
@@ -140,11 +147,6 @@ def _validate_backbone(cfg: DictConfig) -> None:
     _require(backbone.lora.rank > 0, "backbone.lora.rank", f"must be > 0, got {backbone.lora.rank}")
     _require(backbone.lora.alpha > 0, "backbone.lora.alpha", f"must be > 0, got {backbone.lora.alpha}")
     _require(
-        backbone.schedule.kind in ("rectified_flow", "vpred_ddim"),
-        "backbone.schedule.kind",
-        f"must be 'rectified_flow' or 'vpred_ddim', got {backbone.schedule.kind!r}",
-    )
-    _require(
         backbone.schedule.train_time_power >= 0,
         "backbone.schedule.train_time_power",
         f"must be >= 0, got {backbone.schedule.train_time_power}",
@@ -153,7 +155,7 @@ def _validate_backbone(cfg: DictConfig) -> None:
         backbone.transformer.prediction == "velocity" or backbone.schedule.kind == "rectified_flow",
         "backbone.transformer.prediction",
         f"'{backbone.transformer.prediction}' converts x0 to a rectified-flow velocity; schedule.kind is "
-        f"{backbone.schedule.kind!r} (use prediction=velocity)",
+        f"'{backbone.schedule.kind}' (use prediction=velocity)",
     )
     # The codec's spatial factor times the patch size must tile the rendered frames exactly (the CogVideoX
     # VAE compresses 8x spatially, supplement A.1; the embedded codec by its block size).

@@ -8,7 +8,34 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.modes import Mode
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
+
+
+class Split(Mode):
+    """A seed list of the synthetic benchmark (``SyntheticConfig``)."""
+
+    train = "train"
+    val = "val"  # the scenes embedded settings are chosen on
+    test = "test"  # held out: no stage trains on them
+
+
+class SourcePreset(Mode):
+    """A dataset's COLMAP folder layout (tracegs.data.colmap.PRESETS)."""
+
+    synthetic = "synthetic"
+    mipnerf360 = "mipnerf360"
+    dl3dv = "dl3dv"
+    nerfbusters = "nerfbusters"
+    custom = "custom"
+
+
+class PseudoTarget(Mode):
+    """Where a training clip's target comes from (supplement A.4)."""
+
+    gt = "gt"  # the scene's ground truth (synthetic scenes only)
+    restorer = "restorer"  # the frozen pretrained restorer on R_d (the paper)
+    dense = "dense"  # R_d itself
 
 
 @dataclass
@@ -36,7 +63,7 @@ class SyntheticConfig:
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
-SPLITS = ("train", "val", "test")
+SPLITS = tuple(split.value for split in Split)
 
 
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
@@ -57,8 +84,7 @@ class SceneSourceConfig:
     """Where scenes come from: a COLMAP dataset layout (presets) or the synthetic benchmark root."""
 
     root: str = "data/synthetic"
-    # "synthetic" | "mipnerf360" | "dl3dv" | "nerfbusters" | "custom"; fills image_dir / sparse_dir.
-    preset: str = "synthetic"
+    preset: SourcePreset = SourcePreset.synthetic  # fills image_dir / sparse_dir
     scenes: list[str] | None = None  # None = every scene directory under root (sorted), or the split's list
     # Scene lists (one name a line) for datasets whose training and benchmark scenes share a root (DL3DV):
     # prepare and training read ``train_list``, evaluation ``test_list``; None = every scene under root.
@@ -90,7 +116,7 @@ class PrepareConfig:
     # Synthetic benchmark only: which seed list to prepare. "test" builds a held-out cache that no stage
     # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``). "val" builds the
     # validation cache that embedded settings are chosen on.
-    split: str = "train"
+    split: Split = Split.train
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
     # Dense view sets; None = all training views. Every student set is also fitted to its final
@@ -104,7 +130,7 @@ class PrepareConfig:
     frames_per_clip: int = 9  # paper: 49
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
-    pseudo_target: str = "gt"  # "gt" | "restorer" | "dense"; paper: "restorer" (frozen GSFixer)
+    pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)
     pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = field(default_factory=CaptionConfig)

@@ -29,8 +29,9 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
+from tracegs.data import cache_keys
+from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
-from tracegs.data.prepare import MANIFEST, condition_key
 from tracegs.data.splits import view_set_key
 
 
@@ -81,8 +82,9 @@ class PairedClipDataset(Dataset):
         self.teacher_key = condition_key(teacher_views)
         self.caption_dropout = caption_dropout
         self.seed = seed
-        required = [f"latent/{condition_key(k, s)}" for k in student_views for s in student_snapshots]
-        required += [f"latent/{self.teacher_key}", "latent/target", "ref_2d", "ref_3d", "text"]
+        required = [cache_keys.latent(condition_key(k, s)) for k in student_views for s in student_snapshots]
+        required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET), cache_keys.REF_2D,
+                     cache_keys.REF_3D, cache_keys.TEXT]
         for _, _, path in self.clips:
             check_shard(path, required)
 
@@ -100,13 +102,13 @@ class PairedClipDataset(Dataset):
             tensors = load_file(str(path))
         except (SafetensorError, OSError, ValueError) as error:
             raise CacheError(f"{path}: corrupt shard ({error})") from error
-        text = tensors["text"].float()
+        text = tensors[cache_keys.TEXT].float()
         return {
-            "student_cond": tensors[f"latent/{condition_key(views, snapshot)}"].float(),
-            "teacher_cond": tensors[f"latent/{self.teacher_key}"].float(),
-            "target": tensors["latent/target"].float(),
-            "ref_2d": tensors["ref_2d"].float(),
-            "ref_3d": tensors["ref_3d"].float(),
+            "student_cond": tensors[cache_keys.latent(condition_key(views, snapshot))].float(),
+            "teacher_cond": tensors[cache_keys.latent(self.teacher_key)].float(),
+            "target": tensors[cache_keys.latent(cache_keys.TARGET)].float(),
+            "ref_2d": tensors[cache_keys.REF_2D].float(),
+            "ref_3d": tensors[cache_keys.REF_3D].float(),
             # Supplement A.2: a dropped caption is an all-zero embedding (not the encoding of ""), and the
             # same embedding goes to both roles.
             "text": torch.zeros_like(text) if dropped else text,

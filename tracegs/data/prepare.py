@@ -33,9 +33,11 @@ from safetensors import safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.console import PlainProgress
+from tracegs.data import cache_keys
+from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
-from tracegs.data.config import SPLITS, PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -63,18 +65,11 @@ from tracegs.splat.ply import load_ply, save_ply
 from tracegs.splat.render import render_clip, require_available
 from tracegs.splat.trajectory import reference_pairs, round_trajectory
 
-PSEUDO_SOURCES = ("gt", "restorer", "dense")
-MANIFEST = "manifest.json"
 MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
 
 
 class PrepareError(ValueError):
     """The preparation configuration or input data cannot be used."""
-
-
-def condition_key(views: int | None, snapshot: int | None = None) -> str:
-    """Cache key of a rendered condition: ``s{K}_it{snapshot}`` (student) or ``d{V}`` (final snapshot)."""
-    return f"s{view_set_key(views)}_it{snapshot}" if snapshot is not None else f"d{view_set_key(views)}"
 
 
 @dataclass
@@ -107,27 +102,13 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
     return ScenePlan(scene, split, fits)
 
 
-def validate_config(cfg: PrepareConfig) -> None:
+def require_inputs(cfg: PrepareConfig) -> None:
+    """What preparation needs from this machine and disk: the rasterizer, the adapter file, the captioner.
+    The settings' own rules are checked once, on the composed config (tracegs.config.validate)."""
     require_available(cfg.fit.backend, "data.prepare.fit.backend")
-    if cfg.pseudo_target not in PSEUDO_SOURCES:
-        raise PrepareError(f"prepare.pseudo_target={cfg.pseudo_target!r} must be one of {PSEUDO_SOURCES}")
     if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):
         raise PrepareError(f"prepare.pseudo_adapter={cfg.pseudo_adapter!r}: adapter file not found")
-    bad = [s for s in cfg.student_snapshots if not 0 < s < cfg.fit.iterations]
-    if bad:
-        raise PrepareError(f"prepare.student_snapshots {bad} must lie in (0, fit.iterations={cfg.fit.iterations})")
-    if not 0 <= cfg.shard_index < cfg.num_shards:
-        raise PrepareError(f"prepare.shard_index={cfg.shard_index} must lie in [0, num_shards={cfg.num_shards})")
-    if cfg.frames_per_clip < 3:
-        raise PrepareError(f"prepare.frames_per_clip={cfg.frames_per_clip} must be >= 3 (two references + path)")
     require_captioner(cfg.captions, "data.prepare.captions")
-    if cfg.trajectory.frames_per_clip != cfg.frames_per_clip:
-        raise PrepareError(f"prepare.trajectory.frames_per_clip={cfg.trajectory.frames_per_clip} must equal "
-                           f"prepare.frames_per_clip={cfg.frames_per_clip}")
-    if not cfg.student_views:
-        raise PrepareError("prepare.student_views is empty")
-    if cfg.split not in SPLITS:
-        raise PrepareError(f"prepare.split={cfg.split!r} must be one of {', '.join(SPLITS)}")
 
 
 def shard_scenes(names: list[str], shard_index: int, num_shards: int) -> list[str]:
@@ -223,10 +204,10 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
         latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target.cpu()]).to(device))
         ref_2d, ref_3d = backbone.reference_encoder(ref_images[None].to(device))
         text = backbone.text_encoder.encode([caption])
-    out = {f"latent/{k}": latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
-    out["latent/target"] = latents[-1].to("cpu", dtype)
-    out["ref_2d"], out["ref_3d"], out["text"] = (ref_2d[0].to("cpu", dtype), ref_3d[0].to("cpu", dtype),
-                                                 text[0].to("cpu", dtype))
+    out = {cache_keys.latent(k): latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
+    out[cache_keys.latent(cache_keys.TARGET)] = latents[-1].to("cpu", dtype)
+    out[cache_keys.REF_2D], out[cache_keys.REF_3D], out[cache_keys.TEXT] = (
+        ref_2d[0].to("cpu", dtype), ref_3d[0].to("cpu", dtype), text[0].to("cpu", dtype))
     return out
 
 
@@ -241,7 +222,7 @@ def shard_is_valid(path: Path, settings: str | None = None) -> bool:
     except InputFileError:
         return False
     made_with = metadata.get("settings")
-    return ("latent/target" in tensors and (settings is None or made_with == settings)
+    return (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)
             and not non_finite_keys(tensors))
 
 
@@ -277,13 +258,13 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():
-        tensors[f"frames/{key}"] = to_uint8(frames)
-    tensors["frames/target"] = to_uint8(target)
-    tensors["frames/ref"] = to_uint8(ref_images)
+        tensors[cache_keys.frames(key)] = to_uint8(frames)
+    tensors[cache_keys.frames(cache_keys.TARGET)] = to_uint8(target)
+    tensors[cache_keys.frames(cache_keys.REFERENCE)] = to_uint8(ref_images)
     if ground_truth is not None:
-        tensors["frames/gt"] = to_uint8(ground_truth)
-    tensors["poses"] = torch.stack([c.world_to_camera for c in cameras]).float()
-    tensors["intrinsics"] = torch.stack([c.K for c in cameras]).float()
+        tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)] = to_uint8(ground_truth)
+    tensors[cache_keys.POSES] = torch.stack([c.world_to_camera for c in cameras]).float()
+    tensors[cache_keys.INTRINSICS] = torch.stack([c.K for c in cameras]).float()
     psnr = {}
     if ground_truth is not None:
         psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
@@ -305,9 +286,9 @@ def read_shard_psnr(path: Path) -> dict[str, float]:
 def contact_sheet(shard: Path, out: Path, student: str, dense: str) -> None:
     """PNG with one row per frame of a clip: R_s | R_d | target (| ground truth when known)."""
     with safe_open(str(shard), framework="pt") as f:
-        columns = [f.get_tensor(f"frames/{k}") for k in (student, dense, "target")]
-        if "frames/gt" in f.keys():
-            columns.append(f.get_tensor("frames/gt"))
+        columns = [f.get_tensor(cache_keys.frames(k)) for k in (student, dense, cache_keys.TARGET)]
+        if cache_keys.frames(cache_keys.GROUND_TRUTH) in f.keys():
+            columns.append(f.get_tensor(cache_keys.frames(cache_keys.GROUND_TRUTH)))
     rows = torch.cat([torch.cat([c[i] for c in columns], dim=2) for i in range(columns[0].shape[0])], dim=1)
     with atomic_write(out) as tmp:
         Image.fromarray(rows.permute(1, 2, 0).numpy()).save(tmp, format="PNG")
@@ -497,7 +478,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     evaluation reads). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
-    validate_config(prepare)
+    require_inputs(prepare)
     require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir")
     require_writable_dir(prepare.work_dir, "data.prepare.work_dir")
     if synthetic is not None:

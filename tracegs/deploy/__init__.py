@@ -1,1 +1,1 @@
-"""Deployment: restore-refine loop and the DeploymentRefinement callback."""
+"""Deployment: the restore-refine loop (Algorithm 1 bottom), its restorers and the per-scene deployment run."""

@@ -1,1 +1,1 @@
-"""Evaluation: metrics and reports (tables, plots, videos)."""
+"""Evaluation: scoring deployed scenes, merging shards, metrics and reports (tables, plots, videos)."""

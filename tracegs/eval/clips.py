@@ -19,8 +19,9 @@ from safetensors import safe_open
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
+from tracegs.data import cache_keys
+from tracegs.data.cache_keys import condition_key
 from tracegs.data.datamodule import CacheError, read_manifest
-from tracegs.data.prepare import condition_key
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -58,7 +59,7 @@ def load_clip(path: Path) -> tuple[dict[str, Tensor], dict[str, str]]:
     with safe_open(str(path), framework="pt") as handle:
         tensors = {key: handle.get_tensor(key) for key in handle.keys()}
         metadata = handle.metadata() or {}
-    if "frames/gt" not in tensors:
+    if cache_keys.frames(cache_keys.GROUND_TRUTH) not in tensors:
         raise CacheError(f"{path}: no ground-truth frames; clip quality needs a scene with known ground truth")
     return tensors, metadata
 
@@ -75,18 +76,18 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     scores: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for index, (scene, path) in enumerate(track(shards, description="held-out clips", disable=not progress)):
         tensors, _ = load_clip(path)
-        truth = _frames(tensors, "frames/gt")
+        truth = _frames(tensors, cache_keys.frames(cache_keys.GROUND_TRUTH))
         for cond in conditions:
-            scores[cond][INPUT][scene].append(_psnr(_frames(tensors, f"frames/{cond}"), truth))
+            scores[cond][INPUT][scene].append(_psnr(_frames(tensors, cache_keys.frames(cond)), truth))
         # One batch per clip: every condition of the clip restored together, same seed across restorers.
-        cond_latents = torch.stack([tensors[f"latent/{c}"].float() for c in conditions])
+        cond_latents = torch.stack([tensors[cache_keys.latent(c)].float() for c in conditions])
         batch = len(conditions)
         for label, pipeline in pipelines.items():
             latents = pipeline.restore_latents(
                 cond_latents,
-                tensors["ref_2d"].float().expand(batch, -1, -1),
-                tensors["ref_3d"].float().expand(batch, -1, -1),
-                tensors["text"].float().expand(batch, -1, -1),
+                tensors[cache_keys.REF_2D].float().expand(batch, -1, -1),
+                tensors[cache_keys.REF_3D].float().expand(batch, -1, -1),
+                tensors[cache_keys.TEXT].float().expand(batch, -1, -1),
                 seed=seed + index,
             )
             restored = pipeline.backbone.codec.decode(latents).cpu()[:, 1:-1]
@@ -124,9 +125,9 @@ def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir
     curves = []
     for index, (scene, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
         tensors, metadata = load_clip(path)
-        frames = torch.stack([_pixels(tensors[f"frames/{c}"]) for c in conditions])
-        truth = _pixels(tensors["frames/gt"]).expand(len(conditions), -1, -1, -1, -1)
-        refs = _pixels(tensors["frames/ref"]).expand(len(conditions), -1, -1, -1, -1)
+        frames = torch.stack([_pixels(tensors[cache_keys.frames(c)]) for c in conditions])
+        truth = _pixels(tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)]).expand(len(conditions), -1, -1, -1, -1)
+        refs = _pixels(tensors[cache_keys.frames(cache_keys.REFERENCE)]).expand(len(conditions), -1, -1, -1, -1)
         caption = metadata.get("caption", "")
         curves.append((scene, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
                                                     seed=seed + index)

@@ -2,7 +2,7 @@
 scenes, the paired differences the paper's claims are about, and the claims marked from those intervals.
 
 Per-scene values come from the evaluation's ``per_scene.json`` (``{scene: {method: {views: {metric: v}}}}``,
-written by ``deploy.evaluate.merge_results``); each value is already the mean over the scene's test views,
+written by ``eval.merge.merge_results``); each value is already the mean over the scene's test views,
 so the interval is over scenes (``tracegs.eval.intervals``). The point estimates equal the plain tables'.
 """
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import torch
 from rich.progress import track
 
-from tracegs.data.prepare import condition_key
-from tracegs.data.splits import view_set_key
+from tracegs.data import cache_keys
+from tracegs.data.cache_keys import condition_key
 from tracegs.eval.clips import _frames, _psnr, held_out_clips, load_clip
 from tracegs.eval.intervals import mean_interval, paired_interval
 from tracegs.eval.labels import RESTORER_LABELS
@@ -44,7 +44,7 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
     """
     conditions, shards = held_out_clips(cache_dir)
     if student_views is not None:
-        prefixes = tuple(f"s{view_set_key(k)}_it" for k in student_views)  # condition_key(k, snapshot)
+        prefixes = tuple(cache_keys.student_prefix(k) for k in student_views)
         conditions = [c for c in conditions if c.startswith(prefixes)]
         if not conditions:
             raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
@@ -61,20 +61,20 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
 
     for index, (scene, path) in enumerate(track(shards, description="privileged gap", disable=not progress)):
         tensors, _ = load_clip(path)
-        if f"latent/{teacher}" not in tensors:
+        if cache_keys.latent(teacher) not in tensors:
             raise KeyError(f"{path}: no teacher condition {teacher} (prepare with data.prepare.dense_views "
                            "including the teacher's views)")
-        truth, dense = _frames(tensors, "frames/gt"), _frames(tensors, f"frames/{teacher}")
+        truth, dense = _frames(tensors, cache_keys.frames(cache_keys.GROUND_TRUTH)), _frames(tensors, cache_keys.frames(teacher))
         record(f"input {TEACHER}", scene, [dense], truth, None)
-        record(f"input {STUDENT}", scene, [_frames(tensors, f"frames/{c}") for c in conditions], truth, dense)
-        latents = torch.stack([tensors[f"latent/{k}"].float() for k in keys])
+        record(f"input {STUDENT}", scene, [_frames(tensors, cache_keys.frames(c)) for c in conditions], truth, dense)
+        latents = torch.stack([tensors[cache_keys.latent(k)].float() for k in keys])
         batch = len(keys)
         for label, pipeline in pipelines.items():
             restored = pipeline.backbone.codec.decode(pipeline.restore_latents(
                 latents,
-                tensors["ref_2d"].float().expand(batch, -1, -1),
-                tensors["ref_3d"].float().expand(batch, -1, -1),
-                tensors["text"].float().expand(batch, -1, -1),
+                tensors[cache_keys.REF_2D].float().expand(batch, -1, -1),
+                tensors[cache_keys.REF_3D].float().expand(batch, -1, -1),
+                tensors[cache_keys.TEXT].float().expand(batch, -1, -1),
                 seed=seed + index,
             )).cpu()[:, 1:-1]
             record(f"{label} | {TEACHER}", scene, [restored[0]], truth, dense)

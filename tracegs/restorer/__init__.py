@@ -1,6 +1,6 @@
 """Reference-guided video restorer (supplement A.1-A.3), one code path for both scales.
 
-- ``config``: dataclasses (embedded defaults) and ``paper_backbone_config()`` (CogVideoX-5B-I2V values).
+- ``config``: dataclasses (embedded defaults; the paper's CogVideoX-5B-I2V values: conf/backbone/cogvideox5b.yaml).
 - ``transformer.ReferenceGuidedTransformer``: diffusers CogVideoX + reference cross-attention, retrieval read-out.
 - ``adapters``: named peft LoRA adapters (teacher / student) on one frozen base.
 - ``codec``: ``EmbeddedCodec`` (block DCT) and ``CogVideoXCodec`` (AutoencoderKLCogVideoX).

@@ -1,18 +1,48 @@
 """Hyperparameters of the restorer (supplement A.1-A.3). Defaults are the embedded CPU scale.
 
 Plain dataclasses only (no torch import) so the Hydra schema can compose them cheaply.
-``paper_backbone_config()`` returns the CogVideoX-5B-I2V + GSFixer values of the paper.
+The CogVideoX-5B-I2V + GSFixer values of the paper live in one place: ``conf/backbone/cogvideox5b.yaml``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.modes import Mode
+
 # Supplement A.2, "Text tokens": appended to every BLIP-2 caption before T5 encoding.
 QUALITY_SUFFIX = (
     ". The video is of high quality, and the view is very clear. High quality, masterpiece, best quality, "
     "highres, ultra-detailed, fantastic."
 )
+
+
+class Prediction(Mode):
+    """What the transformer's output head predicts (tracegs.restorer.transformer)."""
+
+    velocity = "velocity"  # v, as CogVideoX
+    clean = "clean"  # x0; the model returns v = (z_t - x0) / max(t, clean_min_time) (rectified flow only)
+    residual = "residual"  # x0 as the condition plus a predicted residual (rectified flow only)
+
+
+class CodecKind(Mode):
+    embedded = "embedded"  # fixed orthonormal block transform (CPU scale)
+    cogvideox = "cogvideox"  # AutoencoderKLCogVideoX from a local diffusers folder
+
+
+class ReferenceEncoderKind(Mode):
+    embedded = "embedded"  # pixel-patch tokens (CPU scale)
+    dinov2_vggt = "dinov2_vggt"  # DINOv2 (transformers) + VGGT (its own package), main paper Sec. 3.2
+
+
+class TextEncoderKind(Mode):
+    embedded = "embedded"  # deterministic hashed-token embeddings (CPU scale)
+    t5 = "t5"  # the T5 encoder of CogVideoX (local folder)
+
+
+class ScheduleKind(Mode):
+    rectified_flow = "rectified_flow"  # tiny backbone
+    vpred_ddim = "vpred_ddim"  # CogVideoX: v-prediction DDPM training, DDIM deployment
 
 
 @dataclass
@@ -46,7 +76,7 @@ class TransformerConfig:
     timestep_scale: float = 1000.0
     # "velocity" (the output head predicts v, as CogVideoX) or "clean" (it predicts x0 and the model returns
     # v = (z_t - x0) / max(t, clean_min_time); rectified flow only). See transformer.velocity_from_clean.
-    prediction: str = "velocity"
+    prediction: Prediction = Prediction.velocity
     clean_min_time: float = 0.05
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
     dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
@@ -68,7 +98,7 @@ class LoraConfig:
 class CodecConfig:
     """``embedded``: fixed orthonormal block transform; ``cogvideox``: AutoencoderKLCogVideoX (local dir)."""
 
-    kind: str = "embedded"
+    kind: CodecKind = CodecKind.embedded
     block_size: int = 4
     latent_channels: int = 24  # 40.4 dB mean round trip on scikit-image photos at 48x72 (16 -> 35.0 dB)
     pretrained_path: str | None = None
@@ -80,7 +110,7 @@ class CodecConfig:
 class ReferenceEncoderConfig:
     """``embedded``: pixel-patch tokens; ``dinov2_vggt``: DINOv2 (transformers) + VGGT (its own package)."""
 
-    kind: str = "embedded"
+    kind: ReferenceEncoderKind = ReferenceEncoderKind.embedded
     patch_size: int = 8
     dino_path: str | None = None
     vggt_path: str | None = None
@@ -95,7 +125,7 @@ class ReferenceEncoderConfig:
 class TextEncoderConfig:
     """``embedded``: deterministic hashed-token embeddings; ``t5``: T5 encoder (local dir)."""
 
-    kind: str = "embedded"
+    kind: TextEncoderKind = TextEncoderKind.embedded
     dim: int = 64
     max_length: int = 8
     pretrained_path: str | None = None
@@ -111,7 +141,7 @@ class TextEncoderConfig:
 class ScheduleConfig:
     """``rectified_flow`` (tiny backbone) or ``vpred_ddim`` (CogVideoX v-prediction DDPM + DDIM)."""
 
-    kind: str = "rectified_flow"
+    kind: ScheduleKind = ScheduleKind.rectified_flow
     num_train_timesteps: int = 1000
     deploy_steps: int = 20  # M
     # rectified_flow: training times of forward-noised states (baseline L_fm, Stage 1) are drawn with density
@@ -156,49 +186,3 @@ class BackboneConfig:
     # Keep the text and reference encoders on the CPU and move them to the accelerator only while they encode a
     # batch of clips (sampler.RestorationPipeline): the transformer denoises without T5 / DINOv2 / VGGT beside it.
     offload_encoders: bool = False
-
-
-def paper_backbone_config(
-    transformer_path: str | None = None,
-    vae_path: str | None = None,
-    dino_path: str | None = None,
-    vggt_path: str | None = None,
-    t5_path: str | None = None,
-    tokenizer_path: str | None = None,
-) -> BackboneConfig:
-    """CogVideoX-5B-I2V + reference cross-attention (supplement A.1-A.3): 42 blocks, 48x64 heads, LoRA r=32."""
-    return BackboneConfig(
-        name="cogvideox_5b",
-        transformer=TransformerConfig(
-            num_layers=42,
-            num_attention_heads=48,
-            attention_head_dim=64,
-            latent_channels=16,
-            text_embed_dim=4096,
-            max_text_seq_length=226,
-            time_embed_dim=512,
-            patch_size=2,
-            sample_frames=49,
-            sample_height=60,
-            sample_width=90,
-            temporal_compression_ratio=4,
-            use_rotary_positional_embeddings=True,
-            use_learned_positional_embeddings=True,
-            ref_2d_dim=1024,  # DINOv2 ViT-L/14
-            ref_3d_dim=2048,  # VGGT aggregator (frame + global attention tokens concatenated)
-            timestep_scale=1.0,
-            pretrained_path=transformer_path,
-            dtype="bfloat16",
-            gradient_checkpointing=True,
-        ),
-        lora=LoraConfig(rank=32, alpha=32),
-        codec=CodecConfig(kind="cogvideox", latent_channels=16, pretrained_path=vae_path),
-        reference_encoder=ReferenceEncoderConfig(
-            kind="dinov2_vggt", dino_path=dino_path, vggt_path=vggt_path, dtype="bfloat16"
-        ),
-        text_encoder=TextEncoderConfig(kind="t5", dim=4096, max_length=226, pretrained_path=t5_path,
-                                       tokenizer_path=tokenizer_path, dtype="bfloat16"),
-        schedule=ScheduleConfig(kind="vpred_ddim", deploy_steps=50),
-        sampler=SamplerConfig(guidance_scale=6.0),
-        offload_encoders=True,
-    )

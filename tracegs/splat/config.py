@@ -7,6 +7,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.modes import Mode
+
+
+class RenderBackend(Mode):
+    """The rasterizer (tracegs.splat.render)."""
+
+    auto = "auto"  # gsplat where CUDA and the package are present, else torch
+    torch = "torch"  # tiled pure-PyTorch rasterizer
+    dense = "dense"  # every Gaussian on every pixel (small images; the reference for the tiled one)
+    gsplat = "gsplat"  # CUDA only
+
 
 @dataclass
 class DensificationConfig:
@@ -49,7 +60,7 @@ class GaussianFitConfig:
     sh_degree: int = 3
     sh_degree_interval: int = 100
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-    backend: str = "auto"
+    backend: RenderBackend = RenderBackend.auto
     seed: int = 0
     init_num_points: int = 2000
     keep_freed_cpu_memory: bool = True  # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)

@@ -10,13 +10,13 @@ import torch
 from torch import Tensor
 
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.config import GaussianFitConfig, RenderBackend
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
 from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
 from tracegs.splat.sh import sh_to_rgb
 
-BACKENDS = ("auto", "torch", "dense", "gsplat")
+BACKENDS = tuple(backend.value for backend in RenderBackend)
 
 
 @dataclass

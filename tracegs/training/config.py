@@ -11,10 +11,33 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from tracegs.data.config import DataModuleConfig
+from tracegs.modes import Mode
 from tracegs.restorer.config import BackboneConfig
 
-STAGE_NAMES = ("baseline", "stage1", "stage2")
-MEMORY_MODES = ("stepwise", "retain")
+
+class StageName(Mode):
+    baseline = "baseline"  # variant A's restorer (embedded scale; the paper loads GSFixer's)
+    stage1 = "stage1"  # privileged direction alignment (main paper Sec. 3.3)
+    stage2 = "stage2"  # on-policy distillation (main paper Sec. 3.4)
+
+
+class MemoryMode(Mode):
+    """How Stage 2 back-propagates its N local losses (``StageConfig``)."""
+
+    stepwise = "stepwise"
+    retain = "retain"
+
+
+class LrDecay(Mode):
+    """The learning rate after warm-up (``OptimizerConfig``)."""
+
+    constant = "constant"  # supplement A.4
+    cosine = "cosine"  # to zero at the stage's max_steps
+
+
+# The same choices for library callers that build the dataclasses without Hydra (checked in __post_init__).
+STAGE_NAMES = tuple(name.value for name in StageName)
+MEMORY_MODES = tuple(mode.value for mode in MemoryMode)
 
 
 @dataclass
@@ -34,14 +57,14 @@ class OptimizerConfig:
     eps: float = 1e-8  # not stated in the paper; torch's default
     warmup_steps: int = 0
     # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
-    decay: str = "constant"
+    decay: LrDecay = LrDecay.constant
     # Max global L2 norm of the trainable gradients; None disables clipping. Not stated in the paper; 1.0
     # (diffusers' fine-tuning scripts' max_grad_norm) bounds the step a rare outlier batch can take.
     grad_clip: float | None = 1.0
 
     def __post_init__(self) -> None:
-        if self.decay not in ("constant", "cosine"):
-            raise ValueError(f"optimizer.decay must be 'constant' or 'cosine', got {self.decay!r}")
+        if self.decay not in tuple(LrDecay):
+            raise ValueError(f"optimizer.decay must be one of {[d.value for d in LrDecay]}, got {self.decay!r}")
 
 
 @dataclass
@@ -55,12 +78,12 @@ class StageConfig:
     transitions are detached, memory independent of N).
     """
 
-    name: str = "stage2"
+    name: StageName = StageName.stage2
     max_steps: int = 150
     # Per-device batch size of this stage; None = data.batch_size.
     batch_size: int | None = None
     rollout_steps: int = 5
-    memory_mode: str = "stepwise"
+    memory_mode: MemoryMode = MemoryMode.stepwise
     seed: int = 0
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
     adapter_name: str = "aligned"

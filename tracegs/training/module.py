@@ -16,6 +16,7 @@ import dataclasses
 import math
 import time
 from abc import abstractmethod
+from enum import Enum
 from pathlib import PurePath
 
 import lightning as L
@@ -39,9 +40,16 @@ def typed(value, cls):
 
 
 def _plain(value):
-    """A constructor argument as a type ``torch.load(weights_only=True)`` accepts."""
+    """A constructor argument as a type ``torch.load(weights_only=True)`` accepts (a config mode, an Enum,
+    as its value)."""
     if dataclasses.is_dataclass(value):
-        return dataclasses.asdict(value)
+        return _plain(dataclasses.asdict(value))
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(item) for item in value)
+    if isinstance(value, Enum):
+        return value.value
     return str(value) if isinstance(value, PurePath) else value
 
 

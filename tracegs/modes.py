@@ -1,7 +1,7 @@
 """The base of every closed set of choices in a config (a mode): an Enum OmegaConf checks at composition.
 
-It imports nothing of the project, so any package's config dataclasses can declare their modes with it
-(``tracegs.config.schema`` imports those packages).
+It imports nothing of the project, so every package's config dataclasses declare their modes with it
+without depending on ``tracegs.config`` (whose schema imports those packages).
 """
 
 from __future__ import annotations

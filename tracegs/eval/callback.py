@@ -19,9 +19,9 @@ import torch
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
-from tracegs.deploy.evaluate import SceneUnit, load_unit
 from tracegs.deploy.refine import refine
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
+from tracegs.deploy.scenes import SceneUnit, load_unit
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter

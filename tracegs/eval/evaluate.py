@@ -1,11 +1,10 @@
 """Evaluation over test scenes x view counts x methods (supplement B, "Metric computation").
 
-One *unit* is a (scene, K) pair: fit the sparse-only cold start from V_s once, branch it for every
-method (plain 3DGS, the baseline restorer, TRACE-GS), score each final model on the scene's test views
-(never the captured/reference views), and write ``units/<scene>/views_<K>.json`` with per-view and
-per-scene metrics. Units are the shards of a Hydra multirun / SLURM array (``shard_index`` /
-``num_shards``); ``merge_results`` averages each scene's test views, then scenes, into ``results.json``
-and the Tables 1/2 layout. Finished units are skipped on rerun unless their settings changed.
+Each (scene, K) unit of ``tracegs.deploy.scenes`` is fitted from V_s once, branched for every method
+(plain 3DGS, the baseline restorer, TRACE-GS), and each final model is scored on the scene's test views
+(never the captured/reference views); ``units/<scene>/views_<K>.json`` keeps per-view and per-scene
+metrics. ``tracegs.eval.merge.merge_results`` averages each scene's test views, then scenes, into
+``results.json`` and the Tables 1/2 layout. Finished units are skipped on rerun unless their settings changed.
 """
 
 from __future__ import annotations
@@ -28,62 +27,27 @@ from tracegs.console import PlainProgress
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.prepare import MIN_INIT_POINTS
-from tracegs.data.splits import split_scene
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
-from tracegs.deploy.refine import cold_start, refine, render_round_clips
+from tracegs.deploy.refine import refine, render_round_clips
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
+from tracegs.deploy.scenes import SceneUnit, evaluation_units, load_unit, save_model
 from tracegs.errors import NonFiniteError, require_writable_dir
-from tracegs.eval.interval_tables import write_main_intervals, write_per_step_intervals
+from tracegs.eval.merge import merge_results, unit_path
 from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
-from tracegs.eval.per_step import mean_curves, per_step_psnr
-from tracegs.eval.report import (
-    META_KEY,
-    METHOD_LABELS,
-    plot_per_step_quality,
-    save_comparison_video,
-    save_frames,
-    save_qualitative_grid,
-    write_results_tables,
-)
-from tracegs.io import atomic_write, write_json_atomic
+from tracegs.eval.per_step import per_step_psnr
+from tracegs.eval.report import METHOD_LABELS, save_comparison_video, save_frames, save_qualitative_grid
+from tracegs.io import write_json_atomic
 from tracegs.processes import die_with_parent
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
-from tracegs.splat.fit import GaussianFitter, View
-from tracegs.splat.fit import initial_model as random_initial_model
+from tracegs.splat.fit import GaussianFitter
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.ply import save_ply
 from tracegs.splat.render import render_views, require_available
 from tracegs.splat.trajectory import bridge_poses
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
 # [F,3,H,W] in [0,1]. Used for the video's GT column and the per-step (Fig. 6) curves.
 GroundTruthRenderer = Callable[[Scene, Sequence[Camera]], Tensor]
-
-
-def evaluation_units(scenes: Sequence[str], views: Sequence[int], shard_index: int = 0,
-                     num_shards: int = 1) -> list[tuple[str, int]]:
-    """The (scene, K) units of shard ``shard_index`` (round-robin, so shards get similar work)."""
-    if num_shards < 1 or not 0 <= shard_index < num_shards:
-        raise ValueError(f"evaluation.shard_index={shard_index} must lie in [0, num_shards={num_shards})")
-    units = [(scene, int(k)) for scene in scenes for k in views]
-    return units[shard_index::num_shards]
-
-
-def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
-    return Path(out_dir) / "units" / scene / f"views_{views}.json"
-
-
-def initial_model(scene: Scene, captured_ids: Sequence[int], captured: Sequence[View],
-                  fit_cfg: GaussianFitConfig) -> GaussianModel:
-    """3DGS initialisation exactly as ``prepare`` made the sparse fits of the training data: the SfM points
-    V_s itself observes (no leak from other views), else random Gaussians where the cameras look."""
-    points, colors = scene.points_seen_by(list(captured_ids))
-    if len(points) >= MIN_INIT_POINTS:
-        return GaussianModel.from_points(points, colors)
-    return random_initial_model(captured, fit_cfg)
-
 
 def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
     """A smooth path through the test cameras (bridges between consecutive ones) for the videos."""
@@ -95,48 +59,11 @@ def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
         path.extend(bridge_poses(a, b, per_leg))
     return path[:frames]
 
-
 def _fingerprint(*parts) -> str:
     """Digest of everything that changes a unit's numbers, so stale units are recomputed."""
     blob = json.dumps([dataclasses.asdict(p) if dataclasses.is_dataclass(p) else p for p in parts],
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-@dataclass
-class SceneUnit:
-    """Everything deployment and scoring need for one (scene, K): V_s, its init and the test views."""
-
-    scene: Scene
-    views: int
-    captured_ids: list[int]
-    captured: list[View]
-    test_ids: list[int]
-    test_cameras: list[Camera]
-    test_images: Tensor  # [T,3,H,W] ground truth of the held-out test views
-
-    def cold_start(self, refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig) -> GaussianFitter:
-        init = initial_model(self.scene, self.captured_ids, self.captured, fit_cfg)
-        return cold_start(self.captured, init, refine_cfg, fit_cfg)
-
-
-def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
-    """Split ``scene`` exactly as prepare does (``split_scene``: the same nested sets) and load V_s and the
-    test set. Test views are disjoint from every training view, so reference frames never enter the metrics."""
-    split = split_scene(scene, source, [views])
-    captured_ids = split.views(views)
-    if set(captured_ids) & set(split.test):
-        raise ValueError(f"{scene.name}: test views {sorted(set(captured_ids) & set(split.test))} are captured views")
-    return SceneUnit(
-        scene=scene,
-        views=views,
-        captured_ids=captured_ids,
-        captured=[View(image=scene.load_image(i), camera=scene.cameras[i]) for i in captured_ids],
-        test_ids=list(split.test),
-        test_cameras=[scene.cameras[i] for i in split.test],
-        test_images=torch.stack([scene.load_image(i) for i in split.test]),
-    )
-
 
 def require_finite_metrics(per_view: Sequence[Mapping[str, float | None]], unit: str) -> None:
     """A NaN or infinite score (a NaN render, an empty image) must not be averaged into a table."""
@@ -145,7 +72,6 @@ def require_finite_metrics(per_view: Sequence[Mapping[str, float | None]], unit:
         if bad:
             raise NonFiniteError(unit, f"non-finite metrics {bad} on test view {index}; nothing was written",
                                  "check the restorer weights and the refinement settings (deploy.*)")
-
 
 def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None], cfg: EvaluationConfig,
                   refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig, metrics: ImageMetrics,
@@ -176,22 +102,13 @@ def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None],
     if cfg.save_media:
         result["media"] = _save_media(unit, cfg, test_renders, models, background, gt_renderer)
     if cfg.save_models:
-        result["models"] = {method: str(_save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
+        result["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
                                                                            method)))
                             for method, model in models.items()}
     return result
 
-
 def model_path(out_dir: str | Path, scene: str, views: int, method: str) -> Path:
     return Path(out_dir) / "models" / scene / f"views_{views}_{method}.ply"
-
-
-def _save_model(model: GaussianModel, path: Path) -> Path:
-    """The refined 3DGS as a standard 3DGS PLY, written whole or not at all."""
-    with atomic_write(path) as tmp:
-        save_ply(model, tmp)
-    return path
-
 
 def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mapping[str, ClipRestorer | None],
                          refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig,
@@ -209,7 +126,6 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
                               steps=restorer.steps)
         for method, restorer in restorers.items() if isinstance(restorer, DiffusionRestorer)
     }
-
 
 def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[str, Tensor],
                 models: Mapping[str, GaussianModel], background: Tensor,
@@ -232,7 +148,6 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
         media["frames"] = {m: str(save_frames(frames[METHOD_LABELS.get(m, m)], media_dir / f"{stem}_frames" / m))
                            for m in models}
     return media
-
 
 @dataclass
 class _UnitJob:
@@ -288,7 +203,6 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
     finally:
         _FORKED_JOB = None
 
-
 def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
              fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],
              scenes: Sequence[str] | None = None, gt_renderer: GroundTruthRenderer | None = None) -> dict:
@@ -339,86 +253,3 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     return {f"{s}/views_{k}": u for (s, k), u in done.items()}
 
 
-def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, views: Sequence[int] | None = None,
-                  methods: Sequence[str] | None = None) -> dict:
-    """Merge unit files (from one or many shards) into ``results.json``, ``per_scene.json`` and the table.
-
-    Each (method, K) cell is the unweighted mean over scenes of the per-scene means over test views.
-    Every requested scene must have a unit for every requested K, so no cell silently averages fewer
-    scenes than another. ``None`` selects whatever units exist.
-    """
-    out_dir = Path(out_dir)
-    files = sorted((out_dir / "units").glob("*/views_*.json"))
-    if not files:
-        raise FileNotFoundError(f"no evaluation units under {out_dir / 'units'}")
-    units = [json.loads(f.read_text()) for f in files]
-    scenes = sorted({u["scene"] for u in units}) if scenes is None else list(scenes)
-    views = sorted({int(u["views"]) for u in units}) if views is None else [int(v) for v in views]
-    by_key = {(u["scene"], int(u["views"])): u for u in units}
-    missing = [f"{s}/views_{k}" for s in scenes for k in views if (s, k) not in by_key]
-    if missing:
-        raise FileNotFoundError(f"{out_dir / 'units'}: missing evaluation units {missing} (shards not finished?)")
-    chosen = [by_key[(s, k)] for s in scenes for k in views]
-    if methods is None:
-        methods = [m for m in METHODS if all(m in u["methods"] for u in chosen)]
-    lpips_labels = sorted({u["lpips"] for u in chosen})
-    variants = sorted({u.get("variant") for u in chosen}, key=str)
-    results: dict = {}
-    per_scene: dict = {s: {} for s in scenes}
-    for method in methods:
-        results[method] = {}
-        for k in views:
-            scene_means = [by_key[(s, k)]["methods"][method]["mean"] for s in scenes]
-            results[method][str(k)] = mean_metrics(scene_means)
-            for s, mean in zip(scenes, scene_means):
-                per_scene[s].setdefault(method, {})[str(k)] = mean
-    results[META_KEY] = {
-        "lpips": "; ".join(lpips_labels),
-        "scenes": list(scenes),
-        "variant": variants[0] if len(variants) == 1 else variants,
-        "protocol": "mean over each scene's test views (captured views excluded), then unweighted mean over scenes",
-    }
-    write_json_atomic(results, out_dir / "results.json")
-    write_json_atomic(per_scene, out_dir / "per_scene.json")
-    unit_curves = {(u["scene"], str(u["views"])): u["per_step"] for u in chosen if u.get("per_step")}
-    if unit_curves:
-        # Fig. 6 protocol: averaged across view settings (and scenes), before 3DGS refinement.
-        mean = mean_curves(list(unit_curves.values()))
-        write_json_atomic(mean, out_dir / "per_step.json")
-        bands = write_per_step_intervals(unit_curves, out_dir, "per_step", pairs=[("tracegs", "baseline")])
-        plot_per_step_quality({METHOD_LABELS.get(m, m): c for m, c in mean.items()}, out_dir / "fig6_per_step.png",
-                              bands={METHOD_LABELS.get(m, m): band for m, band in bands.items()})
-    write_results_tables(results, out_dir, stem="table", views=[str(k) for k in views])
-    write_main_intervals(per_scene, out_dir, [str(k) for k in views])
-    return results
-
-
-def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
-                  fit_cfg: GaussianFitConfig, restorer: ClipRestorer | None, scenes: Sequence[str],
-                  out_dir: str | Path) -> list[Path]:
-    """Restore-refine this shard's (scene, K) units with one restorer and save each refined 3DGS as
-    ``<out_dir>/<scene>/views_<K>.ply`` (standard 3DGS layout). Existing PLYs are kept unless ``cfg.force``."""
-    refine_cfg.validate()
-    require_available(fit_cfg.backend, "data.prepare.fit.backend")
-    scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
-    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
-    require_captioner(refine_cfg.captions, "deploy.captions")
-    written = []
-    with Progress(disable=not cfg.progress) as progress:
-        units = evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards)
-        task = progress.add_task("deploy", total=len(units))
-        plain = PlainProgress("deploy", len(units))
-        loaded: dict[str, Scene] = {}
-        for finished, (scene_name, views) in enumerate(units, 1):
-            target = Path(out_dir) / scene_name / f"views_{views}.ply"
-            if not target.is_file() or cfg.force:
-                if scene_name not in loaded:
-                    loaded[scene_name] = load_scene(source, scene_name)
-                unit = load_unit(loaded[scene_name], views, source)
-                model = refine(unit.cold_start(refine_cfg, fit_cfg), unit.captured, restorer, refine_cfg, fit_cfg,
-                               caption=unit.scene.caption or "", seed=refine_cfg.seed)
-                _save_model(model, target)
-            written.append(target)
-            progress.advance(task)
-            plain.update(finished)
-    return written

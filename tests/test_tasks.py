@@ -1,0 +1,112 @@
+"""Every task of tracegs/tasks.py at the smallest size of the embedded experiment, run through its console
+script (tracegs.cli.app) as a user runs it.
+
+``tracegs-demo`` runs prepare (train and held-out splits), the three training stages and the evaluation
+with the held-out clip quality; the report kinds then read what it made. Deployment and ``report.kind=main``
+at the smallest paper-shaped size are in tests/rehearsal/test_paper_pipeline.py, ``tracegs-restore`` in
+tests/deploy/test_restore_capture.py, the ablation sweep (``report.kind=ablation``) in the slow sweep test.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+# Counts only (steps, clips, scenes, iterations, reverse steps): every mode stays the embedded default's.
+SMALLEST = (
+    "experiment.baseline_steps=1",
+    "experiment.stage1_steps=1",
+    "experiment.stage2_steps=1",
+    "experiment.stage2_warmup_steps=0",
+    "experiment.clips_per_scene=1",
+    "experiment.batch_size=1",
+    "data.synthetic.train_seeds=[0]",
+    "data.synthetic.test_seeds=[100]",
+    "data.synthetic.val_seeds=[50]",
+    "data.prepare.fit.iterations=20",
+    "data.prepare.fit.snapshot_iters=[5,10,20]",
+    "deploy.total_iters=20",
+    "deploy.repair_iters=[5,10,15]",
+    "deploy.max_clips_per_round=1",
+    "evaluation.views=[3]",
+    "backbone.schedule.deploy_steps=5",  # M = the embedded Stage-2 rollout N (a stage's own setting)
+)
+
+
+@pytest.fixture(scope="module")
+def run(entry_point):
+    """``tracegs-<app>`` at the smallest size with its folders under ``root`` (``extra`` overrides replace
+    the smallest size's of the same key); it must succeed."""
+
+    def run_app(app: str, root: Path, *extra: str):
+        replaced = {o.split("=", 1)[0] for o in extra}
+        smallest = [o for o in SMALLEST if o.split("=", 1)[0] not in replaced]
+        result = entry_point(app, [f"paths.root_dir={root}", *smallest, *extra], root)
+        assert result.returncode == 0, result.stderr[-3000:]
+        return result
+
+    return run_app
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, run) -> tuple[Path, Path, Path]:
+    """(launch folder, demo folder, its held-out cache) of one smallest-size ``tracegs-demo``."""
+    root = tmp_path_factory.mktemp("tasks")
+    result = run("demo", root)
+    folder = re.search(r"plots in (\S+)", result.stdout + result.stderr)
+    assert folder, result.stdout[-2000:]
+    (cache,) = (root / "data" / "cache").glob("synthetic-tiny-test-*")
+    return root, Path(folder.group(1)), cache
+
+
+@pytest.fixture
+def held_out(demo) -> tuple[str, ...]:
+    """The overrides that point a report at the demo's held-out cache (quoted: run folders hold ',' and '=')."""
+    return "data.prepare.split=test", f"evaluation.held_out_cache='{demo[2]}'"
+
+
+def test_demo_runs_every_step_and_writes_its_tables(demo):
+    out = demo[1]
+    run_record = json.loads((out / "run.json").read_text())
+    assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test", "train stage=baseline",
+                                          "train stage=stage1", "train stage=stage2 ablation=F",
+                                          "evaluate ablation=F data.prepare.split=test"]
+    results = json.loads((out / "results.json").read_text())
+    assert set(results) >= {"3dgs", "baseline", "tracegs"} and set(results["tracegs"]) == {"3"}
+    held_out = json.loads((out / "held_out_clips.json").read_text())  # tasks.held_out_quality
+    assert set(held_out["mean"]) == {"input", "baseline", "tracegs"} and held_out["clips"] == 1
+    assert "Deployment on the test scenes" in (out / "tables.md").read_text()
+
+
+def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
+    root = demo[0]
+    held_out = ("data.prepare.split=test", "data.synthetic.test_seeds=[100,101]", "data.prepare.num_shards=2")
+    for shard in (0, 1):
+        run("prepare", root, *held_out, f"data.prepare.shard_index={shard}")
+    run("report", root, *held_out, "report.kind=prepare")
+    (shards,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
+    assert set(json.loads((shards / "manifest.json").read_text())["scenes"]) == {"scene_100", "scene_101"}
+
+
+def test_report_privileged_restores_from_both_view_sets(demo, held_out, run, tmp_path):
+    root = demo[0]
+    run("report", root, "report.kind=privileged", *held_out, f"report.output_dir={tmp_path}")
+    gap = json.loads((tmp_path / "privileged_gap.json").read_text())
+    assert gap and (tmp_path / "privileged_gap.md").read_text().strip()
+
+
+def test_report_per_step_compares_the_trained_variants(demo, held_out, run, tmp_path):
+    root = demo[0]
+    run("report", root, "report.kind=per_step", "report.inputs=[A,F]", *held_out, f"report.output_dir={tmp_path}")
+    curves = json.loads((tmp_path / "per_step_variants.json").read_text())
+    assert set(curves) == {"A", "F"} and all(len(c) == 5 for c in curves.values())  # one value per reverse step
+    assert (tmp_path / "fig6_per_step_variants.png").is_file()
+
+
+def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):
+    root, out = demo[:2]
+    run("report", root, "report.kind=seeds", f"report.inputs=['{out}','{out}']", f"report.output_dir={tmp_path}")
+    assert "|" in (tmp_path / "seeds.md").read_text()

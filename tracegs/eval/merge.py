@@ -1,0 +1,75 @@
+"""Merge evaluation units (from one or many shards) into the results layout of Tables 1/2 and Fig. 6.
+
+Units are the ``units/<scene>/views_<K>.json`` files ``tracegs.eval.evaluate`` writes; the merge is
+separate so shards of a SLURM array can be merged by ``tracegs-report`` once all of them finished.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+from tracegs.deploy.config import METHODS
+from tracegs.eval.interval_tables import write_main_intervals, write_per_step_intervals
+from tracegs.eval.metrics import mean_metrics
+from tracegs.eval.per_step import mean_curves
+from tracegs.eval.report import META_KEY, METHOD_LABELS, plot_per_step_quality, write_results_tables
+from tracegs.io import write_json_atomic
+
+
+def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
+    return Path(out_dir) / "units" / scene / f"views_{views}.json"
+
+def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, views: Sequence[int] | None = None,
+                  methods: Sequence[str] | None = None) -> dict:
+    """Merge unit files (from one or many shards) into ``results.json``, ``per_scene.json`` and the table.
+
+    Each (method, K) cell is the unweighted mean over scenes of the per-scene means over test views.
+    Every requested scene must have a unit for every requested K, so no cell silently averages fewer
+    scenes than another. ``None`` selects whatever units exist.
+    """
+    out_dir = Path(out_dir)
+    files = sorted((out_dir / "units").glob("*/views_*.json"))
+    if not files:
+        raise FileNotFoundError(f"no evaluation units under {out_dir / 'units'}")
+    units = [json.loads(f.read_text()) for f in files]
+    scenes = sorted({u["scene"] for u in units}) if scenes is None else list(scenes)
+    views = sorted({int(u["views"]) for u in units}) if views is None else [int(v) for v in views]
+    by_key = {(u["scene"], int(u["views"])): u for u in units}
+    missing = [f"{s}/views_{k}" for s in scenes for k in views if (s, k) not in by_key]
+    if missing:
+        raise FileNotFoundError(f"{out_dir / 'units'}: missing evaluation units {missing} (shards not finished?)")
+    chosen = [by_key[(s, k)] for s in scenes for k in views]
+    if methods is None:
+        methods = [m for m in METHODS if all(m in u["methods"] for u in chosen)]
+    lpips_labels = sorted({u["lpips"] for u in chosen})
+    variants = sorted({u.get("variant") for u in chosen}, key=str)
+    results: dict = {}
+    per_scene: dict = {s: {} for s in scenes}
+    for method in methods:
+        results[method] = {}
+        for k in views:
+            scene_means = [by_key[(s, k)]["methods"][method]["mean"] for s in scenes]
+            results[method][str(k)] = mean_metrics(scene_means)
+            for s, mean in zip(scenes, scene_means):
+                per_scene[s].setdefault(method, {})[str(k)] = mean
+    results[META_KEY] = {
+        "lpips": "; ".join(lpips_labels),
+        "scenes": list(scenes),
+        "variant": variants[0] if len(variants) == 1 else variants,
+        "protocol": "mean over each scene's test views (captured views excluded), then unweighted mean over scenes",
+    }
+    write_json_atomic(results, out_dir / "results.json")
+    write_json_atomic(per_scene, out_dir / "per_scene.json")
+    unit_curves = {(u["scene"], str(u["views"])): u["per_step"] for u in chosen if u.get("per_step")}
+    if unit_curves:
+        # Fig. 6 protocol: averaged across view settings (and scenes), before 3DGS refinement.
+        mean = mean_curves(list(unit_curves.values()))
+        write_json_atomic(mean, out_dir / "per_step.json")
+        bands = write_per_step_intervals(unit_curves, out_dir, "per_step", pairs=[("tracegs", "baseline")])
+        plot_per_step_quality({METHOD_LABELS.get(m, m): c for m, c in mean.items()}, out_dir / "fig6_per_step.png",
+                              bands={METHOD_LABELS.get(m, m): band for m, band in bands.items()})
+    write_results_tables(results, out_dir, stem="table", views=[str(k) for k in views])
+    write_main_intervals(per_scene, out_dir, [str(k) for k in views])
+    return results

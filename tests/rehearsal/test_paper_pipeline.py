@@ -108,22 +108,46 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     check_products(root, results, views=[3, 6, 9], extra=())
 
 
+# The two-process trainers: experiment=rehearsal keeps the paper's bf16-mixed precision on two gloo CPU ranks.
+TWO_PROCESSES = {
+    "ddp": ("trainer.devices=2",),  # experiment=paper's trainer
+    "fsdp": ("trainer=fsdp", "trainer.devices=2"),  # the paper-scale sharding code, on CPU
+}
+
+
+def two_process_env(tmp_path: Path) -> dict[str, str]:
+    """The console scripts' environment: the VGGT double importable, one thread per rank."""
+    return {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+            "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
+
+
 @pytest.mark.slow
-def test_paper_training_rehearsal_under_ddp_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double):
-    """Stage 1 and Stage 2 under the paper's DDP strategy and bf16-mixed precision with two gloo processes:
-    ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank."""
+@pytest.mark.parametrize("trainer", sorted(TWO_PROCESSES))
+def test_paper_training_rehearsal_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double, trainer):
+    """Stage 1 and Stage 2 under the paper's DDP / FSDP configs and bf16-mixed precision with two gloo
+    processes: ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank.
+    The saved adapters are whole (not one rank's shard) and float32."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
-    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
-           "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
     script = Path(sys.executable).with_name("tracegs-train")
     for stage in ("stage=stage1", "stage=stage2"):
-        command = [str(script), "experiment=rehearsal", stage, "trainer.devices=2", f"paths.root_dir={root}", *BUDGET]
-        run = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
+        command = [str(script), "experiment=rehearsal", stage, *TWO_PROCESSES[trainer], f"paths.root_dir={root}",
+                   *BUDGET]
+        run = subprocess.run(command, cwd=root, env=two_process_env(tmp_path), capture_output=True, text=True,
+                             timeout=900)
         assert run.returncode == 0, run.stderr[-3000:]
         assert "Starting with 2 processes" in run.stdout + run.stderr
-    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", "trainer.devices=2", *BUDGET))
-    assert (stage2 / "student_adapter" / "adapter_model.safetensors").is_file()
+    stage1 = rehearsal_run_dir(root, "train", ("stage=stage1", *TWO_PROCESSES[trainer], *BUDGET))
+    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", *TWO_PROCESSES[trainer], *BUDGET))
+    shapes = {}
+    for adapter in (stage1 / "stage1_adapter", stage2 / "student_adapter"):
+        with safe_open(str(adapter / "adapter_model.safetensors"), framework="pt") as weights:
+            tensors = {key: weights.get_tensor(key) for key in weights.keys()}  # noqa: SIM118 (safe_open)
+        assert tensors and all(t.dtype == torch.float32 for t in tensors.values())
+        shapes[adapter.name] = {key: tuple(t.shape) for key, t in tensors.items()}
+    assert shapes["stage1_adapter"] == shapes["student_adapter"]
+    rank = rehearsal_config(root).backbone.lora.rank
+    assert all(rank in shape for shape in shapes["student_adapter"].values())  # whole factors, not shards
 
 
 @pytest.mark.slow

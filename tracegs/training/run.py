@@ -39,7 +39,7 @@ from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
-from tracegs.training.strategy import build_strategy, full_lora_state
+from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
 
 # Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
 # the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
@@ -208,14 +208,15 @@ def train_stage(cfg) -> Path:
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
-    trainer = build_trainer(cfg, output_dir, module)
-    try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
-    except SIGTERMException:
-        raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
-    product = output_dir / PRODUCTS[cfg.stage.name]
-    lora_state = full_lora_state(module.transformer)  # sharded adapters gathered on every rank (a collective)
-    if trainer.is_global_zero:
-        export_product(module, cfg.stage.name, output_dir, lora_state)
-    trainer.strategy.barrier()
+    with one_job_of_processes():
+        trainer = build_trainer(cfg, output_dir, module)
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+        except SIGTERMException:
+            raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
+        product = output_dir / PRODUCTS[cfg.stage.name]
+        lora_state = full_lora_state(module.transformer)  # sharded adapters gathered on every rank (a collective)
+        if trainer.is_global_zero:
+            export_product(module, cfg.stage.name, output_dir, lora_state)
+        trainer.strategy.barrier()
     return product

@@ -11,6 +11,11 @@ refuse a CPU accelerator, ``fully_shard`` does not.
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
+
+import torch.distributed as dist
 from lightning.pytorch.strategies import ModelParallelStrategy
 from torch import Tensor, nn
 from torch.distributed._composable import checkpoint
@@ -59,6 +64,30 @@ def full_lora_state(model: nn.Module) -> dict[str, Tensor] | None:
         return None
     return {key: value.full_tensor() if isinstance(value, DTensor) else value
             for key, value in model.state_dict().items() if "lora_" in key}
+
+
+# What Lightning's subprocess launcher sets in the launching process (lightning/pytorch/strategies/launchers/
+# subprocess_script.py, _call_children_scripts); with LOCAL_RANK set it takes the ranks as started by someone else.
+LAUNCH_ENV = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
+
+
+@contextlib.contextmanager
+def one_job_of_processes() -> Iterator[None]:
+    """One training job's ranks: in the process that launches them (no LOCAL_RANK before), the process group is
+    closed and the launcher's variables removed afterwards, so the next job of a multirun in this process
+    launches its own ranks. Ranks started by Lightning, torchrun or SLURM are left alone (they end with the job)."""
+    before = {key: os.environ.get(key) for key in LAUNCH_ENV}
+    try:
+        yield
+    finally:
+        if before["LOCAL_RANK"] is None:
+            if dist.is_available() and dist.is_initialized():
+                dist.destroy_process_group()
+            for key, value in before.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
 
 
 class ShardedRestorerStrategy(ModelParallelStrategy):

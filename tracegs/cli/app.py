@@ -21,7 +21,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from tracegs.cli.relaunch import one_job_argv
+from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
@@ -108,6 +108,9 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         @functools.wraps(task)
         def run(cfg: DictConfig) -> Any:
             try:
+                if sweeping():
+                    with overrides_for_launched_ranks():
+                        return run_task(task, cfg)
                 return run_task(task, cfg)
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):

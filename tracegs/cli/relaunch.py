@@ -1,33 +1,40 @@
 """A rank that Lightning launched for one job of a Hydra multirun runs that job only.
 
-Lightning starts each further local rank with the launching command line plus ``hydra.run.dir=<the job's
-folder>`` (lightning.fabric.strategies.launchers.subprocess_script._hydra_subprocess_cmd). Under ``-m`` that
-command line is the whole sweep, so the new rank would run every sweep point itself. The job's own overrides,
-which Hydra wrote to ``<run dir>/.hydra/overrides.yaml`` before the job started, replace the sweep.
+Lightning starts each further local rank with the launching command line plus ``hydra.run.dir=...``,
+``hydra.job.name=...`` and ``hydra.output_subdir=null``
+(lightning.fabric.strategies.launchers.subprocess_script._hydra_subprocess_cmd) and a copy of the launching
+process's environment. Under ``-m`` that command line is the whole sweep, so the new rank would run every sweep
+point itself. The launching job therefore puts its own overrides in the environment, and a launched rank runs
+those instead of the sweep.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
-from pathlib import Path
+from collections.abc import Iterator
 
-import yaml
+from hydra.core.hydra_config import HydraConfig
 
+JOB_OVERRIDES = "TRACEGS_JOB_OVERRIDES"
 MULTIRUN_FLAGS = ("-m", "--multirun")
-# What Lightning appends for the new rank (kept as is).
-LAUNCH_KEYS = ("hydra.run.dir=", "hydra.job.name=", "hydra.output_subdir=")
+LAUNCH_KEYS = ("hydra.run.dir=", "hydra.job.name=", "hydra.output_subdir=")  # Lightning's additions
+
+
+@contextlib.contextmanager
+def overrides_for_launched_ranks() -> Iterator[None]:
+    """During one job of a multirun: its overrides in the environment the ranks it launches inherit."""
+    os.environ[JOB_OVERRIDES] = json.dumps(list(HydraConfig.get().overrides.task))
+    try:
+        yield
+    finally:
+        os.environ.pop(JOB_OVERRIDES, None)
 
 
 def one_job_argv(argv: list[str], environ=os.environ) -> list[str]:
-    """``argv`` (without the program) for this process: unchanged unless it is a rank Lightning launched
-    (LOCAL_RANK > 0) from a multirun, then the job's overrides and Lightning's additions."""
-    if int(environ.get("LOCAL_RANK", "0")) == 0 or not set(argv) & set(MULTIRUN_FLAGS):
+    """``argv`` (without the program) for this process: unchanged unless it is a rank launched (LOCAL_RANK > 0)
+    from a multirun job, then that job's overrides and Lightning's additions."""
+    if int(environ.get("LOCAL_RANK", "0")) == 0 or not set(argv) & set(MULTIRUN_FLAGS) or JOB_OVERRIDES not in environ:
         return argv
-    launch = [arg for arg in argv if arg.startswith(LAUNCH_KEYS)]
-    run_dir = next((arg.split("=", 1)[1].strip('"') for arg in launch if arg.startswith("hydra.run.dir=")), None)
-    if run_dir is None:
-        return argv
-    overrides = Path(run_dir) / ".hydra" / "overrides.yaml"
-    if not overrides.is_file():
-        raise FileNotFoundError(f"{overrides}: the job's overrides, which this launched rank runs, are missing")
-    return [*yaml.safe_load(overrides.read_text()), *launch]
+    return [*json.loads(environ[JOB_OVERRIDES]), *(arg for arg in argv if arg.startswith(LAUNCH_KEYS))]

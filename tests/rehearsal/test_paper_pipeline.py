@@ -7,7 +7,7 @@ pseudo-targets, evaluation's baseline), never trained.
 
 ``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
 only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
-it exactly, the ``slow`` DDP test trains on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
+it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
 with gsplat.
 """
 
@@ -151,18 +151,22 @@ def test_paper_training_rehearsal_with_two_cpu_processes(tmp_path, paper_data, r
 
 
 @pytest.mark.slow
-def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+@pytest.mark.parametrize("trainer", ["one-process", *sorted(TWO_PROCESSES)])
+def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double, trainer):
     """``launch/sweep_ablation.sh local experiment=rehearsal``: A is the pretrained restorer (nothing to train),
-    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant."""
+    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant; in one process, and
+    with every training job under the DDP / FSDP configs on two gloo CPU processes (each job of the Stage-2
+    multirun launching its own second rank)."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
-    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
-           "OMP_NUM_THREADS": "1"}
+    overrides = (*TWO_PROCESSES.get(trainer, ()), *BUDGET)
     script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
-    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *BUDGET],
-                         env=env, capture_output=True, text=True, timeout=3600)
+    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *overrides],
+                         env=two_process_env(tmp_path), capture_output=True, text=True, timeout=5400)
     assert run.returncode == 0, run.stderr[-3000:]
-    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *BUDGET), key="report.output_dir")
+    if trainer in TWO_PROCESSES:
+        assert (run.stdout + run.stderr).count("Starting with 2 processes") >= 1 + 6  # Stage 1, Stage 2 B..F
+    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *overrides), key="report.output_dir")
     rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
     assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
 

@@ -159,9 +159,11 @@ class RestorerTrainingModule(L.LightningModule):
     # ----------------------------------------------------------------- Lightning hooks
     def configure_model(self) -> None:
         """Lightning's parallelisation hook: a sharding strategy (``trainer.strategy: fsdp``) shards the restorer
-        here, after the processes have started and before the optimiser is built; other strategies leave it."""
-        if isinstance(self.trainer.strategy, ShardedRestorerStrategy):
-            self.trainer.strategy.shard(self.transformer)
+        here, after the processes have started and before the optimiser is built; other strategies, and
+        ``load_from_checkpoint`` (no Trainer, hence ``_trainer``), leave it."""
+        strategy = getattr(self._trainer, "strategy", None)
+        if isinstance(strategy, ShardedRestorerStrategy):
+            strategy.shard(self.transformer)
 
     def configure_optimizers(self):
         cfg = self.optimizer_cfg

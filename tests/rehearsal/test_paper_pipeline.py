@@ -7,7 +7,7 @@ pseudo-targets, evaluation's baseline), never trained.
 
 ``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
 only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
-it exactly, the ``slow`` DDP test trains on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
+it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
 with gsplat.
 """
 
@@ -108,37 +108,65 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     check_products(root, results, views=[3, 6, 9], extra=())
 
 
+# The two-process trainers: experiment=rehearsal keeps the paper's bf16-mixed precision on two gloo CPU ranks.
+TWO_PROCESSES = {
+    "ddp": ("trainer.devices=2",),  # experiment=paper's trainer
+    "fsdp": ("trainer=fsdp", "trainer.devices=2"),  # the paper-scale sharding code, on CPU
+}
+
+
+def two_process_env(tmp_path: Path) -> dict[str, str]:
+    """The console scripts' environment: the VGGT double importable, one thread per rank."""
+    return {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
+            "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
+
+
 @pytest.mark.slow
-def test_paper_training_rehearsal_under_ddp_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double):
-    """Stage 1 and Stage 2 under the paper's DDP strategy and bf16-mixed precision with two gloo processes:
-    ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank."""
+@pytest.mark.parametrize("trainer", sorted(TWO_PROCESSES))
+def test_paper_training_rehearsal_with_two_cpu_processes(tmp_path, paper_data, rehearsal_root, vggt_double, trainer):
+    """Stage 1 and Stage 2 under the paper's DDP / FSDP configs and bf16-mixed precision with two gloo
+    processes: ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank.
+    The saved adapters are whole (not one rank's shard) and float32."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
-    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
-           "OMP_NUM_THREADS": "1", "TRACEGS_TRACEBACK": "1"}
     script = Path(sys.executable).with_name("tracegs-train")
     for stage in ("stage=stage1", "stage=stage2"):
-        command = [str(script), "experiment=rehearsal", stage, "trainer.devices=2", f"paths.root_dir={root}", *BUDGET]
-        run = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
+        command = [str(script), "experiment=rehearsal", stage, *TWO_PROCESSES[trainer], f"paths.root_dir={root}",
+                   *BUDGET]
+        run = subprocess.run(command, cwd=root, env=two_process_env(tmp_path), capture_output=True, text=True,
+                             timeout=900)
         assert run.returncode == 0, run.stderr[-3000:]
         assert "Starting with 2 processes" in run.stdout + run.stderr
-    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", "trainer.devices=2", *BUDGET))
-    assert (stage2 / "student_adapter" / "adapter_model.safetensors").is_file()
+    stage1 = rehearsal_run_dir(root, "train", ("stage=stage1", *TWO_PROCESSES[trainer], *BUDGET))
+    stage2 = rehearsal_run_dir(root, "train", ("stage=stage2", *TWO_PROCESSES[trainer], *BUDGET))
+    shapes = {}
+    for adapter in (stage1 / "stage1_adapter", stage2 / "student_adapter"):
+        with safe_open(str(adapter / "adapter_model.safetensors"), framework="pt") as weights:
+            tensors = {key: weights.get_tensor(key) for key in weights.keys()}  # noqa: SIM118 (safe_open)
+        assert tensors and all(t.dtype == torch.float32 for t in tensors.values())
+        shapes[adapter.name] = {key: tuple(t.shape) for key, t in tensors.items()}
+    assert shapes["stage1_adapter"] == shapes["student_adapter"]
+    rank = rehearsal_config(root).backbone.lora.rank
+    assert all(rank in shape for shape in shapes["student_adapter"].values())  # whole factors, not shards
 
 
 @pytest.mark.slow
-def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+@pytest.mark.parametrize("trainer", ["one-process", *sorted(TWO_PROCESSES)])
+def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double, trainer):
     """``launch/sweep_ablation.sh local experiment=rehearsal``: A is the pretrained restorer (nothing to train),
-    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant."""
+    one Stage-1 adapter, Stage 2 for B..F, evaluation of A..F, Table 3 with every variant; in one process, and
+    with every training job under the DDP / FSDP configs on two gloo CPU processes (each job of the Stage-2
+    multirun launching its own second rank)."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
-    env = {**os.environ, "PYTHONPATH": str(write_vggt_double_package(tmp_path / "doubles")),
-           "OMP_NUM_THREADS": "1"}
+    overrides = (*TWO_PROCESSES.get(trainer, ()), *BUDGET)
     script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
-    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *BUDGET],
-                         env=env, capture_output=True, text=True, timeout=3600)
+    run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *overrides],
+                         env=two_process_env(tmp_path), capture_output=True, text=True, timeout=5400)
     assert run.returncode == 0, run.stderr[-3000:]
-    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *BUDGET), key="report.output_dir")
+    if trainer in TWO_PROCESSES:
+        assert (run.stdout + run.stderr).count("Starting with 2 processes") >= 1 + 6  # Stage 1, Stage 2 B..F
+    table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *overrides), key="report.output_dir")
     rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
     assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
 

@@ -1,37 +1,57 @@
-"""The FSDP strategy wraps the transformer blocks (and the LoRA factors) and checkpoints the blocks."""
+"""The FSDP strategy shards each transformer block and each LoRA factor (fully_shard) and checkpoints the blocks;
+sharded adapters are exported whole."""
 
 from __future__ import annotations
 
 import pytest
-from lightning.pytorch.strategies import FSDPStrategy
-from torch.distributed.fsdp.wrap import CustomPolicy
+import torch
+import torch.distributed as dist
+from torch.distributed.device_mesh import init_device_mesh
+from torch.distributed.fsdp import FSDPModule
 from training_support import TINY_LORA, make_transformer
 
 from tracegs.restorer.adapters import add_adapter
 from tracegs.restorer.transformer import ReferenceGuidedBlock
 from tracegs.training.config import FsdpConfig, TrainerConfig
-from tracegs.training.strategy import build_strategy
+from tracegs.training.strategy import ShardedRestorerStrategy, build_strategy, full_lora_state, shard_restorer
 
 
-def test_fsdp_wraps_and_checkpoints_the_transformer_blocks():
+@pytest.fixture
+def cpu_mesh(tmp_path):
+    """A one-rank gloo process group on this process's CPU (what each rank of a two-process run holds)."""
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'rendezvous'}", rank=0, world_size=1)
+    try:
+        yield init_device_mesh("cpu", (1,))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_fsdp_shards_blocks_and_factors_and_exports_whole_adapters(cpu_mesh):
     model = make_transformer()
     add_adapter(model, "student", TINY_LORA)
-    strategy = build_strategy(TrainerConfig(strategy="fsdp"), model)
-    assert isinstance(strategy, FSDPStrategy)
-    # activation checkpointing: a ModuleWrapPolicy naming the block class
-    assert strategy._activation_checkpointing_kwargs["auto_wrap_policy"]._module_classes == {ReferenceGuidedBlock}
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if "lora_B" in name:
+                param.normal_()  # peft starts B at zero: make the factors matter
+    before = {k: v.clone() for k, v in model.state_dict().items() if "lora_" in k}
+    assert full_lora_state(model) is None  # unsharded: nothing to gather
+    shard_restorer(model, FsdpConfig(), cpu_mesh)
     blocks = [m for m in model.modules() if isinstance(m, ReferenceGuidedBlock)]
-    policy = strategy.kwargs["auto_wrap_policy"]
-    assert isinstance(policy, CustomPolicy)
-    wrapped = policy._run_policy(model, set(), {})
-    assert all(block in wrapped for block in blocks) and len(blocks) == 2
-    # every LoRA factor is its own unit (one dtype, one requires_grad); nothing else is
     factors = [m for name, m in model.named_modules() if ".lora_A.student" in name or ".lora_B.student" in name]
-    assert all(factor in wrapped for factor in factors) and len(factors) == 2 * 2 * 4 * 2
-    assert set(wrapped) == {*blocks, *factors}
+    assert len(blocks) == 2 and len(factors) == 2 * 2 * 4 * 2
+    assert all(isinstance(m, FSDPModule) for m in [model, *blocks, *factors])
+    units = {m for m in model.modules() if isinstance(m, FSDPModule)}
+    assert units == {model, *blocks, *factors}  # nothing else is a unit
+    gathered = full_lora_state(model)
+    assert gathered.keys() == before.keys()
+    for key, value in before.items():
+        assert type(gathered[key]) is torch.Tensor
+        torch.testing.assert_close(gathered[key], value, rtol=0, atol=0)
 
 
-def test_other_strategies_pass_through_and_unknown_wrap_classes_fail():
-    assert build_strategy(TrainerConfig(strategy="ddp"), make_transformer()) == "ddp"
+def test_fsdp_config_builds_the_sharded_strategy_and_unknown_wrap_classes_fail():
+    strategy = build_strategy(TrainerConfig(strategy="fsdp"))
+    assert isinstance(strategy, ShardedRestorerStrategy) and strategy.fsdp.activation_checkpointing
+    assert build_strategy(TrainerConfig(strategy="ddp")) == "ddp"
     with pytest.raises(ValueError, match="trainer.fsdp.wrap_modules"):
-        build_strategy(TrainerConfig(strategy="fsdp", fsdp=FsdpConfig(wrap_modules=["Block"])), make_transformer())
+        build_strategy(TrainerConfig(strategy="fsdp", fsdp=FsdpConfig(wrap_modules=["Block"])))

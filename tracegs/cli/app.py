@@ -21,6 +21,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
@@ -107,6 +108,9 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         @functools.wraps(task)
         def run(cfg: DictConfig) -> Any:
             try:
+                if sweeping():
+                    with overrides_for_launched_ranks():
+                        return run_task(task, cfg)
                 return run_task(task, cfg)
             except USER_ERRORS as error:
                 if os.environ.get("TRACEGS_TRACEBACK"):
@@ -123,6 +127,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         def main() -> Any:
             if print_configs(CONF_DIR, config_name, sys.argv[1:]):
                 return None
+            sys.argv[1:] = one_job_argv(sys.argv[1:])  # a rank launched for one job of a multirun
             return hydra_main()
 
         return main

@@ -148,14 +148,15 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
     activate(model, src)
 
 
-def save_adapter(model: torch.nn.Module, name: str, path: str | Path) -> None:
+def save_adapter(model: torch.nn.Module, name: str, path: str | Path, state_dict: dict | None = None) -> None:
     """Save adapter ``name``: a ``*.safetensors`` path gets diffusers' ``save_lora_adapter`` layout (peft keys,
     adapter config in the metadata); any other path becomes peft's adapter folder, which
-    ``PeftModel.from_pretrained(transformer, path)`` loads as it is."""
+    ``PeftModel.from_pretrained(transformer, path)`` loads as it is. ``state_dict``: the model's weights when
+    ``model.state_dict()`` does not hold them whole (a sharded model; tracegs.training.strategy.full_lora_state)."""
     _require(model, name)
     config = model.peft_config[name].to_dict()
     config = {k: (sorted(v) if isinstance(v, set) else v) for k, v in config.items()}
-    tensors = get_peft_model_state_dict(model, adapter_name=name)
+    tensors = get_peft_model_state_dict(model, state_dict=state_dict, adapter_name=name)
     metadata = {"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True)}
     path = Path(path)
     if path.suffix == ".safetensors":

@@ -160,8 +160,9 @@ class FsdpConfig:
     wrap_modules: list[str] = field(default_factory=lambda: ["ReferenceGuidedBlock"])
     # Recompute each wrapped block's activations in backward (replaces diffusers' gradient checkpointing).
     activation_checkpointing: bool = True
-    # torch's ShardingStrategy name: FULL_SHARD, SHARD_GRAD_OP, HYBRID_SHARD, NO_SHARD.
-    sharding_strategy: str = "FULL_SHARD"
+    # Free each unit's gathered weights after its forward (full sharding; backward gathers them again), or
+    # keep them until backward (less communication, more memory: ZeRO-2-like).
+    reshard_after_forward: bool = True
 
 
 @dataclass

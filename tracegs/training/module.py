@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from tracegs.errors import ConfigMismatchError, NonFiniteError
 from tracegs.training.config import OptimizerConfig
+from tracegs.training.strategy import ShardedRestorerStrategy
 
 # Checkpoint entry holding the restorer's diffusers config, compared on resume.
 MODEL_CONFIG_KEY = "tracegs_transformer_config"
@@ -117,10 +118,10 @@ class RestorerTrainingModule(L.LightningModule):
         return result
 
     def _trainable_if_built(self) -> list[nn.Parameter]:
-        # ``_apply`` may run before a subclass's ``__init__`` has recorded its trainable parameters.
+        # ``_apply`` may run before a subclass's ``__init__`` has added its adapter.
         try:
             return self.trainable_parameters()
-        except AttributeError:
+        except (AttributeError, KeyError):
             return []
 
     @abstractmethod
@@ -164,6 +165,14 @@ class RestorerTrainingModule(L.LightningModule):
         return torch.Generator().manual_seed(seed % (2**63 - 1))
 
     # ----------------------------------------------------------------- Lightning hooks
+    def configure_model(self) -> None:
+        """Lightning's parallelisation hook: a sharding strategy (``trainer.strategy: fsdp``) shards the restorer
+        here, after the processes have started and before the optimiser is built; other strategies, and
+        ``load_from_checkpoint`` (no Trainer, hence ``_trainer``), leave it."""
+        strategy = getattr(self._trainer, "strategy", None)
+        if isinstance(strategy, ShardedRestorerStrategy):
+            strategy.shard(self.transformer)
+
     def configure_optimizers(self):
         cfg = self.optimizer_cfg
         # The cosine ends at the Trainer's max_steps; without a Trainer (or a step budget) the rate stays

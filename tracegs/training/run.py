@@ -39,7 +39,7 @@ from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import Stage2DistillationModule
-from tracegs.training.strategy import build_strategy
+from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
 
 # Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
 # the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
@@ -119,7 +119,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         accelerator=cfg.trainer.accelerator,
         devices=cfg.trainer.devices,
         num_nodes=cfg.trainer.num_nodes,
-        strategy=build_strategy(cfg.trainer, module),
+        strategy=build_strategy(cfg.trainer),
         precision=cfg.trainer.precision,
         max_steps=cfg.stage.max_steps,
         max_epochs=-1,
@@ -157,17 +157,19 @@ def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
     return resume
 
 
-def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path) -> Path:
-    """Write the stage's product atomically and return its path."""
+def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path,
+                   lora_state: dict | None = None) -> Path:
+    """Write the stage's product atomically and return its path (``lora_state``: the adapters' whole weights
+    when the transformer is sharded)."""
     product = output_dir / PRODUCTS[stage]
     if stage == "baseline":
         # A diffusers directory is several files: the directory is the atomic unit.
         with atomic_directory(product) as staging:
             module.transformer.save_pretrained(staging)
     elif stage == "stage1":
-        module.save_adapter(product)
+        module.save_adapter(product, lora_state)
     else:
-        module.save_student(product)
+        module.save_student(product, lora_state)
     return product
 
 
@@ -186,6 +188,9 @@ def train_stage(cfg) -> Path:
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work
+    if cfg.trainer.strategy == "fsdp" and cfg.stage.name == "baseline":
+        raise ValueError("trainer.strategy: fsdp shards adapter training (stage1, stage2); train stage=baseline "
+                         "with trainer=ddp")
     if cfg.trainer.cpu_threads is not None:
         torch.set_num_threads(cfg.trainer.cpu_threads)
     L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
@@ -203,13 +208,15 @@ def train_stage(cfg) -> Path:
     datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
-    trainer = build_trainer(cfg, output_dir, module)
-    try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
-    except SIGTERMException:
-        raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
-    product = output_dir / PRODUCTS[cfg.stage.name]
-    if trainer.is_global_zero:
-        export_product(module, cfg.stage.name, output_dir)
-    trainer.strategy.barrier()
+    with one_job_of_processes():
+        trainer = build_trainer(cfg, output_dir, module)
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+        except SIGTERMException:
+            raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
+        product = output_dir / PRODUCTS[cfg.stage.name]
+        lora_state = full_lora_state(module.transformer)  # sharded adapters gathered on every rank (a collective)
+        if trainer.is_global_zero:
+            export_product(module, cfg.stage.name, output_dir, lora_state)
+        trainer.strategy.barrier()
     return product

@@ -38,10 +38,9 @@ class Stage1AlignmentModule(RestorerTrainingModule):
         lora_cfg = typed(lora_cfg, LoraConfig)
         add_adapter(self.transformer, adapter_name, lora_cfg)
         activate(self.transformer, adapter_name)
-        self._adapter_params = adapter_parameters(self.transformer, adapter_name)
 
     def trainable_parameters(self) -> list[nn.Parameter]:
-        return self._adapter_params
+        return adapter_parameters(self.transformer, self.adapter_name)  # looked up: sharding replaces them
 
     def compute_and_backward(self, batch: dict, generator) -> dict[str, Tensor]:
         target = self.latent(batch, "target")
@@ -58,6 +57,6 @@ class Stage1AlignmentModule(RestorerTrainingModule):
         self.manual_backward(terms["loss"])
         return {name: value.detach() for name, value in terms.items()}
 
-    def save_adapter(self, path) -> None:
+    def save_adapter(self, path, state_dict: dict | None = None) -> None:
         """Write the aligned adapter phi (safetensors) that Stage 2 clones into teacher and student."""
-        save_adapter(self.transformer, self.adapter_name, path)
+        save_adapter(self.transformer, self.adapter_name, path, state_dict)

@@ -74,11 +74,10 @@ class Stage2DistillationModule(RestorerTrainingModule):
         load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=typed(lora, LoraConfig),
                      field="stage.init_adapter")
         clone_adapter(self.transformer, STUDENT, TEACHER, trainable=False)
-        self._student_params = adapter_parameters(self.transformer, STUDENT)
         activate(self.transformer, STUDENT)
 
     def trainable_parameters(self) -> list[nn.Parameter]:
-        return self._student_params
+        return adapter_parameters(self.transformer, STUDENT)  # looked up: sharding replaces them
 
     def training_grid(self, generator: torch.Generator) -> Tensor:
         """{t'_i}_{i=0..N}, resampled from the M-step deployment schedule (Algorithm 1, line 4).
@@ -166,6 +165,6 @@ class Stage2DistillationModule(RestorerTrainingModule):
             return contextlib.nullcontext()
         return strategy.block_backward_sync()
 
-    def save_student(self, path) -> None:
+    def save_student(self, path, state_dict: dict | None = None) -> None:
         """Write the distilled student adapter phi_S (the only thing deployment needs)."""
-        save_adapter(self.transformer, STUDENT, path)
+        save_adapter(self.transformer, STUDENT, path, state_dict)

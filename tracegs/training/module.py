@@ -239,7 +239,8 @@ class RestorerTrainingModule(L.LightningModule):
         return {name for name, p in self.named_parameters() if id(p) in ids}
 
     def _model_config(self) -> dict:
-        return {k: v for k, v in self.transformer.config.items() if not k.startswith("_")}
+        # Plain values: config modes are Enums, which a weights_only checkpoint load refuses.
+        return {k: _plain(v) for k, v in self.transformer.config.items() if not k.startswith("_")}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         keep = self._trainable_names()

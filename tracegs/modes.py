@@ -19,3 +19,12 @@ class Mode(str, Enum):
 
     def __format__(self, spec: str) -> str:
         return format(self.value, spec)
+
+    @classmethod
+    def parse(cls, value, field: str):
+        """``value`` as a member, for callers that build configs or modules without Hydra; a value outside the
+        set is a one-line error naming ``field`` and the choices."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"{field} must be one of {[member.value for member in cls]}, got {value!r}") from None

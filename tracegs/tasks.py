@@ -165,7 +165,7 @@ def train(cfg: DictConfig) -> Path | None:
 
 
 # ---------------------------------------------------------------------------------------- restorers
-def build_restorers(cfg: DictConfig, methods: Sequence[str]) -> dict:
+def restorers_for_run(cfg: DictConfig, methods: Sequence[str]) -> dict:
     """Method name -> restorer (None = plain 3DGS), the diffusion methods on one backbone (deploy/assembly.py)."""
     from tracegs.deploy.assembly import RestorerArtifacts, restorer_holdings
     from tracegs.deploy.assembly import build_restorers as assemble
@@ -214,7 +214,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from tracegs.splat.render import require_available
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
-    restorers = build_restorers(cfg, list(cfg.evaluation.methods))
+    restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     results = run_evaluation(
         section(cfg.evaluation),
@@ -252,7 +252,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
 
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
-    restorer = build_restorers(cfg, [method])[method]
+    restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
     written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
                             section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
@@ -284,7 +284,7 @@ def restore(cfg: DictConfig) -> Path:
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
     results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                             build_restorers(cfg, evaluation.methods), scenes=[capture.name])
+                             restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
     show(f"\n{capture.name}: fitted from views {unit['captured']}, scored on held-out views {unit['test']}")
@@ -407,7 +407,7 @@ def per_step_report(cfg: DictConfig) -> Path:
         # Each variant's own config says which restorer stands for it and where its student adapter is.
         variant_cfg = compose_run("report", [f"ablation={variant}"])
         method = variant_cfg.ablation.method
-        pipelines[variant] = build_restorers(variant_cfg, [method])[method].pipeline
+        pipelines[variant] = restorers_for_run(variant_cfg, [method])[method].pipeline
     clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
                                        progress=cfg.evaluation.progress)
     curves = mean_curves([c for _, c in clip_curves])

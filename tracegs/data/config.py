@@ -63,19 +63,15 @@ class SyntheticConfig:
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
-SPLITS = tuple(split.value for split in Split)
-
-
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
     """The scene seeds of the ``"train"``, ``"val"`` or ``"test"`` split."""
-    if split not in SPLITS:
-        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-    return list({"train": cfg.train_seeds, "val": cfg.val_seeds, "test": cfg.test_seeds}[split])
+    split = Split.parse(split, "split")
+    return list({Split.train: cfg.train_seeds, Split.val: cfg.val_seeds, Split.test: cfg.test_seeds}[split])
 
 
 def overlapping_seeds(cfg: SyntheticConfig) -> list[int]:
     """Seeds that appear in more than one split (the splits must be disjoint)."""
-    seen = [seed for split in SPLITS for seed in set(split_seeds(cfg, split))]
+    seen = [seed for split in Split for seed in set(split_seeds(cfg, split))]
     return sorted({seed for seed in seen if seen.count(seed) > 1})
 
 

@@ -33,7 +33,7 @@ from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.deploy.scenes import SceneUnit, evaluation_units, load_unit, save_model
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
-from tracegs.eval.metrics import LPIPS_CONVENTIONS, ImageMetrics, mean_metrics
+from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips_convention
 from tracegs.eval.per_step import per_step_psnr
 from tracegs.eval.report import METHOD_LABELS, save_comparison_video, save_frames, save_qualitative_grid
 from tracegs.io import write_json_atomic
@@ -214,8 +214,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     unknown = [m for m in cfg.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"evaluation.methods has unknown methods {unknown}; choose from {list(METHODS)}")
-    if cfg.lpips_convention not in LPIPS_CONVENTIONS:
-        raise ValueError(f"evaluation.lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}")
+    require_lpips_convention(cfg.lpips_convention, "evaluation.lpips_convention")
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
     require_available(fit_cfg.backend, "data.prepare.fit.backend")

@@ -35,6 +35,13 @@ LPIPS_CONVENTIONS = {
 }
 
 
+def require_lpips_convention(convention: str, field: str) -> None:
+    """A one-line error naming ``field`` unless ``convention`` is a key of ``LPIPS_CONVENTIONS`` (the names are
+    not identifiers, e.g. "3dgs", so they cannot be an Enum that OmegaConf checks at composition)."""
+    if convention not in LPIPS_CONVENTIONS:
+        raise ValueError(f"{field} must be one of {sorted(LPIPS_CONVENTIONS)}, got {convention!r}")
+
+
 @dataclass(frozen=True)
 class LpipsAvailability:
     """Whether LPIPS-VGG can be computed here, and if not, why."""
@@ -70,8 +77,7 @@ class ImageMetrics:
     """Runtime evaluator of PSNR / SSIM / LPIPS between renders and ground truth, both in [0, 1]."""
 
     def __init__(self, lpips: bool = True, lpips_convention: str = "3dgs", device: str | torch.device = "cpu"):
-        if lpips_convention not in LPIPS_CONVENTIONS:
-            raise ValueError(f"lpips_convention must be one of {sorted(LPIPS_CONVENTIONS)}, got {lpips_convention!r}")
+        require_lpips_convention(lpips_convention, "lpips_convention")
         self.lpips_convention = lpips_convention
         self.lpips_status = lpips_availability() if lpips else LpipsAvailability(False, "disabled by config")
         self._lpips = None

@@ -16,8 +16,6 @@ from tracegs.splat.projection import project_gaussians, radii_from_extents, visi
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
 from tracegs.splat.sh import sh_to_rgb
 
-BACKENDS = tuple(backend.value for backend in RenderBackend)
-
 
 @dataclass
 class RenderOutput:
@@ -42,8 +40,7 @@ def require_available(backend: str, field: str) -> None:
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    if backend not in BACKENDS:
-        raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")
+    backend = RenderBackend.parse(backend, "render backend").value
     if backend == "auto":
         return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
     if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):

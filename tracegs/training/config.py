@@ -35,11 +35,6 @@ class LrDecay(Mode):
     cosine = "cosine"  # to zero at the stage's max_steps
 
 
-# The same choices for library callers that build the dataclasses without Hydra (checked in __post_init__).
-STAGE_NAMES = tuple(name.value for name in StageName)
-MEMORY_MODES = tuple(mode.value for mode in MemoryMode)
-
-
 @dataclass
 class OptimizerConfig:
     """AdamW with linear warm-up (supplement A.4: the first 100 Stage-2 iterations warm up).
@@ -101,10 +96,8 @@ class StageConfig:
     resume_from: str | None = "last"
 
     def __post_init__(self) -> None:
-        if self.name not in STAGE_NAMES:
-            raise ValueError(f"stage.name must be one of {STAGE_NAMES}, got {self.name!r}")
-        if self.memory_mode not in MEMORY_MODES:
-            raise ValueError(f"stage.memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}")
+        self.name = StageName.parse(self.name, "stage.name")
+        self.memory_mode = MemoryMode.parse(self.memory_mode, "stage.memory_mode")
         if self.keep_checkpoints not in (-1, 0, 1):
             raise ValueError(f"stage.keep_checkpoints must be -1, 0 or 1, got {self.keep_checkpoints}")
         if self.rollout_steps < 1:

@@ -191,8 +191,6 @@ def train_stage(cfg) -> Path:
     if cfg.trainer.strategy == "fsdp" and cfg.stage.name == "baseline":
         raise ValueError("trainer.strategy: fsdp shards adapter training (stage1, stage2); train stage=baseline "
                          "with trainer=ddp")
-    if cfg.trainer.cpu_threads is not None:
-        torch.set_num_threads(cfg.trainer.cpu_threads)
     L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
     if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
@@ -209,6 +207,8 @@ def train_stage(cfg) -> Path:
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
     with one_job_of_processes():
+        if cfg.trainer.cpu_threads is not None:
+            torch.set_num_threads(cfg.trainer.cpu_threads)
         trainer = build_trainer(cfg, output_dir, module)
         try:
             trainer.fit(module, datamodule=datamodule, ckpt_path=resume)

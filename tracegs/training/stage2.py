@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.restorer.sampler import guided_prediction, initial_noise, solve
-from tracegs.training.config import MEMORY_MODES, OptimizerConfig
+from tracegs.training.config import MemoryMode, OptimizerConfig
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
 
@@ -51,14 +51,12 @@ class Stage2DistillationModule(RestorerTrainingModule):
         lambda_ret: float = 0.15,
         retrieval_eps: float = 1e-6,
         on_policy: bool = True,
-        memory_mode: str = "stepwise",
+        memory_mode: MemoryMode | str = MemoryMode.stepwise,
         seed: int = 0,
         lora: LoraConfig | None = None,
         guidance_scale: float = 1.0,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
-        if memory_mode not in MEMORY_MODES:
-            raise ValueError(f"stage.memory_mode must be one of {MEMORY_MODES}, got {memory_mode!r}")
         if not 1 <= rollout_steps <= deploy_steps:
             raise ValueError(f"stage.rollout_steps must be in [1, M={deploy_steps}], got {rollout_steps}")
         self.rollout_steps = rollout_steps
@@ -66,7 +64,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.lambda_ret = lambda_ret
         self.retrieval_eps = retrieval_eps
         self.on_policy = on_policy
-        self.memory_mode = memory_mode
+        self.memory_mode = MemoryMode.parse(memory_mode, "stage.memory_mode")
         self.guidance_scale = guidance_scale
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
@@ -95,7 +93,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         def supervise(i: int, state: Tensor, t: Tensor) -> Tensor:
             """Eqs. 5-9 at one visited state; returns the student's velocity, which drives the transition."""
             terms, student_velocity = self.state_loss(batch, state, t)
-            if self.memory_mode == "stepwise":
+            if self.memory_mode is MemoryMode.stepwise:
                 # Under DDP only the last backward synchronises: the earlier ones accumulate locally.
                 with self._gradient_sync(last=i == n - 1):
                     self.manual_backward(terms["loss"] / n)

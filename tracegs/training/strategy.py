@@ -15,6 +15,7 @@ import contextlib
 import os
 from collections.abc import Iterator
 
+import torch
 import torch.distributed as dist
 from lightning.pytorch.strategies import ModelParallelStrategy
 from torch import Tensor, nn
@@ -66,21 +67,26 @@ def full_lora_state(model: nn.Module) -> dict[str, Tensor] | None:
             for key, value in model.state_dict().items() if "lora_" in key}
 
 
-# What Lightning's subprocess launcher sets in the launching process (lightning/pytorch/strategies/launchers/
+# What Lightning's launchers set in the launching process (lightning/pytorch/strategies/launchers/
 # subprocess_script.py, _call_children_scripts); with LOCAL_RANK set it takes the ranks as started by someone else.
-LAUNCH_ENV = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
+# They also set OMP_NUM_THREADS and torch's intra-op threads to cores / processes when OMP_NUM_THREADS is unset
+# (lightning/fabric/utilities/distributed.py, _set_num_threads_if_needed).
+LAUNCH_ENV = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE", "OMP_NUM_THREADS")
 
 
 @contextlib.contextmanager
 def one_job_of_processes() -> Iterator[None]:
     """One training job's ranks: in the process that launches them (no LOCAL_RANK before), the process group is
-    closed and the launcher's variables removed afterwards, so the next job of a multirun in this process
-    launches its own ranks. Ranks started by Lightning, torchrun or SLURM are left alone (they end with the job)."""
+    closed and the launcher's variables and thread count restored afterwards, so the next job of a multirun in
+    this process launches its own ranks and computes with the threads it was given (a different count changes
+    the float results). Ranks started by Lightning, torchrun or SLURM are left alone (they end with the job)."""
     before = {key: os.environ.get(key) for key in LAUNCH_ENV}
+    threads = torch.get_num_threads()
     try:
         yield
     finally:
         if before["LOCAL_RANK"] is None:
+            torch.set_num_threads(threads)
             if dist.is_available() and dist.is_initialized():
                 dist.destroy_process_group()
             for key, value in before.items():

@@ -15,8 +15,7 @@ from pathlib import Path
 
 import pytest
 
-# A whole demo, even at the smallest size, takes minutes, and its forked console scripts hung in the default
-# suite after the two-process tests had started gloo; it runs with the other slow tests.
+# A whole demo, even at the smallest size, takes about 3 minutes on 2 cores: it runs with the other slow tests.
 pytestmark = pytest.mark.slow
 
 # Counts only (steps, clips, scenes, iterations, reverse steps): every mode stays the embedded default's.

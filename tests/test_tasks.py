@@ -113,3 +113,19 @@ def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):
     root, out = demo[:2]
     run("report", root, "report.kind=seeds", f"report.inputs=['{out}','{out}']", f"report.output_dir={tmp_path}")
     assert "|" in (tmp_path / "seeds.md").read_text()
+
+
+def test_benchmark_trains_each_seed_and_writes_one_report(run, tmp_path_factory):
+    """``tracegs-benchmark`` (make benchmark) at the smallest size with two training seeds: every step runs as a
+    child command, and the report holds the deployment table, both seeds and the instrument line."""
+    root = tmp_path_factory.mktemp("benchmark")
+    result = run("benchmark", root, "benchmark.training_seeds=[0,1]", "benchmark.held_out_clips_per_scene=1",
+                 "data.synthetic.test_seeds=[100,101]")
+    (report,) = root.rglob("benchmark.md")
+    text = report.read_text()
+    assert "## Deployment (Tables 1/2)" in text and "training seeds [0, 1]" in text and "## Held-out clips" in text
+    assert {p.name for p in report.parent.glob("per_scene_seed*.csv")} == {
+        "per_scene_seed0.csv", "per_scene_seed1.csv", "per_scene_seed_mean.csv"}
+    run_record = json.loads((report.parent / "run.json").read_text())
+    assert run_record["training_seeds"] == [0, 1] and len(run_record["step_s"]) == 2 + 2 * 5
+    assert text.strip() in result.stdout

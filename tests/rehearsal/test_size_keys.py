@@ -53,6 +53,7 @@ SIZE_KEYS = {
     "data.prepare.fit.densification.refine_every": "iteration schedule (paper / 100)",
     "data.prepare.fit.densification.reset_every": "iteration schedule (paper / 100)",
     "data.prepare.fit.densification.max_gaussians": "number of Gaussians",
+    "data.prepare.fit.init_num_points": "number of Gaussians (paper / 100)",
     "deploy.total_iters": "iteration budget (paper / 100)",
     "deploy.captions.blip2_path": "no BLIP-2 in the rehearsal's weights tree: captions from caption.txt",
     "deploy.repair_iters": "iteration schedule (paper / 100)",

@@ -19,6 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.console import show
+from tracegs.devices import accelerator
 
 log = logging.getLogger("tracegs")
 
@@ -121,7 +122,7 @@ def prepare(cfg: DictConfig) -> Path:
 
     require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    backbone = build_backbone(section(cfg.backbone), device="cuda" if torch.cuda.is_available() else "cpu")
+    backbone = build_backbone(section(cfg.backbone), device=accelerator())
     synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
     manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
     write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)

@@ -17,6 +17,7 @@ from PIL import Image
 from torch import Tensor
 
 from tracegs.data.config import CaptionConfig
+from tracegs.devices import accelerator
 
 
 def require_captioner(cfg: CaptionConfig, field: str) -> None:
@@ -39,7 +40,7 @@ def _blip2(path: str, device: str):
     if path not in _CAPTIONERS:
         from transformers import Blip2ForConditionalGeneration, Blip2Processor
 
-        dtype = captioner_dtype("cuda" if torch.cuda.is_available() else "cpu")
+        dtype = captioner_dtype(accelerator())
         processor = Blip2Processor.from_pretrained(path, local_files_only=True)
         model = Blip2ForConditionalGeneration.from_pretrained(path, local_files_only=True, torch_dtype=dtype)
         _CAPTIONERS[path] = (processor, model.eval())
@@ -61,7 +62,7 @@ def clip_caption(cfg: CaptionConfig, first_frame: Tensor, scene_caption: str | N
     """The caption of one clip from the first frame [3,H,W] in [0,1] of its R_s (see the module docstring)."""
     if cfg.blip2_path is None:
         return scene_caption or cfg.fallback
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = accelerator()
     processor, model = _blip2(cfg.blip2_path, device)
     pixels = (first_frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
     inputs = processor(images=Image.fromarray(pixels), return_tensors="pt").to(device, model.dtype)

@@ -19,6 +19,7 @@ import torch
 
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
+from tracegs.devices import accelerator
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
@@ -46,11 +47,6 @@ class RestorerArtifacts:
     baseline_weights: str | None = None
     student_adapter: str | None = None
     ablation: str = "C"
-
-
-def accelerator() -> str:
-    """The device deployment runs the restorer on."""
-    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def digest(path: Path) -> str:

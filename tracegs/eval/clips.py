@@ -33,12 +33,14 @@ def _pixels(frames: Tensor) -> Tensor:
     return frames.float() / 255.0
 
 
-def _frames(tensors: dict[str, Tensor], key: str) -> Tensor:
-    """The trajectory frames of a cached clip (the two reference frames at the ends dropped)."""
-    return _pixels(tensors[key][1:-1])
+def trajectory_frames(tensors: dict[str, Tensor], name: str) -> Tensor:
+    """The trajectory frames of a condition, ``TARGET`` or ``GROUND_TRUTH`` of a cached clip (the two reference
+    frames at the ends dropped, as everywhere in the evaluation)."""
+    return _pixels(tensors[cache_keys.frames(name)][1:-1])
 
 
-def _psnr(frames: Tensor, truth: Tensor) -> float:
+def mean_psnr(frames: Tensor, truth: Tensor) -> float:
+    """PSNR (dB) of each frame against its truth, averaged over the frames."""
     return float(peak_signal_noise_ratio(frames, truth, data_range=1.0, reduction="none", dim=(1, 2, 3)).mean())
 
 
@@ -76,9 +78,9 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     scores: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for index, (scene, path) in enumerate(track(shards, description="held-out clips", disable=not progress)):
         tensors, _ = load_clip(path)
-        truth = _frames(tensors, cache_keys.frames(cache_keys.GROUND_TRUTH))
+        truth = trajectory_frames(tensors, cache_keys.GROUND_TRUTH)
         for cond in conditions:
-            scores[cond][INPUT][scene].append(_psnr(_frames(tensors, cache_keys.frames(cond)), truth))
+            scores[cond][INPUT][scene].append(mean_psnr(trajectory_frames(tensors, cond), truth))
         # One batch per clip: every condition of the clip restored together, same seed across restorers.
         cond_latents = torch.stack([tensors[cache_keys.latent(c)].float() for c in conditions])
         batch = len(conditions)
@@ -92,7 +94,7 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
             )
             restored = pipeline.backbone.codec.decode(latents).cpu()[:, 1:-1]
             for cond, frames in zip(conditions, restored):
-                scores[cond][label][scene].append(_psnr(frames, truth))
+                scores[cond][label][scene].append(mean_psnr(frames, truth))
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}
     labels = [INPUT, *pipelines]

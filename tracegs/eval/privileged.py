@@ -20,7 +20,7 @@ from rich.progress import track
 
 from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
-from tracegs.eval.clips import _frames, _psnr, held_out_clips, load_clip
+from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, trajectory_frames
 from tracegs.eval.intervals import mean_interval, paired_interval
 from tracegs.eval.labels import RESTORER_LABELS
 from tracegs.restorer.sampler import RestorationPipeline
@@ -57,16 +57,16 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
         """``dense=None``: score against ground truth only (R_d against itself is no measurement)."""
         for reference, target in zip(REFERENCES, (truth, dense)):
             if target is not None:
-                scores[row][reference][scene].append(sum(_psnr(f, target) for f in frames) / len(frames))
+                scores[row][reference][scene].append(sum(mean_psnr(f, target) for f in frames) / len(frames))
 
     for index, (scene, path) in enumerate(track(shards, description="privileged gap", disable=not progress)):
         tensors, _ = load_clip(path)
         if cache_keys.latent(teacher) not in tensors:
             raise KeyError(f"{path}: no teacher condition {teacher} (prepare with data.prepare.dense_views "
                            "including the teacher's views)")
-        truth, dense = _frames(tensors, cache_keys.frames(cache_keys.GROUND_TRUTH)), _frames(tensors, cache_keys.frames(teacher))
+        truth, dense = trajectory_frames(tensors, cache_keys.GROUND_TRUTH), trajectory_frames(tensors, teacher)
         record(f"input {TEACHER}", scene, [dense], truth, None)
-        record(f"input {STUDENT}", scene, [_frames(tensors, cache_keys.frames(c)) for c in conditions], truth, dense)
+        record(f"input {STUDENT}", scene, [trajectory_frames(tensors, c) for c in conditions], truth, dense)
         latents = torch.stack([tensors[cache_keys.latent(k)].float() for k in keys])
         batch = len(keys)
         for label, pipeline in pipelines.items():

@@ -58,8 +58,7 @@ class OptimizerConfig:
     grad_clip: float | None = 1.0
 
     def __post_init__(self) -> None:
-        if self.decay not in tuple(LrDecay):
-            raise ValueError(f"optimizer.decay must be one of {[d.value for d in LrDecay]}, got {self.decay!r}")
+        self.decay = LrDecay.parse(self.decay, "optimizer.decay")
 
 
 @dataclass

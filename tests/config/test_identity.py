@@ -140,3 +140,18 @@ def test_scoped_values_resolve_without_the_run_folder():
     cfg = compose(config_name="evaluate", overrides=["seed=1"])
     values = scoped_values(cfg, "evaluate")
     assert values["seed"] == 1 and "evaluation.out_dir" not in values and "data.prepare.cache_dir" not in values
+
+
+def test_the_cache_is_named_by_what_it_is_made_with():
+    """A training or sampling setting keeps the paired-clip cache (a sweep over it re-prepares nothing); the
+    codec and the frozen encoders name it, and so does the whole backbone when it makes the pseudo-targets."""
+    def cache(*overrides: str) -> str:
+        return str(compose(config_name="train", overrides=list(overrides)).data.datamodule.cache_dir)
+
+    for training_setting in ("backbone.schedule.train_time_power=0", "backbone.transformer.prediction=velocity",
+                             "backbone.lora.rank=2", "backbone.sampler.guidance_scale=2"):
+        assert cache(training_setting) == cache(), training_setting
+    assert cache("backbone.codec.latent_channels=16") != cache()
+    assert cache("backbone.reference_encoder.patch_size=4") != cache()
+    restorer = "data.prepare.pseudo_target=restorer"
+    assert cache(restorer, "backbone.schedule.train_time_power=0") != cache(restorer)

@@ -24,6 +24,8 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from tracegs.restorer.config import ENCODING_SECTIONS
+
 DIGEST_CHARS = 8
 READABLE_MAX_CHARS = 80
 
@@ -31,8 +33,9 @@ READABLE_MAX_CHARS = 80
 _DATA = ("data.name", "data.source", "data.synthetic", "data.prepare")
 _TRAINING = ("seed", "experiment", "backbone", *_DATA, "data.datamodule", "stage", "optimizer", "trainer")
 SCOPES: dict[str, tuple[str, ...]] = {
-    # The paired-clip cache: scenes, fits, clips, pseudo-targets and the frozen encoders' outputs.
-    "prepare": ("seed", *_DATA, "backbone"),
+    # The paired-clip cache: scenes, fits, clips, pseudo-targets and the frozen encoders' outputs (the whole
+    # backbone when the pseudo-targets are restorations: ``scope``).
+    "prepare": ("seed", *_DATA, *(f"backbone.{section}" for section in ENCODING_SECTIONS)),
     "baseline": _TRAINING,
     # Stage 1 reads lambda_align and the teacher's view set (the R_d it aligns to), on variant A's weights.
     "stage1": (*_TRAINING, "loss.lambda_align", "teacher.views", "artifacts.baseline_weights"),
@@ -97,13 +100,21 @@ def _leaves(holder: DictConfig, key: str, path: str, skip: frozenset[str]) -> It
     yield path, value
 
 
-def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:
-    """The flattened, resolved values that determine the product of a ``kind`` run."""
+def scope(cfg: DictConfig, kind: str) -> tuple[str, ...]:
+    """The config sections a ``kind`` run's product depends on under ``cfg``: a cache whose pseudo-targets the
+    restorer makes depends on the whole backbone."""
     if kind not in SCOPES:
         raise ValueError(f"unknown run kind {kind!r} (one of {sorted(SCOPES)})")
+    if kind == "prepare" and str(OmegaConf.select(cfg, "data.prepare.pseudo_target")) == "restorer":
+        return (*SCOPES[kind], "backbone")
+    return SCOPES[kind]
+
+
+def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:
+    """The flattened, resolved values that determine the product of a ``kind`` run."""
     skip = EXECUTION_KEYS | _IGNORED_PER_KIND.get(kind, frozenset())
     values: dict[str, Any] = {}
-    for key in SCOPES[kind]:
+    for key in scope(cfg, kind):
         parent, _, leaf = key.rpartition(".")
         holder = OmegaConf.select(cfg, parent, throw_on_missing=True) if parent else cfg
         values.update(_leaves(holder, leaf, key, skip))

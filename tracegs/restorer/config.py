@@ -173,6 +173,13 @@ class SamplerConfig:
     autocast_bf16: bool = True  # only takes effect on CUDA
 
 
+# The parts of a backbone a paired-clip cache is made with (supplement A.4): the codec's latents and the frozen
+# reference and text encoders' outputs. The transformer, adapters, schedule and sampler enter a cache only when
+# its pseudo-targets are restorations (data.prepare.pseudo_target=restorer); otherwise a changed training
+# setting keeps the cache.
+ENCODING_SECTIONS = ("name", "codec", "reference_encoder", "text_encoder")
+
+
 @dataclass
 class BackboneConfig:
     name: str = "tiny"

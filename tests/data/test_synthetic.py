@@ -9,7 +9,15 @@ import pytest
 import torch
 
 from tracegs.data.colmap import load_scene
-from tracegs.data.synthetic import generate_benchmark, generate_scene, render_ground_truth
+from tracegs.data.config import SyntheticConfig
+from tracegs.data.synthetic import (
+    BACKDROP_TEXTURES,
+    GROUND_TEXTURES,
+    generate_benchmark,
+    generate_scene,
+    render_ground_truth,
+    scene_surroundings,
+)
 
 
 def test_scene_loads_through_colmap_and_ground_truth_matches_its_images(prepared):
@@ -44,3 +52,19 @@ def test_train_val_and_test_seeds_must_be_disjoint(tmp_path, seeds):
     with pytest.raises(ValueError, match="overlap: \\[1\\]"):
         generate_benchmark(cfg, progress=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_the_default_training_scenes_show_every_ground_and_backdrop():
+    """A restorer never shown a backdrop fails on it (a test scene with an unseen backdrop is out of
+    distribution, not a measurement of restoration), so the default training seeds cover every ground and
+    backdrop texture a validation or test scene can have."""
+    seeds = SyntheticConfig().train_seeds
+    grounds, backdrops = zip(*(scene_surroundings(seed) for seed in seeds))
+    assert set(grounds) == set(GROUND_TEXTURES) and set(backdrops) == set(BACKDROP_TEXTURES)
+
+
+def test_scene_surroundings_are_the_textures_the_scene_is_built_with(prepared):
+    _, synthetic, _, _, _ = prepared
+    ground, backdrop = scene_surroundings(0)
+    caption = (Path(synthetic.root) / "scene_000" / "caption.txt").read_text()
+    assert f"on {ground} " in caption and caption.rstrip().endswith(backdrop.replace("_", " "))

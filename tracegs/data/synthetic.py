@@ -149,12 +149,21 @@ def gaussians_from_surfaces(surfaces: list[Surface]) -> GaussianModel:
     )
 
 
+def draw_surroundings(rng: np.random.Generator) -> tuple[str, str]:
+    """The (ground, backdrop) textures of a scene: the first two draws of its generator."""
+    return GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))], BACKDROP_TEXTURES[rng.integers(len(BACKDROP_TEXTURES))]
+
+
+def scene_surroundings(seed: int) -> tuple[str, str]:
+    """The (ground, backdrop) textures scene ``seed`` is built with, without building it."""
+    return draw_surroundings(np.random.default_rng(seed))
+
+
 def build_scene(seed: int, cfg: SyntheticConfig, style: str) -> tuple[GaussianModel, str]:
     """The ground-truth Gaussians of scene ``seed`` and its caption."""
     rng = np.random.default_rng(seed)
     spacing = 1.0 / math.sqrt(cfg.gaussians_per_unit_area)
-    ground_name = GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))]
-    backdrop_name = BACKDROP_TEXTURES[rng.integers(len(BACKDROP_TEXTURES))]
+    ground_name, backdrop_name = draw_surroundings(rng)
     surfaces = [ground_disc(3.2, spacing * 1.6, load_texture(ground_name, rng), rng)]
     if style == "orbit":
         surfaces.append(cylinder_wall(3.2, 2.2, spacing * 1.8, load_texture(backdrop_name, rng)))

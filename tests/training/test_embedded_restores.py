@@ -3,7 +3,7 @@ training distribution, never trained on) variant A's 20-step restoration beats i
 clean-frame predictions along its own reverse trajectory (main paper Fig. 6) do not collapse.
 
 Runs the commands a user runs (prepare, validation prepare, baseline training, the per-step report on the
-validation cache) at the embedded default, so it takes about twelve minutes on two cores.
+validation cache) at the embedded default, so it takes about fifteen minutes on two cores.
 """
 
 from __future__ import annotations

@@ -44,8 +44,8 @@ class SyntheticConfig:
 
     root: str = "data/synthetic"
     # Six scenes that between them show every ground (3) and backdrop (6) texture (tests/data/test_synthetic.py):
-    # seeds 0-3 showed 2 grounds and 3 backdrops, and a restorer trained on them damaged each scene with a
-    # backdrop it had not seen (validation scene 50, hubble deep field: -3.8 dB against its input).
+    # seeds 0-3 showed 2 grounds and 3 backdrops, and a restorer trained on them lost 3.8 dB against its input
+    # on validation scene 50, whose backdrop (hubble deep field) none of them showed.
     train_seeds: list[int] = field(default_factory=lambda: [0, 2, 3, 9, 14, 19])
     test_seeds: list[int] = field(default_factory=lambda: [100, 101])  # disjoint from train_seeds
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their

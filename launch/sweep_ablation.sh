@@ -2,8 +2,8 @@
 # The Table 3 ablation grid as Hydra multiruns, locally or on SLURM through the submitit launcher.
 #
 # Usage:   launch/sweep_ablation.sh [local|slurm] [extra Hydra overrides, e.g. experiment=paper]
-# Order:   baseline (A) -> one shared Stage-1 adapter -> Stage 2 for B..F (one job each, all loading
-#          the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 -> Fig. 6 (A, off-policy E,
+# Order:   (embedded scale: prepare) -> baseline (A) -> one shared Stage-1 adapter -> Stage 2 for B..F
+#          (one job each, all loading the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 -> Fig. 6 (A, off-policy E,
 #          on-policy F along their reverse trajectories on held-out clips; synthetic benchmark only).
 # SLURM:   hydra/launcher=slurm takes nodes / tasks_per_node and the trainer's cluster resources
 #          (GPUs, CPUs, memory, time) from the trainer group, so `trainer=ddp trainer.devices=4` sizes
@@ -17,6 +17,14 @@ BIN=.venv/bin
 # submitit launcher waits for its jobs) and this script only submits; locally it runs in this process.
 # A SLURM array carries one name: the swept steps name themselves after all their variants (job_name).
 step() { "$BIN/$1" -m "$launcher" "${@:2}"; }
+# The embedded benchmark prepares only the all-view teacher by default; variants C and D need 12 and 18, so
+# the sweep prepares its own cache with them (resumed when already there).
+embedded=false
+if [[ " $* " != *"experiment="* && " $* " != *"data="* ]]; then
+  embedded=true
+  set -- 'data.prepare.dense_views=[12,18,null]' "$@"
+  step tracegs-prepare "$@"
+fi
 step tracegs-train stage=baseline "$@"
 step tracegs-train stage=stage1 "$@"
 step tracegs-train stage=stage2 ablation=B,C,D,E,F-,F job_name=train-stage2-B-F "$@"
@@ -24,7 +32,7 @@ step tracegs-train stage=stage2 ablation=B,C,D,E,F-,F job_name=train-stage2-B-F 
 step tracegs-evaluate ablation=A,B,C,D,E,F-,F 'evaluation.methods=[${ablation.method}]' job_name=evaluate-A-F "$@"
 step tracegs-report report.kind=ablation "$@"
 # Held-out clips with ground truth exist for the embedded synthetic benchmark only.
-if [[ " $* " != *"experiment="* && " $* " != *"data="* ]]; then
+if $embedded; then
   step tracegs-prepare data.prepare.split=test "$@"
   step tracegs-report report.kind=per_step data.prepare.split=test \
     'evaluation.held_out_cache=${data.prepare.cache_dir}' "$@"

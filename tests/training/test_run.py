@@ -241,3 +241,43 @@ def test_training_builds_no_encoder(stages):
         text_encoder=dataclasses.replace(BACKBONE.text_encoder, kind="t5", pretrained_path=absent),
     )
     assert (train_stage(cfg) / "adapter_model.safetensors").is_file()
+
+
+def transformer_weights(state: dict) -> dict[str, torch.Tensor]:
+    return {k.removeprefix("transformer."): v for k, v in state.items() if k.startswith("transformer.")}
+
+
+def test_the_baseline_exports_the_moving_average_of_its_weights(stages):
+    """``stage.ema_decay``: the product is e_k = d e_(k-1) + (1 - d) w_k over the weights w_k after each step
+    (e_1 = w_1), not the last step's weights."""
+    from diffusers.models.modeling_utils import load_state_dict
+
+    tmp, cache, _, _ = stages
+    decay = 0.5
+    product = train_stage(config(tmp, cache, "baseline", 3, "ema", ema_decay=decay, keep_checkpoints=-1))
+    steps = [torch.load(tmp / "ema" / "checkpoints" / f"step{k:06d}.ckpt", weights_only=True)
+             for k in (1, 2, 3)]
+    current = [transformer_weights(ckpt["current_model_state"]) for ckpt in steps]
+    expected = dict(current[0])
+    for weights in current[1:]:
+        expected = {k: decay * expected[k] + (1 - decay) * weights[k] for k in expected}
+    exported = load_state_dict(str(product / "diffusion_pytorch_model.safetensors"))
+    assert exported.keys() == expected.keys()
+    assert all(torch.allclose(exported[k], expected[k], atol=1e-6) for k in expected)
+    assert not all(torch.equal(exported[k], current[-1][k]) for k in expected)
+
+
+def test_a_resumed_moving_average_matches_the_uninterrupted_one(stages):
+    tmp, cache, _, _ = stages
+    full = train_stage(config(tmp, cache, "baseline", 4, "ema_full", ema_decay=0.9))
+    train_stage(config(tmp, cache, "baseline", 3, "ema_resumed", ema_decay=0.9))  # stops mid-epoch
+    resumed = train_stage(config(tmp, cache, "baseline", 4, "ema_resumed", ema_decay=0.9))
+    name = "diffusion_pytorch_model.safetensors"
+    assert (full / name).read_bytes() == (resumed / name).read_bytes()
+
+
+def test_only_the_baseline_averages_its_weights():
+    with pytest.raises(ValueError, match="stage.ema_decay"):
+        StageConfig(name="stage2", ema_decay=0.99)
+    with pytest.raises(ValueError, match="stage.ema_decay"):
+        StageConfig(name="baseline", ema_decay=1.0)

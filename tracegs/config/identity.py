@@ -24,7 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from tracegs.restorer.config import ENCODING_SECTIONS
+from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
 
 DIGEST_CHARS = 8
 READABLE_MAX_CHARS = 80
@@ -105,7 +105,7 @@ def scope(cfg: DictConfig, kind: str) -> tuple[str, ...]:
     restorer makes depends on the whole backbone."""
     if kind not in SCOPES:
         raise ValueError(f"unknown run kind {kind!r} (one of {sorted(SCOPES)})")
-    if kind == "prepare" and str(OmegaConf.select(cfg, "data.prepare.pseudo_target")) == "restorer":
+    if kind == "prepare" and cache_made_with_whole_backbone(OmegaConf.select(cfg, "data.prepare.pseudo_target")):
         return (*SCOPES[kind], "backbone")
     return SCOPES[kind]
 

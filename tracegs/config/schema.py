@@ -127,6 +127,7 @@ class ExperimentConfig:
     # lets ``experiment=paper stage=stage1`` and ``experiment=paper stage=stage2`` each pick their own.
     baseline_steps: int = MISSING  # 0 = variant A is a pretrained restorer, loaded and never trained
     baseline_lr: float = MISSING
+    baseline_ema_decay: float | None = None  # the baseline exports its weights' moving average (stage.ema_decay)
     stage1_steps: int = MISSING
     stage2_steps: int = MISSING
     stage2_warmup_steps: int = MISSING

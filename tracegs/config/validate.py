@@ -120,7 +120,7 @@ def _validate_training(cfg: DictConfig) -> None:
         teacher.views in available,
         "teacher.views",
         f"{_views_label(teacher.views)} views are not prepared; prepared sets: "
-        f"{sorted(_views_label(v) for v in available)}",
+        f"{sorted(_views_label(v) for v in available)} (add it to data.prepare.dense_views)",
     )
     # Privileged or not is the view count itself: above every student set (C, D, E, F) or a student set
     # (variant B). A count in between would be privileged for some student K and not for others.

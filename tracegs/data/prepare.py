@@ -37,7 +37,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
-from tracegs.data.config import PrepareConfig, PseudoTarget, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -57,7 +57,7 @@ from tracegs.io import (
 )
 from tracegs.processes import die_with_parent
 from tracegs.restorer.build import Backbone
-from tracegs.restorer.config import ENCODING_SECTIONS
+from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import View, fit_gaussians
@@ -140,7 +140,7 @@ def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     ignored = ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet", "workers")
     relevant = {k: v for k, v in asdict(cfg).items() if k not in ignored}
     made_with = asdict(backbone.cfg)
-    if cfg.pseudo_target != PseudoTarget.restorer:
+    if not cache_made_with_whole_backbone(cfg.pseudo_target):
         made_with = {section: made_with[section] for section in ENCODING_SECTIONS}
     return settings_digest({"prepare": relevant, "backbone": made_with})
 

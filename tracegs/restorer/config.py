@@ -180,6 +180,12 @@ class SamplerConfig:
 ENCODING_SECTIONS = ("name", "codec", "reference_encoder", "text_encoder")
 
 
+def cache_made_with_whole_backbone(pseudo_target) -> bool:
+    """Whether a cache with these pseudo-targets depends on every backbone section, not only the encoders':
+    restorations are made by the transformer, its adapter, schedule and sampler."""
+    return str(pseudo_target) == "restorer"
+
+
 @dataclass
 class BackboneConfig:
     name: str = "tiny"

@@ -93,6 +93,9 @@ class StageConfig:
     keep_checkpoints: int = 1
     # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
     resume_from: str | None = "last"
+    # Baseline only: export the exponential moving average of the weights with this decay, updated after every
+    # step (None = the last step's weights). Checkpoints carry the average and the current weights.
+    ema_decay: float | None = None
 
     def __post_init__(self) -> None:
         self.name = StageName.parse(self.name, "stage.name")
@@ -101,6 +104,12 @@ class StageConfig:
             raise ValueError(f"stage.keep_checkpoints must be -1, 0 or 1, got {self.keep_checkpoints}")
         if self.rollout_steps < 1:
             raise ValueError(f"stage.rollout_steps must be >= 1, got {self.rollout_steps}")
+        if self.ema_decay is not None:
+            if self.name != StageName.baseline:
+                raise ValueError(f"stage.ema_decay averages the baseline's weights; {self.name} trains an adapter "
+                                 "(set it to null)")
+            if not 0.0 <= self.ema_decay < 1.0:
+                raise ValueError(f"stage.ema_decay must be in [0, 1), got {self.ema_decay}")
 
 
 @dataclass

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
+from lightning.pytorch.callbacks import Callback, EMAWeightAveraging
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
 from lightning.pytorch.utilities.exceptions import SIGTERMException
@@ -34,7 +35,7 @@ from tracegs.training.checkpoints import (
     require_loadable_checkpoint,
     stopped_by_signal,
 )
-from tracegs.training.config import TrainConfig
+from tracegs.training.config import StageConfig, TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
@@ -44,6 +45,9 @@ from tracegs.training.strategy import build_strategy, full_lora_state, one_job_o
 # Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
 # the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
 warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual optimization")
+# The weight average copies the module after ``configure_model``; only a sharded run would make that a copy of
+# a shard, and the baseline (the one stage that averages) never shards.
+warnings.filterwarnings("ignore", message="You're using the WeightAveraging callback with a model that overrides")
 
 PRODUCTS = {
     "baseline": "baseline_transformer",
@@ -106,6 +110,15 @@ def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
     return loggers
 
 
+def weight_average(stage: StageConfig) -> list[Callback]:
+    """The moving average of the baseline's weights (``stage.ema_decay``), copied into the module when training
+    ends so the exported product is the average. Lightning's callback writes the average as the checkpoint's
+    ``state_dict`` and the current weights beside it, so a resumed run continues both exactly."""
+    if stage.ema_decay is None:
+        return []
+    return [EMAWeightAveraging(decay=stage.ema_decay)]
+
+
 def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingModule) -> L.Trainer:
     checkpoints = ConfirmedCheckpoint(
         dirpath=output_dir / "checkpoints",
@@ -127,7 +140,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress()],
+        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress(),
+                   *weight_average(cfg.stage)],
         enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,

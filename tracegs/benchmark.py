@@ -31,18 +31,19 @@ from tracegs.errors import TraceGSError
 
 log = logging.getLogger("tracegs")
 
-# Stage timings of `make demo` on the idle 2-core machine (4 training scenes, 2 test scenes, views 3/6/9),
-# in minutes, and what each scales with: the basis of the wall-time estimate printed before the run.
-PREPARE_PER_TRAIN_SCENE = 5.6 / 4
-PREPARE_PER_TEST_SCENE = 2.3 / 2  # dominated by the scene's 3DGS fits, not by its number of clips
-TRAIN_PER_SEED = 2.0 + 0.6 + 0.9  # baseline (A), Stage 1, Stage 2
+# Stage timings of `make demo` on an idle 2-core machine (6 training scenes, 2 test scenes, views 3/6/9, four
+# fits per scene), in minutes, and what each scales with: the basis of the wall-time estimate printed before
+# the run. Machines of this kind differ by up to 2x.
+PREPARE_PER_TRAIN_SCENE = 4.5 / 6
+PREPARE_PER_TEST_SCENE = 2.0 / 2  # dominated by the scene's 3DGS fits, not by its number of clips
+TRAIN_PER_SEED = 2.0 + 0.6 + 1.0  # baseline (A), Stage 1, Stage 2
 # Restoring one clip (one condition) with the tiny restorer at 48x72, 9 frames, the deployment schedule:
 # 1.5 s measured in a batch of 7 at load 6 on the 2 cores, so about 0.5 s idle (0.0083 min).
 RESTORE_PER_CLIP = 0.5 / 60
-# The demo's evaluation took 5.4 min: its held-out clips (2 restorers x 16 clips x 6 conditions, ~1.6 min
-# by the figure above) and 6 (scene, views) units of 3 methods with grids, videos and Fig. 6 (~3.8 min).
+# The demo's evaluation took 7.2 min: its held-out clips (2 restorers x 16 clips x 6 conditions, ~1.6 min
+# by the figure above) and 6 (scene, views) units of 3 methods with grids, videos and Fig. 6 (~5.6 min).
 # Plain 3DGS is taken as a third of a unit: it fits the same 600 iterations but restores no clips.
-EVAL_PER_UNIT = (5.4 - 2 * 16 * 6 * RESTORE_PER_CLIP) / 6
+EVAL_PER_UNIT = (7.2 - 2 * 16 * 6 * RESTORE_PER_CLIP) / 6
 EVAL_3DGS_SHARE = 1 / 3
 STEP_OVERHEAD = 0.15  # starting a child process (torch, Hydra) per step
 STUDENT_CONDITIONS = 6  # 3/6/9 views x two snapshots in the held-out cache

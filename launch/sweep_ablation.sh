@@ -3,8 +3,9 @@
 #
 # Usage:   launch/sweep_ablation.sh [local|slurm] [extra Hydra overrides, e.g. experiment=paper]
 # Order:   (embedded scale: prepare) -> baseline (A) -> one shared Stage-1 adapter -> Stage 2 for B..F
-#          (one job each, all loading the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 -> Fig. 6 (A, off-policy E,
-#          on-policy F along their reverse trajectories on held-out clips; synthetic benchmark only).
+#          (one job each, all loading the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 ->
+#          Fig. 6 (A, off-policy E, on-policy F along their reverse trajectories on held-out clips;
+#          synthetic benchmark only).
 # SLURM:   hydra/launcher=slurm takes nodes / tasks_per_node and the trainer's cluster resources
 #          (GPUs, CPUs, memory, time) from the trainer group, so `trainer=ddp trainer.devices=4` sizes
 #          every job; every step, including the report, runs on compute nodes.

@@ -17,6 +17,7 @@ from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
 
 CONF = Path(CONF_DIR)
+REPO = Path(__file__).resolve().parents[2]
 SHARED = "command"  # conf/command.yaml: the defaults list and Hydra settings every entry point includes
 PRIMARY = sorted(p.stem for p in CONF.glob("*.yaml") if p.stem != SHARED)
 
@@ -130,7 +131,7 @@ def test_dataset_options_are_sized_by_the_experiment(data):
 
 def sweep_teacher_views() -> str:
     """The teacher view sets launch/sweep_ablation.sh prepares at the embedded scale, as its override."""
-    script = (CONF.parent / "launch" / "sweep_ablation.sh").read_text()
+    script = (REPO / "launch" / "sweep_ablation.sh").read_text()
     (override,) = re.findall(r"'(data\.prepare\.dense_views=[^']*)'", script)
     return override
 

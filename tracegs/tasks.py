@@ -437,16 +437,22 @@ def peak_rss_gib() -> float:
 
 # The held-out cache: the benchmark's test scenes prepared like the training clips, read only by evaluation.
 HELD_OUT_SPLIT = "data.prepare.split=test"
-HELD_OUT_CACHE = "evaluation.held_out_cache=${data.prepare.cache_dir}"
 
-DEMO_STEPS = (
-    ("prepare", ()),
-    ("prepare", (HELD_OUT_SPLIT,)),
-    ("train", ("stage=baseline",)),
-    ("train", ("stage=stage1",)),
-    ("train", ("stage=stage2", "ablation=F")),
-    ("evaluate", ("ablation=F", HELD_OUT_SPLIT, HELD_OUT_CACHE, "evaluation.save_models=true")),
-)
+
+def demo_steps(views: Sequence[int]) -> list[tuple[str, tuple[str, ...]]]:
+    """The demo's commands and their overrides. The test scenes are prepared (held-out clips) and deployed at
+    ``views`` input views only (the demo's ``evaluation.views``); the training clips keep every student view
+    count. The evaluation's held-out cache is the test prepare's, filled in by ``demo``."""
+    listed = "[" + ",".join(str(v) for v in views) + "]"
+    return [
+        ("prepare", ()),
+        # The training datamodule must read only prepared view counts, even in a step that does not train.
+        ("prepare", (HELD_OUT_SPLIT, f"data.prepare.student_views={listed}", f"data.datamodule.student_views={listed}")),
+        ("train", ("stage=baseline",)),
+        ("train", ("stage=stage1",)),
+        ("train", ("stage=stage2", "ablation=F")),
+        ("evaluate", ("ablation=F", HELD_OUT_SPLIT, f"evaluation.views={listed}", "evaluation.save_models=true")),
+    ]
 
 
 def demo(cfg: DictConfig) -> Path:
@@ -457,6 +463,7 @@ def demo(cfg: DictConfig) -> Path:
     """
     import lightning
 
+    from tracegs.benchmark import quoted
     from tracegs.io import atomic_write, write_json_atomic
     from tracegs.provenance import describe
 
@@ -464,17 +471,22 @@ def demo(cfg: DictConfig) -> Path:
     out_dir = Path(cfg.run_dir)
     tasks = {"prepare": prepare, "train": train, "evaluate": evaluate}
     timings: dict[str, float] = {}
-    for index, (name, extra) in enumerate(DEMO_STEPS, 1):
+    steps = demo_steps(cfg.evaluation.views)
+    held_out_cache = None
+    for index, (name, extra) in enumerate(steps, 1):
         if name == "evaluate":
-            # Quoted: the demo's folder name spells its overrides (``seed0,data=mipnerf360-...``), and an
-            # unquoted ',' or '=' is override syntax.
-            extra = (*extra, f"evaluation.out_dir='{out_dir}'")
+            # Quoted: folder names spell their overrides (``seed0,student_views=_3,9_-...``), and an unquoted
+            # ',' or '=' is override syntax.
+            extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
+                     f"evaluation.out_dir={quoted(out_dir)}")
         step_cfg = compose_run(name, extra)
+        if HELD_OUT_SPLIT in extra and name == "prepare":
+            held_out_cache = Path(step_cfg.data.prepare.cache_dir)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
-        log.info("[demo %d/%d] %s %s", index, len(DEMO_STEPS), name, " ".join(extra))
+        log.info("[demo %d/%d] %s %s", index, len(steps), name, " ".join(extra))
         step_start = time.perf_counter()
         tasks[name](step_cfg)
-        label = " ".join([name, *(e for e in extra if "$" not in e and not e.startswith("evaluation."))])
+        label = " ".join([name, *(e for e in extra if not e.startswith("evaluation."))])
         timings[label] = round(time.perf_counter() - step_start, 1)
     run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
            "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings}

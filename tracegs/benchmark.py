@@ -31,9 +31,9 @@ from tracegs.errors import TraceGSError
 
 log = logging.getLogger("tracegs")
 
-# Stage timings of `make demo` on an idle 2-core machine (6 training scenes, 2 test scenes, views 3/6/9, four
-# fits per scene), in minutes, and what each scales with: the basis of the wall-time estimate printed before
-# the run. Machines of this kind differ by up to 2x.
+# Stage timings of `tracegs-demo 'evaluation.views=[3,6,9]'` on an idle 2-core machine (6 training scenes,
+# 2 test scenes, four fits per scene), in minutes, and what each scales with: the basis of the wall-time
+# estimate printed before the run. Machines of this kind differ by up to 2x.
 PREPARE_PER_TRAIN_SCENE = 4.5 / 6
 PREPARE_PER_TEST_SCENE = 2.0 / 2  # dominated by the scene's 3DGS fits, not by its number of clips
 TRAIN_PER_SEED = 2.0 + 0.6 + 1.0  # baseline (A), Stage 1, Stage 2

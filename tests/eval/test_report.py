@@ -27,6 +27,13 @@ def _results(offset: float = 0.0, lpips=None):
     } | {"meta": {"lpips": "LPIPS n/a: torchvision is not installed", "scenes": ["s0", "s1"]}}
 
 
+def test_results_table_has_a_column_per_evaluated_view_count():
+    results = {method: {v: row for v, row in by_views.items() if v != "6"} if method != "meta" else by_views
+               for method, by_views in _results().items()}
+    header = results_table_markdown(results).splitlines()[0]
+    assert "PSNR↑ 3" in header and "PSNR↑ 9" in header and "6" not in header
+
+
 def test_results_table_layout_and_formats(tmp_path):
     results = _results()
     md = results_table_markdown(results)

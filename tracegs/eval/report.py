@@ -30,7 +30,6 @@ from tracegs.eval.metrics import METRIC_NAMES
 from tracegs.io import atomic_directory, atomic_write, write_json_atomic
 
 DEFAULT_METHODS = ("3dgs", "baseline", "tracegs")
-DEFAULT_VIEWS = ("3", "6", "9")
 META_KEY = "meta"
 
 
@@ -58,8 +57,14 @@ def methods_in(results: Mapping) -> list[str]:
     return [m for m in DEFAULT_METHODS if m in present] + [m for m in present if m not in DEFAULT_METHODS]
 
 
-def results_table_markdown(results: Mapping, views: Sequence[str] = DEFAULT_VIEWS) -> str:
-    """Tables 1/2 layout: one row per method, columns PSNR/SSIM/LPIPS x view counts."""
+def views_in(results: Mapping) -> list[str]:
+    """The view counts any method of a results dict was evaluated at, in increasing order."""
+    return sorted({v for m in methods_in(results) for v in results[m]}, key=int)
+
+
+def results_table_markdown(results: Mapping, views: Sequence[str] | None = None) -> str:
+    """Tables 1/2 layout: one row per method, columns PSNR/SSIM/LPIPS x view counts (default: those evaluated)."""
+    views = views_in(results) if views is None else views
     header = ["Method"] + [f"{METRIC_LABELS[m]} {v}" for m in METRIC_NAMES for v in views]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for method in methods_in(results):
@@ -71,8 +76,9 @@ def results_table_markdown(results: Mapping, views: Sequence[str] = DEFAULT_VIEW
 
 
 def write_results_tables(results: Mapping, out_dir: str | Path, stem: str = "table",
-                         views: Sequence[str] = DEFAULT_VIEWS) -> dict[str, Path]:
+                         views: Sequence[str] | None = None) -> dict[str, Path]:
     """Write ``<stem>.md``, ``<stem>.csv`` (long format, one row per method x views) and ``<stem>.json``."""
+    views = views_in(results) if views is None else views
     out_dir = Path(out_dir)
     paths = {ext: out_dir / f"{stem}.{ext}" for ext in ("md", "csv", "json")}
     with atomic_write(paths["md"]) as tmp:

@@ -74,8 +74,7 @@ def held_out(demo) -> tuple[str, ...]:
 def test_demo_runs_every_step_and_writes_its_tables(demo):
     out = demo[1]
     run_record = json.loads((out / "run.json").read_text())
-    assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test data.prepare.student_views=[3] "
-                                          "data.datamodule.student_views=[3]",
+    assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test data.prepare.student_views=[3]",
                                           "train stage=baseline",
                                           "train stage=stage1", "train stage=stage2 ablation=F",
                                           "evaluate ablation=F data.prepare.split=test"]

@@ -446,8 +446,7 @@ def demo_steps(views: Sequence[int]) -> list[tuple[str, tuple[str, ...]]]:
     listed = "[" + ",".join(str(v) for v in views) + "]"
     return [
         ("prepare", ()),
-        # The training datamodule must read only prepared view counts, even in a step that does not train.
-        ("prepare", (HELD_OUT_SPLIT, f"data.prepare.student_views={listed}", f"data.datamodule.student_views={listed}")),
+        ("prepare", (HELD_OUT_SPLIT, f"data.prepare.student_views={listed}")),
         ("train", ("stage=baseline",)),
         ("train", ("stage=stage1",)),
         ("train", ("stage=stage2", "ablation=F")),

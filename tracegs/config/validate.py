@@ -103,12 +103,13 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.dense_views",
         f"dense view sets {dense_counts} must be larger than every student set {student_sets} (V_s in V_d)",
     )
-    unknown = sorted(set(datamodule.student_views) - set(student_sets))
-    _require(not unknown, "data.datamodule.student_views", f"{unknown} are not prepared (data.prepare.student_views)")
-    unknown = sorted(set(datamodule.student_snapshots) - set(prepare.student_snapshots))
-    _require(
-        not unknown, "data.datamodule.student_snapshots", f"{unknown} are not prepared (data.prepare.student_snapshots)"
-    )
+    if prepare.split == "train":  # the datamodule reads the train split's cache, whatever split a run prepares
+        unknown = sorted(set(datamodule.student_views) - set(student_sets))
+        _require(not unknown, "data.datamodule.student_views",
+                 f"{unknown} are not prepared (data.prepare.student_views)")
+        unknown = sorted(set(datamodule.student_snapshots) - set(prepare.student_snapshots))
+        _require(not unknown, "data.datamodule.student_snapshots",
+                 f"{unknown} are not prepared (data.prepare.student_snapshots)")
     _require(0.0 <= datamodule.caption_dropout < 1.0, "data.datamodule.caption_dropout", "must be in [0, 1)")
 
 

@@ -18,12 +18,12 @@ BIN=.venv/bin
 # submitit launcher waits for its jobs) and this script only submits; locally it runs in this process.
 # A SLURM array carries one name: the swept steps name themselves after all their variants (job_name).
 step() { "$BIN/$1" -m "$launcher" "${@:2}"; }
-# The embedded benchmark prepares only the all-view teacher by default; variants C and D need 12 and 18, so
-# the sweep prepares its own cache with them (resumed when already there).
+# The embedded benchmark prepares only the all-view teacher by default; variants C and D need 12 and 18, and
+# B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there).
 embedded=false
 if [[ " $* " != *"experiment="* && " $* " != *"data="* ]]; then
   embedded=true
-  set -- 'data.prepare.dense_views=[12,18,null]' "$@"
+  set -- 'data.prepare.dense_views=[12,18,null]' 'data.prepare.student_final_fits=true' "$@"
   step tracegs-prepare "$@"
 fi
 step tracegs-train stage=baseline "$@"

@@ -34,8 +34,11 @@ log = logging.getLogger("tracegs")
 # Stage timings of `tracegs-demo 'evaluation.views=[3,6,9]'` on an idle 2-core machine (6 training scenes,
 # 2 test scenes, four fits per scene), in minutes, and what each scales with: the basis of the wall-time
 # estimate printed before the run. Machines of this kind differ by up to 2x.
-PREPARE_PER_TRAIN_SCENE = 4.5 / 6
-PREPARE_PER_TEST_SCENE = 2.0 / 2  # dominated by the scene's 3DGS fits, not by its number of clips
+# Preparing the 12 training scenes took 6.7 min once the sparse fits stopped at their last student snapshot.
+PREPARE_PER_TRAIN_SCENE = 6.7 / 12
+# Dominated by the scene's 3DGS fits, not by its number of clips: 1.0 min with four full fits, scaled to three
+# sparse fits of 340 and one of 600 iterations.
+PREPARE_PER_TEST_SCENE = 1.0 * (3 * 340 + 600) / (4 * 600)
 TRAIN_PER_SEED = 2.0 + 0.6 + 1.0  # baseline (A), Stage 1, Stage 2
 # Restoring one clip (one condition) with the tiny restorer at 48x72, 9 frames, the deployment schedule:
 # 1.5 s measured in a batch of 7 at load 6 on the 2 cores, so about 0.5 s idle (0.0083 min).

@@ -39,6 +39,9 @@ NEEDS_EXPERIMENT = {
     # the sweep (launch/sweep_ablation.sh).
     **{("embedded", group, option): "data.prepare.dense_views"
        for group, option in (("ablation", "C"), ("ablation", "D"), ("teacher", "v12"), ("teacher", "v18"))},
+    # ... and stops the sparse fits before their final snapshot, variant B's teacher.
+    **{("embedded", group, option): "data.prepare.student_final_fits"
+       for group, option in (("ablation", "B"), ("teacher", "v3"))},
 }
 
 
@@ -129,17 +132,18 @@ def test_dataset_options_are_sized_by_the_experiment(data):
         assert list(cfg.data.prepare.student_snapshots) == list(cfg.data.prepare.fit.snapshot_iters)[:2]
 
 
-def sweep_teacher_views() -> str:
-    """The teacher view sets launch/sweep_ablation.sh prepares at the embedded scale, as its override."""
+def sweep_teacher_views() -> list[str]:
+    """The teacher conditions launch/sweep_ablation.sh prepares at the embedded scale, as its overrides."""
     script = (REPO / "launch" / "sweep_ablation.sh").read_text()
-    (override,) = re.findall(r"'(data\.prepare\.dense_views=[^']*)'", script)
-    return override
+    overrides = re.findall(r"'(data\.prepare\.(?:dense_views|student_final_fits)=[^']*)'", script)
+    assert len(overrides) == 2, overrides
+    return overrides
 
 
 @pytest.mark.parametrize("variant", sorted(ABLATION_GRID))
 def test_ablation_variants_match_design(variant):
     views, privileged, on_policy, lambda_ret, trains = ABLATION_GRID[variant]
-    cfg = compose(config_name="train", overrides=[f"ablation={variant}", sweep_teacher_views()])
+    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *sweep_teacher_views()])
     validate(cfg)
     assert cfg.ablation.name == variant
     assert cfg.teacher.views == views

@@ -240,3 +240,22 @@ def test_parallel_workers_give_the_same_products(tmp_path, prepared, backbone):
     run_prepare(parallel, source, backbone, synthetic, progress=False)
     assert differing_files(Path(serial.work_dir), tmp_path / "work") == []
     assert differing_files(Path(serial.cache_dir), tmp_path / "cache") == []
+
+
+def test_sparse_fits_stopped_at_the_last_student_snapshot_give_the_same_students(tmp_path, prepared, backbone):
+    """``student_final_fits=False`` stops each sparse fit at its last student snapshot: every snapshot it keeps and
+    every student condition equal the full fit's, only the sparse final snapshot (variant B's teacher) is gone."""
+    _, synthetic, source, full, _ = prepared
+    short = replace(full, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), student_final_fits=False)
+    manifest = json.loads(run_prepare(short, source, backbone, synthetic, progress=False).read_text())
+    full_fits = {str(p.relative_to(full.work_dir)) for p in Path(full.work_dir).rglob("*.ply")}
+    short_fits = {str(p.relative_to(tmp_path / "work")) for p in (tmp_path / "work").rglob("*.ply")}
+    sparse_final = {f for f in full_fits if "/fit_3_" in f and f.endswith(f"it{full.fit.iterations:06d}.ply")}
+    assert len(sparse_final) == 1 and short_fits == full_fits - sparse_final
+    assert differing_files(Path(full.work_dir), tmp_path / "work") == sorted(sparse_final)
+    assert manifest["teacher_views"] == ["6", "all"]
+    for rel in manifest["scenes"]["scene_000"]["clips"]:
+        with safe_open(str(Path(full.cache_dir) / rel), framework="pt") as reference, \
+                safe_open(str(tmp_path / "cache" / rel), framework="pt") as stopped:
+            assert set(reference.keys()) - set(stopped.keys()) == {"latent/d3", "frames/d3"}
+            assert all(torch.equal(reference.get_tensor(k), stopped.get_tensor(k)) for k in stopped.keys())

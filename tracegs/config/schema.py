@@ -131,7 +131,8 @@ class ExperimentConfig:
     stage1_steps: int = MISSING
     stage2_steps: int = MISSING
     stage2_warmup_steps: int = MISSING
-    adapter_lr: float = MISSING
+    stage1_lr: float = MISSING
+    stage2_lr: float = MISSING
     batch_size: int = MISSING  # per device
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
     frame_height: int = MISSING  # rendered frames and resized images

@@ -116,12 +116,14 @@ def _validate_data(cfg: DictConfig) -> None:
 def _validate_training(cfg: DictConfig) -> None:
     teacher, prepare = cfg.teacher, cfg.data.prepare
     student_max = max(cfg.data.datamodule.student_views)
-    available = {*prepare.student_views, *prepare.dense_views}
+    available = {*(prepare.student_views if prepare.student_final_fits else []), *prepare.dense_views}
+    fix = ("set data.prepare.student_final_fits=true" if teacher.views in prepare.student_views
+           else "add it to data.prepare.dense_views")
     _require(
         teacher.views in available,
         "teacher.views",
-        f"{_views_label(teacher.views)} views are not prepared; prepared sets: "
-        f"{sorted(_views_label(v) for v in available)} (add it to data.prepare.dense_views)",
+        f"{_views_label(teacher.views)} views are not prepared to their final snapshot; prepared sets: "
+        f"{sorted(_views_label(v) for v in available)} ({fix})",
     )
     # Privileged or not is the view count itself: above every student set (C, D, E, F) or a student set
     # (variant B). A count in between would be privileged for some student K and not for others.

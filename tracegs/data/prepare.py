@@ -86,14 +86,21 @@ def _view_counts(cfg: PrepareConfig) -> list[int | None]:
     return list(cfg.student_views) + list(cfg.dense_views)
 
 
+def teacher_view_counts(cfg: PrepareConfig) -> list[int | None]:
+    """View sets fitted to their final snapshot, so usable as a teacher condition ``d{V}``."""
+    return (list(cfg.student_views) if cfg.student_final_fits else []) + list(cfg.dense_views)
+
+
 def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> ScenePlan:
     """Load and split a scene, and list the fits; raises before anything is written on bad input."""
     scene = load_scene(source, name)
     split = split_scene(scene, source, _view_counts(cfg))
-    final = cfg.fit.iterations
+    finals = teacher_view_counts(cfg)
     fits: dict[str, list[int]] = {}
     for count in _view_counts(cfg):
-        snapshots = set(fits.get(view_set_key(count), [])) | {final}
+        snapshots = set(fits.get(view_set_key(count), []))
+        if count in finals:
+            snapshots.add(cfg.fit.iterations)
         if count in cfg.student_views:
             snapshots |= set(cfg.student_snapshots)
         fits[view_set_key(count)] = sorted(snapshots)
@@ -352,7 +359,8 @@ def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, tuple[Path
     for key, snapshots in plan.fits.items():
         unit = fit_unit_paths(Path(cfg.work_dir), plan.scene.name, key, snapshots, cfg.fit)
         views = None if key == "all" else int(key)
-        paths[condition_key(views)] = (unit[cfg.fit.iterations], cfg.fit.iterations)
+        if cfg.fit.iterations in unit:
+            paths[condition_key(views)] = (unit[cfg.fit.iterations], cfg.fit.iterations)
         if views in cfg.student_views:
             for snapshot in cfg.student_snapshots:
                 paths[condition_key(views, snapshot)] = (unit[snapshot], snapshot)
@@ -434,7 +442,7 @@ def manifest_header(cfg: PrepareConfig, backbone: Backbone) -> dict:
         "version": 1,
         "student_views": list(cfg.student_views),
         "student_snapshots": list(cfg.student_snapshots),
-        "teacher_views": sorted({view_set_key(v) for v in _view_counts(cfg)}, key=_view_order),
+        "teacher_views": sorted({view_set_key(v) for v in teacher_view_counts(cfg)}, key=_view_order),
         "final_snapshot": cfg.fit.iterations,
         "frames_per_clip": cfg.frames_per_clip,
         "pseudo_target": cfg.pseudo_target,

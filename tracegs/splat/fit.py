@@ -242,10 +242,11 @@ def initial_model(views: Sequence[View], cfg: GaussianFitConfig) -> GaussianMode
 def fit_gaussians(views: Sequence[View], cfg: GaussianFitConfig, init: GaussianModel | None = None,
                   snapshots: Sequence[int] | None = None, progress: bool = False) -> dict[int, GaussianModel]:
     """Fit a 3DGS to `views`; returns copies of the model after each snapshot iteration (default
-    cfg.snapshot_iters; the last one is cfg.iterations)."""
-    wanted = sorted(set(cfg.snapshot_iters if snapshots is None else snapshots) | {cfg.iterations})
-    if wanted[0] < 1:
-        raise ValueError(f"snapshot iterations must be >= 1, got {wanted}")
+    cfg.snapshot_iters and cfg.iterations). The schedules (lr decay, densification) always span
+    cfg.iterations, so a fit that stops at its last wanted snapshot gives the same snapshots as a longer one."""
+    wanted = sorted(set(cfg.snapshot_iters) | {cfg.iterations} if snapshots is None else set(snapshots))
+    if not wanted or wanted[0] < 1 or wanted[-1] > cfg.iterations:
+        raise ValueError(f"snapshot iterations must lie in [1, {cfg.iterations}], got {wanted}")
     run_cfg = replace(cfg, snapshot_iters=wanted)
     model = (init if init is not None else initial_model(views, cfg)).clone()
     fitter = GaussianFitter(model, run_cfg, camera_extent([view.camera for view in views]))

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 import pytest
+from safetensors import safe_open
 
 # A whole demo, even at the smallest size, takes about 3 minutes on 2 cores: it runs with the other slow tests.
 pytestmark = pytest.mark.slow
@@ -74,7 +75,8 @@ def held_out(demo) -> tuple[str, ...]:
 def test_demo_runs_every_step_and_writes_its_tables(demo):
     out = demo[1]
     run_record = json.loads((out / "run.json").read_text())
-    assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test data.prepare.student_views=[3]",
+    assert list(run_record["step_s"]) == ["prepare", "prepare data.prepare.split=test data.prepare.student_views=[3] "
+                                          "data.prepare.dense_views=[]",
                                           "train stage=baseline",
                                           "train stage=stage1", "train stage=stage2 ablation=F",
                                           "evaluate ablation=F data.prepare.split=test"]
@@ -95,9 +97,19 @@ def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
     assert set(json.loads((shards / "manifest.json").read_text())["scenes"]) == {"scene_100", "scene_101"}
 
 
-def test_report_privileged_restores_from_both_view_sets(demo, held_out, run, tmp_path):
-    root = demo[0]
-    run("report", root, "report.kind=privileged", *held_out, f"report.output_dir={tmp_path}")
+def test_report_privileged_restores_from_both_view_sets(demo, run, entry_point, tmp_path):
+    """The demo's held-out cache has no teacher R_d, and the report says so; prepared with the teacher, it runs."""
+    root, caches = demo[0], demo[0] / "data" / "cache"
+    with safe_open(str(next(demo[2].rglob("clip_000.safetensors"))), framework="pt") as f:
+        assert not [k for k in f.keys() if k.startswith("latent/d")]
+    report = ("report.kind=privileged", "data.prepare.split=test", f"report.output_dir={tmp_path}")
+    failed = entry_point("report", [f"paths.root_dir={root}", *SMALLEST, *report,
+                                    f"evaluation.held_out_cache='{demo[2]}'"], root)
+    assert failed.returncode != 0 and "no teacher condition dall" in failed.stderr, failed.stderr[-2000:]
+    before = set(caches.glob("synthetic-tiny-test-*"))
+    run("prepare", root, "data.prepare.split=test", "data.prepare.student_views=[3]")
+    (with_teacher,) = set(caches.glob("synthetic-tiny-test-*")) - before
+    run("report", root, *report, f"evaluation.held_out_cache='{with_teacher}'")
     gap = json.loads((tmp_path / "privileged_gap.json").read_text())
     assert gap and (tmp_path / "privileged_gap.md").read_text().strip()
 

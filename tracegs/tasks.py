@@ -442,11 +442,12 @@ HELD_OUT_SPLIT = "data.prepare.split=test"
 def demo_steps(views: Sequence[int]) -> list[tuple[str, tuple[str, ...]]]:
     """The demo's commands and their overrides. The test scenes are prepared (held-out clips) and deployed at
     ``views`` input views only (the demo's ``evaluation.views``); the training clips keep every student view
-    count. The evaluation's held-out cache is the test prepare's, filled in by ``demo``."""
+    count. The evaluation's held-out cache is the test prepare's, filled in by ``demo``; it holds no teacher R_d
+    (the held-out clips score restorers from R_s only; ``report.kind=privileged`` needs a cache with one)."""
     listed = "[" + ",".join(str(v) for v in views) + "]"
     return [
         ("prepare", ()),
-        ("prepare", (HELD_OUT_SPLIT, f"data.prepare.student_views={listed}")),
+        ("prepare", (HELD_OUT_SPLIT, f"data.prepare.student_views={listed}", "data.prepare.dense_views=[]")),
         ("train", ("stage=baseline",)),
         ("train", ("stage=stage1",)),
         ("train", ("stage=stage2", "ablation=F")),

@@ -183,6 +183,7 @@ def test_wrong_type_names_the_field():
         (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
+        (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],
          "backbone.transformer.prediction"),
     ],

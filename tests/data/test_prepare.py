@@ -14,6 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from PIL import Image
 import torch
 from safetensors import safe_open
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
@@ -259,3 +260,22 @@ def test_sparse_fits_stopped_at_the_last_student_snapshot_give_the_same_students
                 safe_open(str(tmp_path / "cache" / rel), framework="pt") as stopped:
             assert set(reference.keys()) - set(stopped.keys()) == {"latent/d3", "frames/d3"}
             assert all(torch.equal(reference.get_tensor(k), stopped.get_tensor(k)) for k in stopped.keys())
+
+
+def test_a_cache_without_dense_views_scores_from_r_s_only(tmp_path, prepared, backbone):
+    """``dense_views=[]`` (the demo's held-out cache): the student conditions and ground truth are the full
+    cache's bytes, no teacher R_d is fitted or stored, and the contact sheet shows R_s, target and ground truth."""
+    _, synthetic, source, full, _ = prepared
+    bare = replace(full, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), dense_views=[])
+    manifest = json.loads(run_prepare(bare, source, backbone, synthetic, progress=False).read_text())
+    assert manifest["teacher_views"] == ["3"]  # the student set fitted to its final snapshot (variant B's teacher)
+    assert {p.parent.name.split("_")[1] for p in (tmp_path / "work").rglob("*.ply")} == {"3"}
+    for rel in manifest["scenes"]["scene_000"]["clips"]:
+        with safe_open(str(Path(full.cache_dir) / rel), framework="pt") as reference, \
+                safe_open(str(tmp_path / "cache" / rel), framework="pt") as bare_clip:
+            assert set(reference.keys()) - set(bare_clip.keys()) == {"latent/d6", "frames/d6", "latent/dall",
+                                                                      "frames/dall"}
+            for key in ("frames/s3_it8", "frames/gt", "latent/s3_it8"):
+                assert torch.equal(reference.get_tensor(key), bare_clip.get_tensor(key))
+    sheet = Image.open(tmp_path / "cache" / "scene_000" / "contact_sheet.png")
+    assert sheet.width == 3 * 48  # R_s, target, ground truth

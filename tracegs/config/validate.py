@@ -96,6 +96,8 @@ def _validate_data(cfg: DictConfig) -> None:
              f"{prepare.shard_index} must lie in [0, data.prepare.num_shards={prepare.num_shards})")
     _require(len(prepare.student_views) > 0, "data.prepare.student_views", "is empty")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
+    _require(bool(prepare.dense_views) or prepare.pseudo_target == "gt", "data.prepare.dense_views",
+             f"is empty, but data.prepare.pseudo_target={prepare.pseudo_target!r} is made from a dense rendering R_d")
     dense_counts = [v for v in prepare.dense_views if v is not None]
     _check_increasing(dense_counts, "data.prepare.dense_views")
     _require(
@@ -119,8 +121,9 @@ def _validate_training(cfg: DictConfig) -> None:
     available = {*(prepare.student_views if prepare.student_final_fits else []), *prepare.dense_views}
     fix = ("set data.prepare.student_final_fits=true" if teacher.views in prepare.student_views
            else "add it to data.prepare.dense_views")
+    # Stage 2 reads the train split's cache; a held-out cache may leave the teacher out (the demo's does).
     _require(
-        teacher.views in available,
+        prepare.split != "train" or teacher.views in available,
         "teacher.views",
         f"{_views_label(teacher.views)} views are not prepared to their final snapshot; prepared sets: "
         f"{sorted(_views_label(v) for v in available)} ({fix})",

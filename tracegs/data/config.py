@@ -119,7 +119,9 @@ class PrepareConfig:
     split: Split = Split.train
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
-    dense_views: list[int | None] = field(default_factory=lambda: [12, 18, None])  # None = all training views
+    # None = all training views. Empty: no R_d (a held-out cache that scores restorers from R_s against ground
+    # truth, pseudo_target 'gt'; the privileged report needs the teacher's R_d).
+    dense_views: list[int | None] = field(default_factory=lambda: [12, 18, None])
     # Also fit every student set to the final iteration, whose snapshot is the non-privileged teacher of
     # variant B (teacher.views a student count). False stops each sparse fit at its last student snapshot:
     # the student conditions are the same bytes, and a sparse fit costs 17k instead of 30k iterations.

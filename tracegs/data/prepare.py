@@ -259,12 +259,12 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     # say which of the several R_s of a clip; the most degraded one is what deployment renders first).
     student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
     caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
-    dense = conditions[condition_key(dense_target_views(cfg))]
     if cfg.pseudo_target == "gt":
         target = ground_truth
     elif cfg.pseudo_target == "dense":
-        target = dense
+        target = conditions[dense_condition(cfg)]
     else:
+        dense = conditions[dense_condition(cfg)]
         target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
         target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
@@ -284,9 +284,13 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     save_safetensors_atomic(tensors, path, metadata)
 
 
-def dense_target_views(cfg: PrepareConfig) -> int | None:
-    """The densest configured view set (None = all), whose R_d feeds the pseudo-target generator."""
-    return None if None in cfg.dense_views else max(cfg.dense_views)
+def dense_condition(cfg: PrepareConfig) -> str | None:
+    """Condition key of the densest configured view set (all views when listed), whose R_d feeds the
+    pseudo-target generator; None when no dense set is prepared (a held-out cache that only scores restorers
+    from R_s against ground truth)."""
+    if not cfg.dense_views:
+        return None
+    return condition_key(None if None in cfg.dense_views else max(cfg.dense_views))
 
 
 def read_shard_psnr(path: Path) -> dict[str, float]:
@@ -294,13 +298,12 @@ def read_shard_psnr(path: Path) -> dict[str, float]:
         return json.loads(f.metadata().get("psnr_vs_gt", "{}"))
 
 
-def contact_sheet(shard: Path, out: Path, student: str, dense: str) -> None:
-    """PNG with one row per frame of a clip: R_s | R_d | target (| ground truth when known)."""
+def contact_sheet(shard: Path, out: Path, columns: list[str]) -> None:
+    """PNG with one row per frame of a clip: the listed conditions, then the target (and ground truth when known)."""
     with safe_open(str(shard), framework="pt") as f:
-        columns = [f.get_tensor(cache_keys.frames(k)) for k in (student, dense, cache_keys.TARGET)]
-        if cache_keys.frames(cache_keys.GROUND_TRUTH) in f.keys():
-            columns.append(f.get_tensor(cache_keys.frames(cache_keys.GROUND_TRUTH)))
-    rows = torch.cat([torch.cat([c[i] for c in columns], dim=2) for i in range(columns[0].shape[0])], dim=1)
+        keys = [cache_keys.frames(k) for k in (*columns, cache_keys.TARGET, cache_keys.GROUND_TRUTH)]
+        frames = [f.get_tensor(k) for k in keys if k in f.keys()]
+    rows = torch.cat([torch.cat([c[i] for c in frames], dim=2) for i in range(frames[0].shape[0])], dim=1)
     with atomic_write(out) as tmp:
         Image.fromarray(rows.permute(1, 2, 0).numpy()).save(tmp, format="PNG")
 
@@ -413,7 +416,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
     sheet = cache_dir / name / "contact_sheet.png"
     if cfg.contact_sheet and (cfg.force or todo or not sheet.is_file()):
-        contact_sheet(shard_paths[0], sheet, student, condition_key(dense_target_views(cfg)))
+        contact_sheet(shard_paths[0], sheet, [k for k in (student, dense_condition(cfg)) if k is not None])
     psnr: dict[str, list[float]] = {}
     for path in shard_paths:
         for key, value in read_shard_psnr(path).items():

@@ -63,7 +63,7 @@ def test_the_default_run_fits_the_hour():
     # At the demo's scale with every view count: the measured stages plus the privileged gap it does not run.
     demo = estimate_minutes(12, 2, 3, 1, 0, 8)
     test_prepare = 2 * 1.0 * (3 * 340 + 600) / (4 * 600)
-    assert demo == pytest.approx(6.7 + test_prepare + 3.6 + 7.2 + 2 * 8 * 2 * 7 * 0.5 / 60, abs=0.01)
+    assert demo == pytest.approx(6.7 + test_prepare + 3.1 + 7.2 + 2 * 8 * 2 * 7 * 0.5 / 60, abs=0.01)
 
 
 def test_every_step_composes_and_validates(tmp_path):

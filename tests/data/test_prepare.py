@@ -14,8 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from PIL import Image
 import torch
+from PIL import Image
 from safetensors import safe_open
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
 

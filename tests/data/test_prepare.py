@@ -264,7 +264,7 @@ def test_sparse_fits_stopped_at_the_last_student_snapshot_give_the_same_students
 
 def test_a_cache_without_dense_views_scores_from_r_s_only(tmp_path, prepared, backbone):
     """``dense_views=[]`` (the demo's held-out cache): the student conditions and ground truth are the full
-    cache's bytes, no teacher R_d is fitted or stored, and the contact sheet shows R_s, target and ground truth."""
+    cache's bytes, no dense view set is fitted or stored, and the contact sheet shows R_s, target and ground truth."""
     _, synthetic, source, full, _ = prepared
     bare = replace(full, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), dense_views=[])
     manifest = json.loads(run_prepare(bare, source, backbone, synthetic, progress=False).read_text())

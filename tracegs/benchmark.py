@@ -39,7 +39,8 @@ PREPARE_PER_TRAIN_SCENE = 6.7 / 12
 # Dominated by the scene's 3DGS fits, not by its number of clips: 1.0 min with four full fits, scaled to three
 # sparse fits of 340 and one of 600 iterations.
 PREPARE_PER_TEST_SCENE = 1.0 * (3 * 340 + 600) / (4 * 600)
-TRAIN_PER_SEED = 2.0 + 0.6 + 0.5  # baseline (A), Stage 1, Stage 2 (20 steps)
+# Baseline (A), Stage 1, Stage 2; Stage 2's 20 steps took 25 s in a demo where A's 500 took 107 s (A: 2.0 here).
+TRAIN_PER_SEED = 2.0 + 0.6 + 0.5
 # Restoring one clip (one condition) with the tiny restorer at 48x72, 9 frames, the deployment schedule:
 # 1.5 s measured in a batch of 7 at load 6 on the 2 cores, so about 0.5 s idle (0.0083 min).
 RESTORE_PER_CLIP = 0.5 / 60

@@ -264,8 +264,7 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     elif cfg.pseudo_target == "dense":
         target = conditions[dense_condition(cfg)]
     else:
-        dense = conditions[dense_condition(cfg)]
-        target = pipeline.restore(dense[None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
+        target = pipeline.restore(conditions[dense_condition(cfg)][None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
         target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():
@@ -301,8 +300,10 @@ def read_shard_psnr(path: Path) -> dict[str, float]:
 def contact_sheet(shard: Path, out: Path, columns: list[str]) -> None:
     """PNG with one row per frame of a clip: the listed conditions, then the target (and ground truth when known)."""
     with safe_open(str(shard), framework="pt") as f:
-        keys = [cache_keys.frames(k) for k in (*columns, cache_keys.TARGET, cache_keys.GROUND_TRUTH)]
-        frames = [f.get_tensor(k) for k in keys if k in f.keys()]
+        keys = [cache_keys.frames(k) for k in (*columns, cache_keys.TARGET)]
+        if cache_keys.frames(cache_keys.GROUND_TRUTH) in f.keys():
+            keys.append(cache_keys.frames(cache_keys.GROUND_TRUTH))
+        frames = [f.get_tensor(k) for k in keys]
     rows = torch.cat([torch.cat([c[i] for c in frames], dim=2) for i in range(frames[0].shape[0])], dim=1)
     with atomic_write(out) as tmp:
         Image.fromarray(rows.permute(1, 2, 0).numpy()).save(tmp, format="PNG")

@@ -182,6 +182,8 @@ def test_wrong_type_names_the_field():
         (["data.synthetic.test_seeds=[3,100]"], "data.synthetic.test_seeds"),
         (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
+        (["backbone.schedule.deploy_time_power=-1"], "backbone.schedule.deploy_time_power"),
+        (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],

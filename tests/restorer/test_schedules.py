@@ -115,3 +115,14 @@ def test_training_times_follow_the_configured_power_law():
     # the deployment grid does not depend on it
     assert torch.equal(RectifiedFlowSchedule(ScheduleConfig(train_time_power=6.0)).timesteps(4),
                        torch.linspace(1.0, 0.0, 5))
+
+
+def test_deployment_grid_follows_its_own_power_law():
+    """deploy_time_power q puts the M + 1 points at equal steps of t^(q + 1), the CDF of the training density with
+    p = q: each solver step then spans an equal share of the training times, and the last state the solver
+    visits before the clean end lies where a t^12 training density still draws."""
+    grid = RectifiedFlowSchedule(ScheduleConfig(deploy_time_power=12.0)).timesteps(20)
+    assert grid[0] == 1.0 and grid[-1] == 0.0 and bool((grid.diff() < 0).all())
+    assert torch.allclose(grid**13, torch.linspace(1.0, 0.0, 21), atol=1e-6)
+    assert float(grid[-2]) == pytest.approx(0.05 ** (1 / 13), abs=1e-6)  # 0.794; the uniform grid's is 0.05
+    assert torch.equal(RectifiedFlowSchedule(ScheduleConfig()).timesteps(20), torch.linspace(1.0, 0.0, 21))

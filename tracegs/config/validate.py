@@ -158,6 +158,13 @@ def _validate_backbone(cfg: DictConfig) -> None:
         f"must be >= 0, got {backbone.schedule.train_time_power}",
     )
     _require(
+        backbone.schedule.deploy_time_power >= 0
+        and (backbone.schedule.deploy_time_power == 0 or backbone.schedule.kind == "rectified_flow"),
+        "backbone.schedule.deploy_time_power",
+        f"must be >= 0 and is for schedule.kind=rectified_flow only (the DDIM grid is CogVideoX's own), got "
+        f"{backbone.schedule.deploy_time_power} with '{backbone.schedule.kind}'",
+    )
+    _require(
         backbone.transformer.prediction == "velocity" or backbone.schedule.kind == "rectified_flow",
         "backbone.transformer.prediction",
         f"'{backbone.transformer.prediction}' converts x0 to a rectified-flow velocity; schedule.kind is "

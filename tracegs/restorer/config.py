@@ -146,9 +146,13 @@ class ScheduleConfig:
     deploy_steps: int = 20  # M
     # rectified_flow: training times of forward-noised states (baseline L_fm, Stage 1) are drawn with density
     # proportional to t^p, p >= 0 (0 = uniform). A large p trains mostly at high noise, where the restorer reads
-    # the clip from its condition; conf/backbone/tiny.yaml records the measured choice. The deployment grid
-    # and Stage 2's resampled grids stay uniform.
+    # the clip from its condition; conf/backbone/tiny.yaml records the measured choice.
     train_time_power: float = 0.0
+    # rectified_flow: the deployment grid (and so Stage 2's resampled grids, drawn from it) puts its M + 1 points
+    # at equal steps of t^(q + 1), q >= 0; q = 0 is the uniform grid. With q = p every solver step spans an equal
+    # share of the training times, so the solver visits no state the restorer was not trained on (with p = 12
+    # and q = 0 the last state before the clean end is t = 0.05, which t^12 draws with probability 0.05^13).
+    deploy_time_power: float = 0.0
     # CogVideoX-5B scheduler values (used by vpred_ddim only).
     beta_start: float = 0.00085
     beta_end: float = 0.012

@@ -79,7 +79,7 @@ class RectifiedFlowSchedule(NoiseSchedule):
 
     def timesteps(self, steps=None):
         m = steps or self.cfg.deploy_steps
-        return torch.linspace(1.0, 0.0, m + 1)
+        return torch.linspace(1.0, 0.0, m + 1) ** (1.0 / (1.0 + self.cfg.deploy_time_power))
 
     def sample_train_t(self, batch, generator=None):
         # Density (p + 1) t^p on [0, 1] by inverse CDF (p = train_time_power; 0 = uniform).

@@ -186,8 +186,8 @@ def test_wrong_type_names_the_field():
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
-        (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim"],
-         "backbone.transformer.prediction"),
+        (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",
+          "backbone.schedule.deploy_time_power=0"], "backbone.transformer.prediction"),
     ],
 )
 def test_invalid_combination_names_the_field(overrides, field):

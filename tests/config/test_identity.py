@@ -97,6 +97,29 @@ def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
                                    "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
 
 
+@pytest.mark.parametrize("stage2_only", [
+    "experiment.stage2_lr=1e-4", "experiment.stage2_steps=10", "stage.rollout_steps=3",
+    "backbone.schedule.deploy_time_power=6", "backbone.schedule.deploy_steps=10", "backbone.sampler.guidance_scale=2",
+])
+def test_a_stage2_only_setting_reuses_the_baseline_and_stage1_runs(as_hydra_job, stage2_only):
+    # The Stage-2 sweep a researcher runs after `train stage=baseline` and `train stage=stage1` with no overrides:
+    # it must find those runs, not ask for an A and a Stage 1 retrained under a setting they never read.
+    cfg = as_hydra_job("train", ["stage=stage2", stage2_only])
+    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    assert cfg.artifacts.baseline_weights == str(Path(run_dir(["stage=baseline"])) / "baseline_transformer")
+    assert cfg.artifacts.stage1_adapter == str(Path(run_dir(["stage=stage1"])) / "stage1_adapter")
+    assert cfg.run_dir != run_dir(["stage=stage2"])
+
+
+def test_settings_a_stage_reads_still_rename_it():
+    assert run_dir(["stage=baseline", "experiment.baseline_lr=1e-4"]) != run_dir(["stage=baseline"])
+    assert run_dir(["stage=stage1", "experiment.baseline_lr=1e-4"]) != run_dir(["stage=stage1"])
+    assert run_dir(["stage=stage1", "backbone.lora.rank=2"]) != run_dir(["stage=stage1"])
+    assert run_dir(["stage=baseline", "backbone.lora.rank=2"]) == run_dir(["stage=baseline"])
+    assert run_dir(["stage=stage1", "experiment.stage1_lr=1e-4"]) != run_dir(["stage=stage1"])
+    assert run_dir(["stage=baseline", "experiment.stage1_lr=1e-4"]) == run_dir(["stage=baseline"])
+
+
 def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     cfg = as_hydra_job("evaluate", ["ablation=E", "seed=1", "loss.lambda_ret=0.3"])
     tasks.locate_artifacts(cfg, ["student_adapter"])

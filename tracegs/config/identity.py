@@ -70,7 +70,17 @@ EXECUTION_KEYS = frozenset({
 })
 # Training reads the train split's cache whatever split a later prepare builds.
 _TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate", "restore")
-_IGNORED_PER_KIND = {kind: frozenset({"data.prepare.split"}) for kind in _TRAINING_KINDS}
+_IGNORED_PER_KIND = {kind: {"data.prepare.split"} for kind in _TRAINING_KINDS}
+# What only Stage 2 reads: its budget, its rollout, and the deployment grid and sampler it resamples and rolls out
+# with. A and Stage 1 never read them, so a Stage-2 sweep reuses one A and one Stage-1 adapter. (Keys of *earlier*
+# stages stay in a later stage's scope: its folder is named before the earlier products are located.)
+_STAGE2_ONLY = {"experiment.stage2_steps", "experiment.stage2_lr", "experiment.stage2_warmup_steps",
+                "stage.rollout_steps", "stage.memory_mode",
+                "backbone.schedule.deploy_steps", "backbone.schedule.deploy_time_power", "backbone.sampler"}
+_IGNORED_PER_KIND["stage1"] |= _STAGE2_ONLY
+# A trains the whole transformer: no adapter, no Stage-1 budget.
+_IGNORED_PER_KIND["baseline"] |= {*_STAGE2_ONLY, "experiment.stage1_steps", "experiment.stage1_lr", "backbone.lora"}
+_IGNORED_PER_KIND = {kind: frozenset(keys) for kind, keys in _IGNORED_PER_KIND.items()}
 
 # Hydra's own overrides and path-like keys never name a run.
 _UNNAMED_OVERRIDE_ROOTS = ("hydra", "paths", "run_dir", "task", "seed")
@@ -135,7 +145,7 @@ def _in_scope(key: str, kind: str) -> bool:
     root = re.split(r"[./]", key, maxsplit=1)[0]
     if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS or key in EXECUTION_KEYS:
         return False
-    if key in _IGNORED_PER_KIND.get(kind, ()):
+    if any(key == ignored or key.startswith(ignored + ".") for ignored in _IGNORED_PER_KIND.get(kind, ())):
         return False
     # Debug presets set trainer / stage keys (in scope); naming them keeps a debug run recognisable.
     # Otherwise: a group choice (``teacher=v12``) or a key inside a scoped section.

@@ -98,7 +98,7 @@ def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
 
 
 @pytest.mark.parametrize("stage2_only", [
-    "experiment.stage2_lr=1e-4", "experiment.stage2_steps=10", "stage.rollout_steps=3",
+    "experiment.stage2_lr=1e-4", "experiment.stage2_steps=40", "stage.rollout_steps=3",
     "backbone.schedule.deploy_time_power=6", "backbone.schedule.deploy_steps=10", "backbone.sampler.guidance_scale=2",
 ])
 def test_a_stage2_only_setting_reuses_the_baseline_and_stage1_runs(as_hydra_job, stage2_only):

@@ -6,6 +6,8 @@ import ctypes
 import os
 import signal
 import sys
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -24,3 +26,12 @@ def die_with_parent(parent_pid: int) -> None:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
     if os.getppid() != parent_pid:
         os._exit(1)
+
+
+def run_units(pool: Executor | None, function: Callable, arguments: Iterable[tuple]) -> Iterator:
+    """``function(*args)`` for each tuple, results in order. With a pool every unit is submitted now, before
+    the first result is read (so work submitted next queues behind it); without one each runs when read."""
+    if pool is None:
+        return (function(*args) for args in arguments)
+    futures = [pool.submit(function, *args) for args in arguments]
+    return (future.result() for future in futures)  # result() re-raises a worker's error here

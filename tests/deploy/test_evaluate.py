@@ -120,6 +120,28 @@ def test_sharded_and_parallel_evaluation_agree(scene_root, tmp_path):
         assert parallel["3dgs"][k]["psnr"] == pytest.approx(merged["3dgs"][k]["psnr"], abs=1e-4)
 
 
+def test_forked_evaluation_splits_a_unit_into_its_methods(scene_root, tmp_path):
+    """Two worker processes share one unit's methods (from one cold start): each method keeps its own scores,
+    in the configured order, as when the unit runs in one process."""
+    source = SceneSourceConfig(root=str(scene_root))
+    fit_cfg, refine_cfg = _configs()
+    scene = load_scene(source, scene_name(SEED))
+    restorers = {"3dgs": None, "tracegs": GroundTruthRestorer(ground_truth_model(scene))}
+    units = {}
+    for workers in (1, 2):
+        cfg = EvaluationConfig(out_dir=str(tmp_path / f"workers{workers}"), methods=["3dgs", "tracegs"], views=[3],
+                               workers=workers, save_media=False, progress=False)
+        evaluate(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name])
+        units[workers] = json.loads(unit_path(cfg.out_dir, scene.name, 3).read_text())
+    assert list(units[2]["methods"]) == ["3dgs", "tracegs"]
+    for method in ("3dgs", "tracegs"):
+        serial, forked = (units[w]["methods"][method]["mean"]["psnr"] for w in (1, 2))
+        assert forked == pytest.approx(serial, abs=1e-4)
+    # the two methods score differently, so a swapped or duplicated part would fail the comparison above
+    scores = [units[2]["methods"][m]["mean"]["psnr"] for m in ("3dgs", "tracegs")]
+    assert abs(scores[0] - scores[1]) > 1e-3
+
+
 class _TinyRestorerModule(L.LightningModule):
     """A training module around the restorer's transformer (what the callback deploys) with one
     trainable scalar so Lightning has something to optimise."""

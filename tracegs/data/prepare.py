@@ -21,6 +21,7 @@ import json
 import math
 import multiprocessing
 import os
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -55,7 +56,7 @@ from tracegs.io import (
     save_safetensors_atomic,
     write_json_atomic,
 )
-from tracegs.processes import die_with_parent
+from tracegs.processes import die_with_parent, run_units
 from tracegs.restorer.build import Backbone
 from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
 from tracegs.splat.cameras import Camera
@@ -324,7 +325,7 @@ def _one_thread_worker(parent_pid: int) -> None:
 
 
 def worker_pool(cfg: PrepareConfig) -> ProcessPoolExecutor | None:
-    """Processes for the fits and the clip renders (``cfg.workers`` > 1), else None (in-process).
+    """Processes for generating scenes, the fits and the clip renders (``cfg.workers`` > 1), else None.
 
     "spawn" gives fresh interpreters, so no OpenMP / thread state is inherited through fork.
     """
@@ -334,21 +335,12 @@ def worker_pool(cfg: PrepareConfig) -> ProcessPoolExecutor | None:
                                initializer=_one_thread_worker, initargs=(os.getpid(),))
 
 
-def run_units(pool: ProcessPoolExecutor | None, function, arguments: list[tuple]):
-    """``function(*args)`` for each tuple, in the pool when there is one; yields results in order."""
-    if pool is None:
-        for args in arguments:
-            yield function(*args)
-        return
-    futures = [pool.submit(function, *args) for args in arguments]
-    for future in futures:
-        yield future.result()  # re-raises a worker's error here
-
-
 def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecutor | None,
             progress: Progress) -> None:
     """Run every unfinished (scene, view set) fit."""
     units = [(plan, key, cfg) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
+    # Longest first (a fit's cost grows with its last snapshot), so the pool does not end on one long fit.
+    units.sort(key=lambda unit: -max(unit[0].fits[unit[1]]))
     task = progress.add_task("3DGS fits", total=len(units))
     plain = PlainProgress("3DGS fits", len(units))
     for done, _ in enumerate(run_units(pool, fit_view_set, units), 1):
@@ -384,22 +376,58 @@ def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, t
     return conditions, ground_truth
 
 
-def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline,
-                  pool: ProcessPoolExecutor | None, progress: Progress) -> dict:
-    """The clips, scene file and contact sheet of one scene (its fits done); returns its manifest entry."""
-    name = plan.scene.name
-    cache_dir = Path(cfg.cache_dir)
+@dataclass
+class SceneClips:
+    """One scene's clips, their shard paths, the ones still to make and their renders (submitted, in order)."""
+
+    clips: list[dict]
+    shard_paths: list[Path]
+    settings: str
+    todo: list[int]
+    rendered: Iterator[tuple[dict[str, torch.Tensor], torch.Tensor | None]]
+
+
+def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
+                       pool: ProcessPoolExecutor | None) -> SceneClips:
+    """Submit the renders of one scene's unfinished clips (to the worker processes when there are some)."""
     clips = clip_cameras(plan, cfg)
-    shard_paths = [cache_dir / name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
+    shard_paths = [Path(cfg.cache_dir) / plan.scene.name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
     todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
-    clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
-    # Rendering runs in the worker processes; the frozen encoders (paper scale: GPU) stay in this one.
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
+    return SceneClips(clips, shard_paths, settings, todo, rendered)
+
+
+def prepare_all_scenes(plans: list[ScenePlan], cfg: PrepareConfig, backbone: Backbone, pipeline,
+                       pool: ProcessPoolExecutor | None, progress: Progress) -> dict[str, dict]:
+    """Every scene's clips (fits done); returns the manifest entries. Rendering runs in the worker processes
+    and the frozen encoders (paper scale: GPU) in this one; the next scene's renders are submitted before
+    this scene's clips are encoded, so neither side waits for the other (and at most two scenes' frames are
+    held at once)."""
+    entries: dict[str, dict] = {}
+    task = progress.add_task("paired clips", total=len(plans))
+    upcoming = render_scene_clips(plans[0], cfg, backbone, pool) if plans else None
+    for index, plan in enumerate(plans):
+        current = upcoming
+        if index + 1 < len(plans):
+            upcoming = render_scene_clips(plans[index + 1], cfg, backbone, pool)
+        entries[plan.scene.name] = prepare_scene(plan, cfg, backbone, pipeline, current, progress)
+        progress.advance(task)
+    return entries
+
+
+def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline, scene_clips: SceneClips,
+                  progress: Progress) -> dict:
+    """The clips, scene file and contact sheet of one scene (its renders submitted); returns its manifest entry."""
+    name = plan.scene.name
+    cache_dir = Path(cfg.cache_dir)
+    clips, shard_paths, todo = scene_clips.clips, scene_clips.shard_paths, scene_clips.todo
+    clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     plain = PlainProgress(f"{name}: clips", len(todo))
-    for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, rendered), 1):
-        save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c], settings)
+    for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, scene_clips.rendered), 1):
+        save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c],
+                  scene_clips.settings)
         progress.advance(clip_task)
         plain.update(done)
     scene_file = cache_dir / name / "scene.json"
@@ -503,16 +531,19 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     if prepare.workers > 1:
         # The workers take the other cores; oversubscribed intra-op threads are much slower (5x measured).
         torch.set_num_threads(1)
+    pool = worker_pool(prepare)
     try:
-        return _run_prepare(prepare, source, backbone, synthetic, progress)
+        return _run_prepare(pool, prepare, source, backbone, synthetic, progress)
     finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
         torch.set_num_threads(threads)
 
 
-def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Backbone,
-                 synthetic: SyntheticConfig | None, progress: bool) -> Path:
+def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, source: SceneSourceConfig,
+                 backbone: Backbone, synthetic: SyntheticConfig | None, progress: bool) -> Path:
     if synthetic is not None:
-        generate_benchmark(synthetic, splits=(prepare.split,), progress=progress)
+        generate_benchmark(synthetic, splits=(prepare.split,), progress=progress, pool=pool)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
         names = list_scenes(source, "train")
@@ -530,18 +561,9 @@ def _run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Ba
     for plan in plans:
         for directory in (cache_dir / plan.scene.name, Path(prepare.work_dir) / plan.scene.name):
             remove_stale_temporaries(directory)
-    entries = {}
-    pool = worker_pool(prepare)
-    try:
-        with Progress(disable=not progress) as bar:
-            fit_all(plans, prepare, pool, bar)
-            task = bar.add_task("paired clips", total=len(plans))
-            for plan in plans:
-                entries[plan.scene.name] = prepare_scene(plan, prepare, backbone, pipeline, pool, bar)
-                bar.advance(task)
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+    with Progress(disable=not progress) as bar:
+        fit_all(plans, prepare, pool, bar)
+        entries = prepare_all_scenes(plans, prepare, backbone, pipeline, pool, bar)
     manifest = {**manifest_header(prepare, backbone), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
     write_if_changed(manifest, path)

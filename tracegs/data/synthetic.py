@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from rich.progress import Progress
 from tracegs.data.colmap import Scene, write_colmap_model
 from tracegs.data.config import SyntheticConfig, overlapping_seeds, split_seeds
 from tracegs.io import atomic_directory
+from tracegs.processes import run_units
 from tracegs.splat.cameras import Camera
 from tracegs.splat.gaussians import NUM_SH_REST, SH_C0, GaussianModel, rgb_to_sh_dc
 from tracegs.splat.ply import load_ply, save_ply
@@ -316,8 +318,9 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
 
 
 def generate_benchmark(cfg: SyntheticConfig, splits: tuple[str, ...] = ("train", "test"), force: bool = False,
-                       progress: bool = True) -> list[Path]:
-    """Write the scenes of ``splits`` (deterministic by seed) under ``cfg.root``."""
+                       progress: bool = True, pool: Executor | None = None) -> list[Path]:
+    """Write the scenes of ``splits`` (deterministic by seed) under ``cfg.root``, in ``pool``'s processes
+    when given."""
     overlap = overlapping_seeds(cfg)
     if overlap:
         raise ValueError(f"synthetic.train_seeds, val_seeds and test_seeds overlap: {overlap}")
@@ -329,7 +332,7 @@ def generate_benchmark(cfg: SyntheticConfig, splits: tuple[str, ...] = ("train",
     paths = []
     with Progress(disable=not progress) as bar:
         task = bar.add_task("synthetic scenes", total=len(seeds))
-        for seed in seeds:
-            paths.append(generate_scene(seed, cfg, root, force=force))
+        for path in run_units(pool, generate_scene, [(seed, cfg, root, force) for seed in seeds]):
+            paths.append(path)
             bar.advance(task)
     return paths

@@ -73,39 +73,26 @@ def require_finite_metrics(per_view: Sequence[Mapping[str, float | None]], unit:
             raise NonFiniteError(unit, f"non-finite metrics {bad} on test view {index}; nothing was written",
                                  "check the restorer weights and the refinement settings (deploy.*)")
 
-def evaluate_unit(unit: SceneUnit, restorers: Mapping[str, ClipRestorer | None], cfg: EvaluationConfig,
-                  refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig, metrics: ImageMetrics,
-                  gt_renderer: GroundTruthRenderer | None = None, progress: Progress | None = None) -> dict:
-    """Deploy every method on one (scene, K) from one shared cold start and score it on the test views."""
+@dataclass
+class MethodResult:
+    """One method deployed on one unit: metrics on the test views, the renders they score, the final 3DGS."""
+
+    scores: dict
+    renders: Tensor
+    model: GaussianModel
+
+
+def deploy_method(unit: SceneUnit, cold: GaussianFitter, restorer: ClipRestorer | None, method: str,
+                  refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig, metrics: ImageMetrics) -> MethodResult:
+    """Refine the unit's shared cold start with one method's restorer and score it on the test views."""
     background = torch.tensor(fit_cfg.background, dtype=torch.float32)
-    cold = unit.cold_start(refine_cfg, fit_cfg)
-    caption = unit.scene.caption or ""
-    result: dict = {"scene": unit.scene.name, "views": unit.views, "captured": unit.captured_ids,
-                    "test": unit.test_ids, "lpips": metrics.lpips_label, "methods": {}}
-    test_renders: dict[str, Tensor] = {}
-    models: dict[str, GaussianModel] = {}
-    task = progress.add_task(f"{unit.scene.name} K={unit.views}", total=len(cfg.methods)) if progress else None
-    for method in cfg.methods:
-        if method not in restorers:
-            raise ValueError(f"evaluation.methods lists {method!r} but no restorer was built for it")
-        model = refine(cold, unit.captured, restorers[method], refine_cfg, fit_cfg, caption=caption,
-                       seed=refine_cfg.seed)
-        renders = render_views(model, unit.test_cameras, background, None).cpu()
-        per_view = metrics.per_view(renders, unit.test_images)
-        require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
-        result["methods"][method] = {"per_view": per_view, "mean": mean_metrics(per_view)}
-        test_renders[method], models[method] = renders, model
-        if progress is not None:
-            progress.advance(task)
-    if cfg.per_step and gt_renderer is not None:
-        result["per_step"] = unit_per_step_curves(unit, cold, restorers, refine_cfg, fit_cfg, gt_renderer)
-    if cfg.save_media:
-        result["media"] = _save_media(unit, cfg, test_renders, models, background, gt_renderer)
-    if cfg.save_models:
-        result["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
-                                                                           method)))
-                            for method, model in models.items()}
-    return result
+    model = refine(cold, unit.captured, restorer, refine_cfg, fit_cfg, caption=unit.scene.caption or "",
+                   seed=refine_cfg.seed)
+    renders = render_views(model, unit.test_cameras, background, None).cpu()
+    per_view = metrics.per_view(renders, unit.test_images)
+    require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
+    return MethodResult({"per_view": per_view, "mean": mean_metrics(per_view)}, renders, model)
+
 
 def model_path(out_dir: str | Path, scene: str, views: int, method: str) -> Path:
     return Path(out_dir) / "models" / scene / f"views_{views}_{method}.ply"
@@ -149,9 +136,16 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
                            for m in models}
     return media
 
+PER_STEP = "per_step"  # the part of a unit that computes its Fig. 6 curves
+
+
 @dataclass
 class _UnitJob:
-    """Everything one evaluation unit needs; handed to worker processes by fork, never pickled."""
+    """Everything an evaluation unit needs; handed to worker processes by fork, never pickled.
+
+    A unit is deployed from one cold start, then in parts (each method, and the per-step curves), which are
+    independent given the cold start: ``run`` does them in turn, ``_run_units`` spreads them over processes.
+    """
 
     cfg: EvaluationConfig
     source: SceneSourceConfig
@@ -162,46 +156,114 @@ class _UnitJob:
     gt_renderer: GroundTruthRenderer | None
     fingerprint: str
 
-    def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
+    def parts(self) -> list[str]:
+        """The methods, longest first (restorers run repair rounds; plain 3DGS does not), then the curves."""
+        for method in self.cfg.methods:
+            if method not in self.restorers:
+                raise ValueError(f"evaluation.methods lists {method!r} but no restorer was built for it")
+        methods = sorted(self.cfg.methods, key=lambda m: self.restorers[m] is None)
+        return methods + ([PER_STEP] if self.cfg.per_step and self.gt_renderer is not None else [])
+
+    def unit(self, key: tuple[str, int]) -> SceneUnit:
         scene_name, views = key
-        unit = load_unit(load_scene(self.source, scene_name), views, self.source)
-        record = evaluate_unit(unit, self.restorers, self.cfg, self.refine_cfg, self.fit_cfg, self.metrics,
-                               self.gt_renderer, progress)
+        return load_unit(load_scene(self.source, scene_name), views, self.source)
+
+    def cold_start(self, key: tuple[str, int]) -> GaussianFitter:
+        return self.unit(key).cold_start(self.refine_cfg, self.fit_cfg)
+
+    def part(self, key: tuple[str, int], cold: GaussianFitter, part: str) -> MethodResult | dict:
+        unit = self.unit(key)
+        if part == PER_STEP:
+            return unit_per_step_curves(unit, cold, self.restorers, self.refine_cfg, self.fit_cfg, self.gt_renderer)
+        return deploy_method(unit, cold, self.restorers[part], part, self.refine_cfg, self.fit_cfg, self.metrics)
+
+    def finish(self, key: tuple[str, int], parts: Mapping[str, MethodResult | dict]) -> dict:
+        """The unit's record from its finished parts (plus media and saved models), written atomically."""
+        unit = self.unit(key)
+        cfg = self.cfg
+        methods: dict[str, MethodResult] = {m: parts[m] for m in cfg.methods}
+        record: dict = {"scene": unit.scene.name, "views": unit.views, "captured": unit.captured_ids,
+                        "test": unit.test_ids, "lpips": self.metrics.lpips_label,
+                        "methods": {m: result.scores for m, result in methods.items()}}
+        if PER_STEP in parts:
+            record["per_step"] = parts[PER_STEP]
+        models = {m: result.model for m, result in methods.items()}
+        if cfg.save_media:
+            background = torch.tensor(self.fit_cfg.background, dtype=torch.float32)
+            record["media"] = _save_media(unit, cfg, {m: result.renders for m, result in methods.items()}, models,
+                                          background, self.gt_renderer)
+        if cfg.save_models:
+            record["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
+                                                                           method)))
+                                for method, model in models.items()}
         record["fingerprint"] = self.fingerprint
-        record["variant"] = self.cfg.variant
-        write_json_atomic(record, unit_path(self.cfg.out_dir, scene_name, views))
+        record["variant"] = cfg.variant
+        write_json_atomic(record, unit_path(cfg.out_dir, unit.scene.name, unit.views))
         return record
+
+    def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
+        """The whole unit in this process."""
+        parts = self.parts()
+        task = progress.add_task(f"{key[0]} K={key[1]}", total=len(parts)) if progress else None
+        cold = self.cold_start(key)
+        results = {}
+        for part in parts:
+            results[part] = self.part(key, cold, part)
+            if progress is not None:
+                progress.advance(task)
+        return self.finish(key, results)
 
 
 _FORKED_JOB: _UnitJob | None = None  # set in the parent just before forking the worker pool
 
 
-def _run_forked(key: tuple[str, int]) -> tuple[tuple[str, int], dict]:
+def _one_thread() -> None:
     # Tiny tensors: one intra-op thread per worker, the workers themselves use the cores.
     torch.set_num_threads(1)
-    return key, _FORKED_JOB.run(key)
+
+
+def _cold_start_forked(key: tuple[str, int]) -> tuple[tuple[str, int], GaussianFitter]:
+    _one_thread()
+    return key, _FORKED_JOB.cold_start(key)
+
+
+def _part_forked(task: tuple[tuple[str, int], GaussianFitter, str]) -> tuple[tuple[str, int], str, object]:
+    _one_thread()
+    key, cold, part = task
+    return key, part, _FORKED_JOB.part(key, cold, part)
 
 
 def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
                progress: Progress) -> Iterator[tuple[tuple[str, int], dict]]:
-    """Run units serially, or in ``workers`` forked processes (CPU only: the units are independent and
-    3DGS optimisation of tiny scenes is dominated by per-op overhead that threads cannot spread)."""
-    if workers <= 1 or len(keys) <= 1:
+    """Run units serially, or in ``workers`` forked processes (CPU only: 3DGS optimisation of tiny scenes is
+    dominated by per-op overhead that threads cannot spread). Forked, the cold starts come first, then every
+    unit's parts are queued longest first, so no worker idles while another finishes a whole unit (with a
+    few units, one unit per process left one core idle for a third of the run)."""
+    if workers <= 1 or not keys:
         for key in keys:
             yield key, job.run(key, progress if job.cfg.progress else None)
         return
+    parts = job.parts()
     global _FORKED_JOB
     _FORKED_JOB = job
     try:
-        with multiprocessing.get_context("fork").Pool(min(workers, len(keys)), initializer=die_with_parent,
+        with multiprocessing.get_context("fork").Pool(min(workers, len(keys) * len(parts)),
+                                                      initializer=die_with_parent,
                                                       initargs=(os.getpid(),)) as pool:
-            yield from pool.imap_unordered(_run_forked, keys)
+            colds = dict(pool.imap_unordered(_cold_start_forked, keys))
+            finished: dict[tuple[str, int], dict] = {key: {} for key in keys}
+            tasks = [(key, colds[key], part) for part in parts for key in keys]
+            for key, part, result in pool.imap_unordered(_part_forked, tasks):
+                finished[key][part] = result
+                if len(finished[key]) == len(parts):
+                    yield key, job.finish(key, finished.pop(key))
             # Let the workers exit on their own: the pool's __exit__ would SIGTERM them, and pycolmap's
             # signal handler then prints a stack trace for every worker.
             pool.close()
             pool.join()
     finally:
         _FORKED_JOB = None
+
 
 def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
              fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],

@@ -178,8 +178,8 @@ def _pair_power(means2d: Tensor, conics: Tensor, bins: TileBins, tiles_x: int, t
     half = tile_size / 2.0
     tile = bins.tile
     centres = torch.stack([tile % tiles_x, torch.div(tile, tiles_x, rounding_mode="floor")], dim=-1)
-    mx, my = (means2d[bins.splat] - (centres.to(dtype) * tile_size + half)).unbind(-1)
-    a, b, c = conics[bins.splat].unbind(-1)
+    mx, my = (means2d.index_select(0, bins.splat) - (centres.to(dtype) * tile_size + half)).unbind(-1)
+    a, b, c = conics.index_select(0, bins.splat).unbind(-1)
     coefficients = torch.stack([-0.5 * a, -b, -0.5 * c, a * mx + b * my, b * mx + c * my,
                                 -0.5 * (a * mx * mx + c * my * my) - b * mx * my])
     offsets = torch.arange(tile_size, dtype=dtype, device=device) + 0.5 - half
@@ -202,7 +202,8 @@ def rasterize_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, features
         anchor = 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + features.sum())
         return anchor + means2d.new_zeros(height, width, features.shape[1]), anchor + means2d.new_ones(height, width)
     power = _pair_power(means2d, conics, bins, tiles_x, tile_size)
-    out, final = _TileComposite.apply(power, opacities[bins.splat], features[bins.splat], bins)
+    out, final = _TileComposite.apply(power, opacities.index_select(0, bins.splat), features.index_select(0, bins.splat),
+                                      bins)
 
     def untile(x: Tensor) -> Tensor:
         x = x.reshape(tiles_y, tiles_x, tile_size, tile_size, -1).permute(0, 2, 1, 3, 4)

@@ -102,13 +102,16 @@ def _render_torch(model: GaussianModel, camera: Camera, background: Tensor, degr
     index = visible.nonzero().squeeze(1)
     index = index[torch.argsort(projected.depths.detach()[index], stable=True)]
 
-    colours = sh_to_rgb(degree, model.sh[index], model.means[index] - camera.center)
-    features = torch.cat([colours, projected.depths[index, None]], dim=-1)
-    splat = (means2d[0][index], projected.conics[index], opacities[index], features)
+    def gather(values: Tensor) -> Tensor:  # index_select: a faster gather than x[index], the same values
+        return values.index_select(0, index)
+
+    colours = sh_to_rgb(degree, gather(model.sh), gather(model.means) - camera.center)
+    features = torch.cat([colours, gather(projected.depths)[:, None]], dim=-1)
+    splat = (gather(means2d[0]), gather(projected.conics), gather(opacities), features)
     if dense:
         out, transmittance = rasterize_dense(*splat, width, height)
     else:
-        out, transmittance = rasterize_tiles(*splat, projected.extents[index], width, height)
+        out, transmittance = rasterize_tiles(*splat, gather(projected.extents), width, height)
 
     image = out[..., :3] + transmittance[..., None] * background
     alpha = 1.0 - transmittance

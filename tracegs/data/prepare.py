@@ -403,8 +403,8 @@ def prepare_all_scenes(plans: list[ScenePlan], cfg: PrepareConfig, backbone: Bac
                        pool: ProcessPoolExecutor | None, progress: Progress) -> dict[str, dict]:
     """Every scene's clips (fits done); returns the manifest entries. Rendering runs in the worker processes
     and the frozen encoders (paper scale: GPU) in this one; the next scene's renders are submitted before
-    this scene's clips are encoded, so neither side waits for the other (and at most two scenes' frames are
-    held at once)."""
+    this scene's clips are encoded, so the workers do not wait for this process between scenes (and at most
+    two scenes' frames are held at once)."""
     entries: dict[str, dict] = {}
     task = progress.add_task("paired clips", total=len(plans))
     upcoming = render_scene_clips(plans[0], cfg, backbone, pool) if plans else None

@@ -5,6 +5,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from tracegs.cli.app import CONF_DIR
+from tracegs.config.schema import register_configs
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 
@@ -13,6 +18,15 @@ from tracegs.restorer.config import BackboneConfig
 def backbone():
     torch.manual_seed(0)
     return build_backbone(BackboneConfig())
+
+
+@pytest.fixture
+def paper_backbone() -> BackboneConfig:
+    """The paper's backbone exactly as users run it: conf/backbone/cogvideox5b.yaml, composed by Hydra."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["experiment=paper"])
+    return OmegaConf.to_object(cfg.backbone)
 
 
 @pytest.fixture

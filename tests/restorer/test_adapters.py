@@ -22,7 +22,7 @@ def test_new_adapter_is_identity_and_targets_both_attentions(backbone, make_inpu
     expected = {
         f"transformer_blocks.{i}.{attn}.{proj}"
         for i in range(backbone.cfg.transformer.num_layers)
-        for attn in ("attn1", "ref_attn")
+        for attn in ("attn1", "attn_cross")
         for proj in ("to_q", "to_k", "to_v", "to_out.0")
     }
     assert wrapped == expected
@@ -104,7 +104,7 @@ def test_load_adapter_rejects_mismatched_file(tmp_path, backbone):
     adapters.save_adapter(model, "student", path)
     other = type(backbone.cfg.lora)(rank=8, alpha=8, attention_modules=["attn1"])
     adapters.add_adapter(model, "self_attn_only", other)
-    with pytest.raises(adapters.AdapterFileError, match=r"unexpected \[.transformer_blocks.0.ref_attn"):
+    with pytest.raises(adapters.AdapterFileError, match=r"unexpected \[.transformer_blocks.0.attn_cross"):
         adapters.load_adapter(model, "self_attn_only", path, trainable=True)
     with pytest.raises(InputFileError, match="absent.safetensors: no such file"):
         adapters.load_adapter(model, "x", tmp_path / "absent.safetensors", trainable=True)

@@ -3,11 +3,7 @@ import math
 import pytest
 import torch
 from diffusers import CogVideoXTransformer3DModel
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
-from tracegs.cli.app import CONF_DIR
-from tracegs.config.schema import register_configs
 from tracegs.restorer import adapters
 from tracegs.restorer.build import (
     CheckpointMismatchError,
@@ -15,15 +11,7 @@ from tracegs.restorer.build import (
     load_transformer,
     transformer_kwargs,
 )
-from tracegs.restorer.config import BackboneConfig, TransformerConfig
-
-
-def paper_backbone() -> BackboneConfig:
-    """The paper's backbone exactly as users run it: conf/backbone/cogvideox5b.yaml, composed by Hydra."""
-    register_configs()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=["experiment=paper"])
-    return OmegaConf.to_object(cfg.backbone)
+from tracegs.restorer.config import TransformerConfig
 
 
 def test_tiny_forward_backward_shapes(backbone, make_inputs):
@@ -36,9 +24,9 @@ def test_tiny_forward_backward_shapes(backbone, make_inputs):
     p = model.config.patch_size
     assert out.retrieval.shape == (b, f * (h // p) * (w // p), 192)
     (out.velocity.square().mean() + out.retrieval.square().mean()).backward()
-    for name in ("patch_embed.proj.weight", "ref_proj_2d.weight", "ref_proj_3d.weight"):
+    for name in ("patch_embed.proj.weight", "projector_dino.proj.weight", "projector_vggt.proj.weight"):
         assert model.get_parameter(name).grad.abs().sum() > 0, name
-    assert model.transformer_blocks[0].ref_attn.to_q.weight.grad.abs().sum() > 0
+    assert model.transformer_blocks[0].attn_cross.to_q.weight.grad.abs().sum() > 0
     assert model(**inputs).retrieval is None
 
 
@@ -61,23 +49,23 @@ def test_retrieval_equals_independent_recomputation(backbone, make_inputs):
     inputs = make_inputs()
     block = model.transformer_blocks[-1]
     captured = {}
-    handle = block.norm_ref.register_forward_hook(
+    handle = block.norm_cross.register_forward_hook(
         lambda mod, args, out: captured.setdefault("queries_in", out)
     )
     with torch.no_grad():
         retrieval = model(**inputs, return_retrieval=True).retrieval
     handle.remove()
 
-    attn, heads = block.ref_attn, model.config.num_attention_heads
+    attn, heads = block.attn_cross, model.config.num_attention_heads
     head_dim = model.config.attention_head_dim
 
     def effective(linear):  # W + (alpha / r) B A, read from the weights, not by calling the module
         delta = linear.lora_B["student"].weight @ linear.lora_A["student"].weight * linear.scaling["student"]
         return linear.base_layer.weight + delta, linear.base_layer.bias
 
-    tokens = model.ref_proj_2d.weight @ inputs["ref_2d"].transpose(1, 2)
-    tokens = tokens.transpose(1, 2) + model.ref_proj_2d.bias
-    tokens = tokens + inputs["ref_3d"] @ model.ref_proj_3d.weight.T + model.ref_proj_3d.bias
+    tokens = model.projector_dino.proj.weight @ inputs["ref_2d"].transpose(1, 2)
+    tokens = tokens.transpose(1, 2) + model.projector_dino.proj.bias
+    tokens = tokens + inputs["ref_3d"] @ model.projector_vggt.proj.weight.T + model.projector_vggt.proj.bias
     (wq, bq), (wk, bk), (wv, bv) = effective(attn.to_q), effective(attn.to_k), effective(attn.to_v)
     q = captured["queries_in"] @ wq.T + bq
     k, v = tokens @ wk.T + bk, tokens @ wv.T + bv
@@ -96,15 +84,15 @@ def test_text_length_must_match_config(backbone, make_inputs):
         backbone.transformer(**inputs)
 
 
-def test_paper_configuration_on_meta_device():
-    cfg = paper_backbone()
+def test_paper_configuration_on_meta_device(paper_backbone):
+    cfg = paper_backbone
     model = create_transformer(cfg.transformer, "meta")
     assert next(model.parameters()).is_meta
     assert len(model.transformer_blocks) == 42 and model.config.num_layers == 42
     attn = model.transformer_blocks[0].attn1
     assert attn.heads == 48 and attn.to_q.weight.shape == (3072, 3072)
     assert model.transformer_blocks[0].ff.net[2].weight.shape == (3072, 12288)
-    assert model.transformer_blocks[0].ref_attn.to_k.weight.shape == (3072, 3072)
+    assert model.transformer_blocks[0].attn_cross.to_k.weight.shape == (3072, 3072)
     adapters.add_adapter(model, "student", cfg.lora)
     adapters.clone_adapter(model, "student", "teacher", trainable=False)
     for name in ("student", "teacher"):
@@ -121,8 +109,9 @@ def test_paper_configuration_on_meta_device():
         cond=torch.empty(latent, device=meta),
         timestep=torch.tensor([999], device=meta),
         text=torch.empty(1, 226, 4096, device=meta),
-        ref_2d=torch.empty(1, 2 * 37 * 37, 1024, device=meta),
-        ref_3d=torch.empty(1, 2 * 37 * 37, 2048, device=meta),
+        # 480 x 720 views at VGGT's 518-wide, aspect-kept size: 350 x 518 pixels, 25 x 37 patches of 14
+        ref_2d=torch.empty(1, 2 * 25 * 37, 1024, device=meta),
+        ref_3d=torch.empty(1, 2 * 25 * 37, 2048, device=meta),
         return_retrieval=True,
     )
     assert out.velocity.shape == latent
@@ -144,10 +133,11 @@ def test_load_transformer_lists_missing_keys(tmp_path):
     kwargs = {
         k: v
         for k, v in transformer_kwargs(cfg).items()
-        if k not in ("ref_2d_dim", "ref_3d_dim", "timestep_scale", "prediction", "clean_min_time")
+        if k not in ("ref_2d_dim", "ref_3d_dim", "reference_norms", "timestep_scale", "prediction", "clean_min_time")
     }
     CogVideoXTransformer3DModel(**kwargs).save_pretrained(cfg.pretrained_path)
-    with pytest.raises(CheckpointMismatchError, match=r"missing keys \[.*ref_attn.*\]"):
+    first_missing = r"model weight 'projector_dino.proj.bias' is not in the folder \(0 unused, 24 missing"
+    with pytest.raises(CheckpointMismatchError, match=first_missing):
         load_transformer(cfg)
     with pytest.raises(CheckpointMismatchError, match="num_layers"):
         load_transformer(TransformerConfig(num_layers=3, pretrained_path=cfg.pretrained_path))

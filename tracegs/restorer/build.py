@@ -42,6 +42,7 @@ def transformer_kwargs(cfg: TransformerConfig) -> dict:
         attention_bias=cfg.attention_bias,
         ref_2d_dim=cfg.ref_2d_dim,
         ref_3d_dim=cfg.ref_3d_dim,
+        reference_norms=cfg.reference_norms,
         timestep_scale=cfg.timestep_scale,
         prediction=cfg.prediction,
         clean_min_time=cfg.clean_min_time,
@@ -86,12 +87,29 @@ def load_transformer(
         )
     except (OSError, SafetensorError, ValueError) as error:  # no weights file, or a truncated / garbage one
         raise InputFileError(path, f"cannot load the transformer weights ({one_line(error)})", fix) from error
-    missing, unexpected = sorted(info.get("missing_keys", [])), sorted(info.get("unexpected_keys", []))
-    if missing or unexpected or info.get("mismatched_keys"):
-        raise CheckpointMismatchError(
-            f"{path}: missing keys {missing}, unexpected keys {unexpected}, mismatched {info.get('mismatched_keys')}"
-        )
+    unmapped = unmapped_key(info)
+    if unmapped:
+        raise CheckpointMismatchError(f"{path}: {unmapped}")
     return model.to(device)
+
+
+def unmapped_key(info: dict) -> str | None:
+    """One line naming the first weight that does not map between the folder and the model, or None.
+
+    Strict in both directions: a stored tensor the model does not use (a key that would be dropped) is as
+    wrong as a model weight the folder lacks (one that would stay randomly initialised).
+    """
+    unexpected, missing = sorted(info.get("unexpected_keys", [])), sorted(info.get("missing_keys", []))
+    mismatched = sorted(info.get("mismatched_keys", []))
+    counts = f"({len(unexpected)} unused, {len(missing)} missing, {len(mismatched)} of another shape)"
+    if unexpected:
+        return f"stored weight '{unexpected[0]}' has no place in the model {counts}"
+    if missing:
+        return f"model weight '{missing[0]}' is not in the folder {counts}"
+    if mismatched:
+        key, stored, wanted = mismatched[0]
+        return f"weight '{key}' is stored as {tuple(stored)} but the model needs {tuple(wanted)} {counts}"
+    return None
 
 
 @dataclass

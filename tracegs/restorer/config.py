@@ -71,6 +71,9 @@ class TransformerConfig:
     attention_bias: bool = True
     ref_2d_dim: int = 192  # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
     ref_3d_dim: int = 200  # width of Enc_VGGT tokens (embedded: 8x8x3 cross-view difference + 8 position)
+    # GSFixer's LayerNorms on the reference path: per-head q/k in ``attn_cross`` and after each projector. Its
+    # released weights hold them (paper scale: true); the embedded restorer was tuned without them.
+    reference_norms: bool = False
     # The model embeds ``timestep * timestep_scale``: rectified-flow t in [0, 1] -> 0..1000 like CogVideoX's
     # integer DDPM steps (scale 1). Callers always pass the schedule's native t.
     timestep_scale: float = 1000.0
@@ -91,7 +94,7 @@ class LoraConfig:
     alpha: int = 8
     dropout: float = 0.0
     target_modules: list[str] = field(default_factory=lambda: ["to_q", "to_k", "to_v", "to_out.0"])
-    attention_modules: list[str] = field(default_factory=lambda: ["attn1", "ref_attn"])
+    attention_modules: list[str] = field(default_factory=lambda: ["attn1", "attn_cross"])
 
 
 @dataclass

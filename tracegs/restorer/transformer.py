@@ -8,6 +8,11 @@ What is added to CogVideoX, and nothing else:
   queries from video tokens, keys/values from ``T_ref``;
 - optional read-out of the final block's retrieval response F (main paper Eq. 7, Eq. supp-retrieval-readout).
 Time embedding, patch/positional embeddings, AdaLN, output head and unpatchify are diffusers' own code.
+
+Module names are those of GSFixer's released restorer, so its transformer folder loads as it is: per block
+``norm_cross`` + ``attn_cross`` (a residual without gate, per-head q/k LayerNorm with eps 1e-6), and the
+projectors ``projector_dino`` / ``projector_vggt`` (``proj`` Linear then ``norm`` LayerNorm each), summed.
+With ``reference_norms=False`` (the embedded restorer) the q/k and projector LayerNorms are left out.
 """
 
 from __future__ import annotations
@@ -74,9 +79,10 @@ class ReferenceAttnProcessor:
         def heads(x: torch.Tensor) -> torch.Tensor:
             return x.view(batch, -1, attn.heads, head_dim).transpose(1, 2)
 
-        response = F.scaled_dot_product_attention(
-            heads(query), heads(key), heads(value), attn_mask=attention_mask
-        )
+        query, key = heads(query), heads(key)
+        if attn.norm_q is not None:  # per-head LayerNorm of queries and keys (GSFixer's reference attention)
+            query, key = attn.norm_q(query), attn.norm_k(key)
+        response = F.scaled_dot_product_attention(query, key, heads(value), attn_mask=attention_mask)
         response = response.transpose(1, 2).reshape(batch, tokens, attn.heads * head_dim)
         if retrieval_sink is not None:
             retrieval_sink["retrieval"] = response
@@ -92,17 +98,25 @@ class ReferenceGuidedBlock(CogVideoXBlock):
     """
 
     def __init__(
-        self, dim: int, num_attention_heads: int, attention_head_dim: int, time_embed_dim: int, **kwargs
+        self,
+        dim: int,
+        num_attention_heads: int,
+        attention_head_dim: int,
+        time_embed_dim: int,
+        reference_norms: bool = True,
+        **kwargs,
     ):
         super().__init__(dim, num_attention_heads, attention_head_dim, time_embed_dim, **kwargs)
         norm_eps = kwargs.get("norm_eps", 1e-5)
         elementwise_affine = kwargs.get("norm_elementwise_affine", True)
-        self.norm_ref = nn.LayerNorm(dim, norm_eps, elementwise_affine)
-        self.ref_attn = Attention(
+        self.norm_cross = nn.LayerNorm(dim, norm_eps, elementwise_affine)
+        self.attn_cross = Attention(
             query_dim=dim,
             cross_attention_dim=dim,  # T_ref is already projected to the hidden width (square LoRA factors)
             dim_head=attention_head_dim,
             heads=num_attention_heads,
+            qk_norm="layer_norm" if reference_norms else None,
+            eps=1e-6,
             bias=kwargs.get("attention_bias", False),
             out_bias=kwargs.get("attention_out_bias", True),
             processor=ReferenceAttnProcessor(),
@@ -134,9 +148,10 @@ class ReferenceGuidedBlock(CogVideoXBlock):
         hidden_states = hidden_states + gate_msa * attn_hidden
         encoder_hidden_states = encoder_hidden_states + text_gate_msa * attn_text
 
-        # (ii) reference cross-attention: video-token queries, T_ref keys/values (supp. Eq. supp-retrieval-qkv)
-        hidden_states = hidden_states + self.ref_attn(
-            self.norm_ref(hidden_states),
+        # (ii) reference cross-attention: video-token queries, T_ref keys/values (supp. Eq. supp-retrieval-qkv),
+        # added without an AdaLN gate
+        hidden_states = hidden_states + self.attn_cross(
+            self.norm_cross(hidden_states),
             encoder_hidden_states=reference_tokens,
             retrieval_sink=retrieval_sink,
         )
@@ -147,6 +162,18 @@ class ReferenceGuidedBlock(CogVideoXBlock):
         hidden_states = hidden_states + gate_ff * ff_output[:, text_length:]
         encoder_hidden_states = encoder_hidden_states + text_gate_ff * ff_output[:, :text_length]
         return hidden_states, encoder_hidden_states
+
+
+class ReferenceProjector(nn.Module):
+    """Proj_2D / Proj_3D of Eq. supp-ref-fusion: a Linear to the hidden width, then (GSFixer) a LayerNorm."""
+
+    def __init__(self, in_features: int, width: int, norm: bool):
+        super().__init__()
+        self.proj = nn.Linear(in_features, width)
+        self.norm = nn.LayerNorm(width) if norm else nn.Identity()
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        return self.norm(self.proj(tokens))
 
 
 class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
@@ -187,6 +214,7 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         patch_bias: bool = True,
         ref_2d_dim: int = 1024,
         ref_3d_dim: int = 2048,
+        reference_norms: bool = True,
         timestep_scale: float = 1.0,
         prediction: str = "velocity",
         clean_min_time: float = 0.05,
@@ -239,6 +267,7 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
                     num_attention_heads,
                     attention_head_dim,
                     time_embed_dim,
+                    reference_norms=reference_norms,
                     dropout=dropout,
                     activation_fn=activation_fn,
                     attention_bias=attention_bias,
@@ -248,8 +277,8 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
                 for _ in range(num_layers)
             ]
         )
-        self.ref_proj_2d = nn.Linear(ref_2d_dim, inner_dim)  # Proj_2D (DINOv2 features)
-        self.ref_proj_3d = nn.Linear(ref_3d_dim, inner_dim)  # Proj_3D (VGGT features)
+        self.projector_dino = ReferenceProjector(ref_2d_dim, inner_dim, reference_norms)  # Proj_2D (DINOv2)
+        self.projector_vggt = ReferenceProjector(ref_3d_dim, inner_dim, reference_norms)  # Proj_3D (VGGT)
         self._rotary_cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
         if prediction == "residual":
             # A fresh residual restorer starts as the identity on its input rendering (x0 = cond), like
@@ -263,8 +292,8 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
             raise ValueError(
                 f"ref_2d {tuple(ref_2d.shape)} and ref_3d {tuple(ref_3d.shape)} need the same (B, R)"
             )
-        dtype = self.ref_proj_2d.weight.dtype
-        return self.ref_proj_2d(ref_2d.to(dtype)) + self.ref_proj_3d(ref_3d.to(dtype))
+        dtype = self.projector_dino.proj.weight.dtype
+        return self.projector_dino(ref_2d.to(dtype)) + self.projector_vggt(ref_3d.to(dtype))
 
     def _rotary_embedding(self, frames: int, height: int, width: int, device: torch.device):
         """3D RoPE for a latent grid, computed as CogVideoX's pipelines do (cached per grid)."""

@@ -185,20 +185,16 @@ def test_bad_input_fails_clearly_and_writes_nothing(tmp_path, backbone, damage):
 
 @pytest.mark.parametrize("source_kind", ["dense", "restorer"])
 def test_pseudo_target_sources(tmp_path, prepared, source_kind):
-    """The dense rendering as target, or a frozen restorer (adapter file) applied to R_d as in the paper."""
-    from tracegs.restorer.adapters import add_adapter, save_adapter
+    """The dense rendering as target, or the frozen pretrained restorer itself (variant A, no adapter) applied
+    to R_d as in the paper."""
+    from tracegs.restorer.adapters import adapter_names
     from tracegs.restorer.build import build_backbone
     from tracegs.restorer.config import BackboneConfig
 
     _, synthetic, source, fitted, _ = prepared
-    backbone = build_backbone(BackboneConfig())  # fresh: loading an adapter changes the backbone
-    adapter = None
-    if source_kind == "restorer":
-        add_adapter(backbone.transformer, "pretrained", backbone.cfg.lora)
-        adapter = str(tmp_path / "pretrained.safetensors")
-        save_adapter(backbone.transformer, "pretrained", adapter)
+    backbone = build_backbone(BackboneConfig())
     # Same work_dir: the fits are reused, only the clips are rendered and encoded again.
-    prepare = replace(fitted, cache_dir=str(tmp_path / "cache"), pseudo_target=source_kind, pseudo_adapter=adapter)
+    prepare = replace(fitted, cache_dir=str(tmp_path / "cache"), pseudo_target=source_kind)
     manifest = json.loads(run_prepare(prepare, source, backbone, synthetic, progress=False).read_text())
     assert manifest["pseudo_target"] == source_kind
     with safe_open(str(tmp_path / "cache" / manifest["scenes"]["scene_000"]["clips"][0]), framework="pt") as f:
@@ -208,15 +204,7 @@ def test_pseudo_target_sources(tmp_path, prepared, source_kind):
         assert torch.equal(target, dense)
     else:
         assert target.shape == dense.shape and not torch.equal(target, dense)
-
-
-def test_restorer_source_needs_its_adapter_file(tmp_path, prepared, backbone):
-    _, synthetic, source, fitted, _ = prepared
-    prepare = replace(fitted, cache_dir=str(tmp_path / "cache"), pseudo_target="restorer",
-                      pseudo_adapter=str(tmp_path / "missing.safetensors"))
-    with pytest.raises(PrepareError, match="missing.safetensors"):
-        run_prepare(prepare, source, backbone, synthetic, progress=False)
-    assert not (tmp_path / "cache").exists()
+    assert adapter_names(backbone.transformer) == []  # the generator is the base: no adapter is attached
 
 
 def test_changed_settings_are_not_mistaken_for_finished_work(tmp_path, prepared, backbone):

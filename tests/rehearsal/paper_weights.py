@@ -14,7 +14,6 @@ from pathlib import Path
 
 import torch
 
-from tracegs.restorer.adapters import add_adapter, save_adapter
 from tracegs.restorer.build import create_transformer
 from tracegs.restorer.config import BackboneConfig
 
@@ -23,12 +22,11 @@ VGGT_REGISTER_TOKENS = 4  # VGGT's aggregator puts a camera token and four regis
 
 
 def write_transformer(cfg: BackboneConfig, weights: Path) -> None:
-    """GSFixer's restorer (reference-guided CogVideoX transformer) and its pseudo-target adapter phi_pre."""
+    """GSFixer's restorer (reference-guided CogVideoX transformer): the frozen base, variant A and the
+    pseudo-target generator alike."""
     torch.manual_seed(0)
     transformer = create_transformer(cfg.transformer)
     transformer.save_pretrained(weights / "gsfixer" / "transformer")
-    add_adapter(transformer, "pseudo_target", cfg.lora)
-    save_adapter(transformer, "pseudo_target", weights / "gsfixer" / "adapter.safetensors")
 
 
 def write_vae(cfg: BackboneConfig, weights: Path) -> None:

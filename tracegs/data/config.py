@@ -135,7 +135,6 @@ class PrepareConfig:
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)
-    pseudo_adapter: str | None = None  # adapter safetensors for pseudo_target="restorer"
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = field(default_factory=CaptionConfig)
     shard_index: int = 0

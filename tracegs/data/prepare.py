@@ -112,11 +112,9 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
 
 
 def require_inputs(cfg: PrepareConfig) -> None:
-    """What preparation needs from this machine and disk: the rasterizer, the adapter file, the captioner.
+    """What preparation needs from this machine and disk: the rasterizer and the captioner.
     The settings' own rules are checked once, on the composed config (tracegs.config.validate)."""
     require_available(cfg.fit.backend, "data.prepare.fit.backend")
-    if cfg.pseudo_target == "restorer" and (cfg.pseudo_adapter is None or not Path(cfg.pseudo_adapter).is_file()):
-        raise PrepareError(f"prepare.pseudo_adapter={cfg.pseudo_adapter!r}: adapter file not found")
     require_captioner(cfg.captions, "data.prepare.captions")
 
 
@@ -238,15 +236,15 @@ def shard_is_valid(path: Path, settings: str | None = None) -> bool:
             and not non_finite_keys(tensors))
 
 
-def restorer_pipeline(backbone: Backbone, cfg: PrepareConfig):
-    """The frozen pseudo-target generator (supplement A.4): backbone + the pretrained adapter phi_pre."""
-    from tracegs.restorer.adapters import load_adapter
+def restorer_pipeline(backbone: Backbone):
+    """The frozen pseudo-target generator (supplement A.4): the pretrained restorer itself, no adapter.
+
+    GSFixer releases one transformer folder, so theta with phi_pre is that folder: the generator is the frozen
+    base, which is also variant (A) and Stage 1's starting point (B = 0 at attachment, Eq. supp-lora).
+    """
     from tracegs.restorer.sampler import RestorationPipeline
 
-    # phi_pre comes with the pretrained restorer, at its own rank: it is not checked against backbone.lora.
-    load_adapter(backbone.transformer, "pseudo_target", cfg.pseudo_adapter, trainable=False,
-                 field="data.prepare.pseudo_adapter")
-    return RestorationPipeline(backbone, adapter="pseudo_target")
+    return RestorationPipeline(backbone)
 
 
 def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
@@ -556,7 +554,7 @@ def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, sourc
             plans.append(plan_scene(source, prepare, name))
         except (SceneFormatError, ValueError) as error:
             raise PrepareError(f"scene {name}: {error}") from error
-    pipeline = restorer_pipeline(backbone, prepare) if prepare.pseudo_target == "restorer" else None
+    pipeline = restorer_pipeline(backbone) if prepare.pseudo_target == "restorer" else None
     cache_dir = Path(prepare.cache_dir)
     for plan in plans:
         for directory in (cache_dir / plan.scene.name, Path(prepare.work_dir) / plan.scene.name):

@@ -3,9 +3,12 @@
 Usage: ``.venv/bin/python benchmarks/stage2_memory.py [--scale auto|paper|rehearsal] [--rollout 10]``
 
 One Stage-2 training step (supplement A.4: batch 2, N = 10 visited states resampled from M = 50, bf16 base under
-``bf16-mixed``, the configured guidance) of ``experiment=paper`` (CogVideoX-5B shapes, 49 x 480 x 720 clips:
-13 x 60 x 90 latents, 2 x 37^2 reference tokens, 226 text tokens) or ``experiment=rehearsal`` (the same code
-paths at CPU sizes). Weights are random (a benchmark of memory, not of quality), the Stage-1 adapter too.
+``bf16-mixed``) of ``experiment=paper`` (CogVideoX-5B shapes, 49 x 480 x 720 clips: 13 x 60 x 90 latents,
+2 x 25 x 37 reference tokens, 226 text tokens) or ``experiment=rehearsal`` (the same code paths at CPU sizes),
+twice: unguided as the paper writes the rollout (``stage.guidance_scale`` = 1, the configured value) and under
+deployment's guidance (``backbone.sampler.guidance_scale``, which earlier versions also used in Stage 2).
+The student-activation figure is the memory of one visited state's student graph, (retain - stepwise) / (N - 1):
+``retain`` keeps N graphs alive, ``stepwise`` one. Weights are random (a benchmark of memory, not of quality), the Stage-1 adapter too.
 ``auto`` takes ``paper`` when CUDA is available.
 
 - GPU: ``torch.cuda.max_memory_allocated`` over the step, per mode, in one process (reset between modes).
@@ -45,17 +48,20 @@ def compose_experiment(scale: str):
     with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
         cfg = compose(config_name="train", overrides=[f"experiment={scale}", "stage=stage2",
                                                       "backbone.transformer.pretrained_path=null"])
-    return OmegaConf.to_object(cfg.backbone), cfg.trainer.precision
+    return (OmegaConf.to_object(cfg.backbone), cfg.trainer.precision, cfg.stage.guidance_scale,
+            (cfg.experiment.frame_height, cfg.experiment.frame_width))
 
 
-def _batch(backbone, batch_size: int) -> dict:
+def _batch(backbone, batch_size: int, frame_size: tuple[int, int]) -> dict:
+    from tracegs.restorer.encoders import reference_grid
+
     t = backbone.transformer
     frames = (t.sample_frames - 1) // t.temporal_compression_ratio + 1
-    refs = 2 * (backbone.reference_encoder.image_size // 14) ** 2  # two views of DINOv2 / VGGT patch-14 tokens
-    return random_batch(t, frames, refs, batch_size, seed=0)
+    rows, cols = reference_grid(backbone.reference_encoder, *frame_size)
+    return random_batch(t, frames, 2 * rows * cols, batch_size, seed=0)  # two views of patch-14 tokens
 
 
-def _module(backbone, mode: str, rollout: int, adapter: Path, device: str):
+def _module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
     import torch
 
     from tracegs.restorer.build import create_transformer
@@ -75,23 +81,23 @@ def _module(backbone, mode: str, rollout: int, adapter: Path, device: str):
     return Stage2DistillationModule(
         transformer, build_schedule(backbone.schedule), adapter, OptimizerConfig(lr=1e-5),
         rollout_steps=rollout, deploy_steps=backbone.schedule.deploy_steps, memory_mode=mode,
-        lora=backbone.lora, guidance_scale=backbone.sampler.guidance_scale)
+        lora=backbone.lora, guidance_scale=guidance)
 
 
-def _step_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter: str) -> float:
+def _step_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter: str, guidance: float) -> float:
     """Peak memory (MiB) of the second Stage-2 step (the first one allocates AdamW's state)."""
     import torch
     from torch.utils.data import DataLoader
 
-    backbone, precision = compose_experiment(scale)
+    backbone, precision, _, frame_size = compose_experiment(scale)
     cuda = scale == "paper"
     device = "cuda" if cuda else "cpu"
-    module = _module(backbone, mode, rollout, Path(adapter), device)
+    module = _module(backbone, mode, rollout, Path(adapter), device, guidance)
     probe = _GpuProbe() if cuda else _StepProbe()
     trainer = L.Trainer(accelerator="gpu" if cuda else "cpu", devices=1, precision=precision, max_steps=2,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, callbacks=[probe])
-    trainer.fit(module, train_dataloaders=DataLoader([_batch(backbone, batch_size)], batch_size=None))
+    trainer.fit(module, train_dataloaders=DataLoader([_batch(backbone, batch_size, frame_size)], batch_size=None))
     if cuda:
         del module, trainer
         torch.cuda.empty_cache()
@@ -115,16 +121,17 @@ class _GpuProbe(L.Callback):
         self.peak_mib.append(torch.cuda.max_memory_allocated() / MIB)
 
 
-def _worker(scale, mode, rollout, batch_size, adapter, queue) -> None:
+def _worker(scale, mode, rollout, batch_size, adapter, guidance, queue) -> None:
     import torch
 
     torch.set_num_threads(1)
-    queue.put(_step_peak_mib(scale, mode, rollout, batch_size, adapter))
+    queue.put(_step_peak_mib(scale, mode, rollout, batch_size, adapter, guidance))
 
 
-def _cpu_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter: Path) -> float:
+def _cpu_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter: Path, guidance: float) -> float:
     """One fresh process per mode; tensors above 64 KiB are their own mappings, so RSS follows live tensors."""
-    return in_fresh_process(_worker, (scale, mode, rollout, batch_size, str(adapter)), mode, mmap_threshold=True)
+    return in_fresh_process(_worker, (scale, mode, rollout, batch_size, str(adapter), guidance), mode,
+                            mmap_threshold=True)
 
 
 def _make_adapter(backbone, path: Path) -> None:
@@ -152,7 +159,7 @@ def encoder_bytes() -> dict[str, int]:
     used to load besides the transformer. VGGT is not on PyPI; its 1.26 B parameters are quoted from its card."""
     import torch
     from diffusers import AutoencoderKLCogVideoX
-    from transformers import Dinov2Config, Dinov2Model, T5Config, T5EncoderModel
+    from transformers import Dinov2WithRegistersConfig, Dinov2WithRegistersModel, T5Config, T5EncoderModel
 
     from tracegs.restorer.memory import module_bytes
 
@@ -162,8 +169,8 @@ def encoder_bytes() -> dict[str, int]:
     with torch.device("meta"):
         t5 = T5EncoderModel(T5Config(vocab_size=32128, d_model=4096, d_kv=64, d_ff=10240, num_layers=24,
                                      num_heads=64, feed_forward_proj="gated-gelu"))
-        dino = Dinov2Model(Dinov2Config(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16,
-                                        image_size=518, patch_size=14))
+        dino = Dinov2WithRegistersModel(Dinov2WithRegistersConfig(
+            hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, image_size=518, patch_size=14))
         vae = AutoencoderKLCogVideoX()
     return {"t5_xxl_encoder": size(t5), "dinov2_large": size(dino), "cogvideox_vae": size(vae),
             "vggt_1b": int(1.26e9) * 2}
@@ -184,26 +191,35 @@ def main(argv: list[str] | None = None) -> dict:
         sys.exit("--scale paper needs a CUDA GPU (use --scale rehearsal on a CPU)")
     if scale == "rehearsal" and not Path("/proc/self/clear_refs").exists():
         sys.exit("the CPU measurement needs Linux /proc/self/clear_refs to reset the peak resident set size")
-    backbone, _ = compose_experiment(scale)
-    peaks = {}
+    backbone, _, unguided, _ = compose_experiment(scale)
+    guided = backbone.sampler.guidance_scale
+    peaks: dict[float, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         adapter = Path(tmp) / "stage1_adapter.safetensors"
         _make_adapter(backbone, adapter)
-        for mode in MODES:
-            peaks[mode] = (_step_peak_mib(scale, mode, args.rollout, args.batch, str(adapter)) if scale == "paper"
-                           else _cpu_peak_mib(scale, mode, args.rollout, args.batch, adapter))
-    paper_backbone, _ = compose_experiment("paper")
+        for guidance in (unguided, guided):
+            peaks[guidance] = {
+                mode: (_step_peak_mib(scale, mode, args.rollout, args.batch, str(adapter), guidance)
+                       if scale == "paper" else _cpu_peak_mib(scale, mode, args.rollout, args.batch, adapter, guidance))
+                for mode in MODES}
+    activation = {g: (p["retain"] - p["stepwise"]) / max(args.rollout - 1, 1) for g, p in peaks.items()}
+    paper_backbone = compose_experiment("paper")[0]
     components = training_component_bytes(paper_backbone)
     encoders = encoder_bytes()
-    print(f"Stage-2 step at {scale} shapes, batch {args.batch}, N={args.rollout}, guidance "
-          f"{backbone.sampler.guidance_scale}: peak " + ", ".join(f"{m} {v:.1f} MiB" for m, v in peaks.items()))
+    for guidance, label in ((unguided, "unguided (the paper)"), (guided, "deployment's guidance (before)")):
+        print(f"Stage-2 step at {scale} shapes, batch {args.batch}, N={args.rollout}, guidance {guidance} {label}: "
+              "peak " + ", ".join(f"{m} {v:.1f} MiB" for m, v in peaks[guidance].items())
+              + f"; student activations per visited state {activation[guidance]:.1f} MiB")
     print("paper-shape bytes per training-rank component (meta device): "
           + ", ".join(f"{k} {v / MIB:.1f} MiB" for k, v in components.items() if k != "adapter_params"))
     print("encoders no longer built on training ranks (bf16): "
           + ", ".join(f"{k} {v / MIB:.1f} MiB" for k, v in encoders.items()))
     summary = {"scale": scale, "device": "cuda" if scale == "paper" else "cpu", "batch": args.batch,
-               "rollout": args.rollout, "guidance": backbone.sampler.guidance_scale,
-               "peak_mib": {m: round(v, 2) for m, v in peaks.items()},
+               "rollout": args.rollout, "guidance": unguided, "guidance_before": guided,
+               "peak_mib": {m: round(v, 2) for m, v in peaks[unguided].items()},
+               "peak_mib_guidance_before": {m: round(v, 2) for m, v in peaks[guided].items()},
+               "student_activation_mib_per_state": round(activation[unguided], 2),
+               "student_activation_mib_per_state_guidance_before": round(activation[guided], 2),
                "paper_component_bytes": components, "paper_encoder_bytes_not_built": encoders}
     print(json.dumps(summary))
     return summary

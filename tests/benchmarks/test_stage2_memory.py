@@ -15,7 +15,7 @@ from tracegs.restorer.memory import training_component_bytes  # noqa: E402
 
 
 def test_paper_component_bytes_on_the_meta_device():
-    backbone, _ = stage2_memory.compose_experiment("paper")
+    backbone = stage2_memory.compose_experiment("paper")[0]
     sizes = training_component_bytes(backbone)
     assert sizes["adapter_params"] == 66_060_288  # supplement: 66.06 M-parameter adapters (rank 32)
     assert sizes["student_adapter"] == 4 * sizes["adapter_params"]  # float32 factors on the bf16 base

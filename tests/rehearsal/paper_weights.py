@@ -70,12 +70,13 @@ def write_t5(cfg: BackboneConfig, weights: Path) -> None:
 
 
 def write_dinov2(cfg: BackboneConfig, weights: Path) -> None:
-    from transformers import Dinov2Config, Dinov2Model
+    from transformers import Dinov2WithRegistersConfig, Dinov2WithRegistersModel
 
-    config = Dinov2Config(hidden_size=cfg.transformer.ref_2d_dim, num_hidden_layers=1, num_attention_heads=2,
-                          intermediate_size=2 * cfg.transformer.ref_2d_dim, patch_size=14,
-                          image_size=cfg.reference_encoder.image_size)
-    Dinov2Model(config).save_pretrained(weights / "dinov2-large")
+    config = Dinov2WithRegistersConfig(hidden_size=cfg.transformer.ref_2d_dim, num_hidden_layers=1,
+                                       num_attention_heads=2, intermediate_size=2 * cfg.transformer.ref_2d_dim,
+                                       patch_size=14, image_size=cfg.reference_encoder.image_size,
+                                       num_register_tokens=4)
+    Dinov2WithRegistersModel(config).save_pretrained(weights / "dinov2-with-registers-large")
 
 
 def write_vggt_config(cfg: BackboneConfig, weights: Path) -> None:

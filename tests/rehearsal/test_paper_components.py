@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.codec import CogVideoXCodec
-from tracegs.restorer.encoders import PretrainedReferenceEncoder, T5TextEncoder
+from tracegs.restorer.encoders import PretrainedReferenceEncoder, T5TextEncoder, reference_grid
 from tracegs.restorer.loading import MissingPackageError
 
 
@@ -46,7 +46,8 @@ def test_paper_backbone_loads_every_component(rehearsal_root, vggt_double):
     assert latents.shape == (1, 3, cfg.transformer.latent_channels, cfg.transformer.sample_height,
                              cfg.transformer.sample_width)
     ref_2d, ref_3d = backbone.reference_encoder(frames[:, :2])
-    tokens = 2 * (cfg.reference_encoder.image_size // 14) ** 2
+    rows, cols = reference_grid(cfg.reference_encoder, frames.shape[-2], frames.shape[-1])
+    tokens = 2 * rows * cols
     assert ref_2d.shape == (1, tokens, cfg.transformer.ref_2d_dim)
     assert ref_3d.shape == (1, tokens, cfg.transformer.ref_3d_dim)
 

@@ -62,12 +62,12 @@ def test_offloaded_encoders_visit_the_accelerator_one_at_a_time(rehearsal_root, 
 def _paper_weights_configs(folder):
     """Published configurations of the paper's frozen components, as ``config.json`` files (no weights)."""
     from diffusers import AutoencoderKLCogVideoX
-    from transformers import Blip2Config, Dinov2Config, OPTConfig, T5Config
+    from transformers import Blip2Config, Dinov2WithRegistersConfig, OPTConfig, T5Config
 
     T5Config(vocab_size=32128, d_model=4096, d_kv=64, d_ff=10240, num_layers=24, num_heads=64,
              feed_forward_proj="gated-gelu").save_pretrained(folder / "text_encoder")  # T5 v1.1 XXL
-    Dinov2Config(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, image_size=518,
-                 patch_size=14).save_pretrained(folder / "dinov2-large")
+    Dinov2WithRegistersConfig(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, image_size=518,
+                              patch_size=14).save_pretrained(folder / "dinov2-with-registers-large")
     with torch.device("meta"):
         AutoencoderKLCogVideoX().save_config(folder / "vae")  # diffusers' defaults are CogVideoX's VAE
     (folder / "VGGT-1B").mkdir()
@@ -82,7 +82,7 @@ def test_paper_figure_at_paper_shapes_on_the_meta_device(tmp_path, vggt_double):
     # The paper's backbone as users compose it (conf/backbone/cogvideox5b.yaml), its folders pointed here.
     cfg = OmegaConf.to_object(rehearsal_config(tmp_path, "evaluate", ("experiment=paper",
         "backbone.transformer.pretrained_path=null", f"backbone.codec.pretrained_path={tmp_path / 'vae'}",
-        f"backbone.reference_encoder.dino_path={tmp_path / 'dinov2-large'}",
+        f"backbone.reference_encoder.dino_path={tmp_path / 'dinov2-with-registers-large'}",
         f"backbone.reference_encoder.vggt_path={tmp_path / 'VGGT-1B'}",
         f"backbone.text_encoder.pretrained_path={tmp_path / 'text_encoder'}",
         "backbone.text_encoder.tokenizer_path=null")).backbone)

@@ -3,7 +3,8 @@ import dataclasses
 import pytest
 import torch
 from tokenizers import Tokenizer, models, pre_tokenizers
-from transformers import Dinov2Config, Dinov2Model, PreTrainedTokenizerFast, T5Config, T5EncoderModel
+from transformers import (Dinov2Config, Dinov2Model, Dinov2WithRegistersConfig, Dinov2WithRegistersModel,
+                          PreTrainedTokenizerFast, T5Config, T5EncoderModel)
 
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import QUALITY_SUFFIX, BackboneConfig, ReferenceEncoderConfig, TextEncoderConfig
@@ -13,6 +14,8 @@ from tracegs.restorer.encoders import (
     EmbeddedTextEncoder,
     T5TextEncoder,
     build_reference_encoder,
+    reference_grid,
+    reference_images,
 )
 from tracegs.restorer.loading import MissingPackageError
 
@@ -47,21 +50,45 @@ def test_embedded_text_encoder_prompt_null_and_determinism():
     assert not torch.equal(encoder.encode([""])[0], null[0])  # dropout uses zeros, not the empty caption
 
 
-def test_dinov2_from_local_directory(tmp_path):
-    config = Dinov2Config(
-        hidden_size=16,
-        num_hidden_layers=1,
-        num_attention_heads=2,
-        intermediate_size=32,
-        patch_size=7,
-        image_size=28,
-    )
+def test_dinov2_with_registers_from_local_directory_keeps_the_patch_tokens(tmp_path):
+    """GSFixer's inference: the preprocessed view, unnormalised, and ``last_hidden_state[:, 5:]``."""
+    config = Dinov2WithRegistersConfig(hidden_size=16, num_hidden_layers=1, num_attention_heads=2,
+                                       intermediate_size=32, patch_size=14, image_size=56, num_register_tokens=4)
     torch.manual_seed(0)
-    Dinov2Model(config).save_pretrained(tmp_path / "dino")
-    encoder = Dinov2Encoder(ReferenceEncoderConfig(dino_path=str(tmp_path / "dino"), image_size=28))
-    tokens = encoder(torch.rand(3, 3, 48, 72))
-    assert tokens.shape == (3, 16, 16) and encoder.dim == 16
+    Dinov2WithRegistersModel(config).save_pretrained(tmp_path / "dino")
+    cfg = ReferenceEncoderConfig(dino_path=str(tmp_path / "dino"), image_size=56)
+    encoder = Dinov2Encoder(cfg)
+    views = torch.rand(3, 3, 48, 72)
+    tokens = encoder(views)
+    assert reference_grid(cfg, 48, 72) == (3, 4)  # 48 x 72 -> 42 x 56 pixels (aspect kept, multiple of 14)
+    assert tokens.shape == (3, 3 * 4, 16) and encoder.dim == 16
+    with torch.no_grad():
+        full = encoder.model(pixel_values=reference_images(views, cfg)).last_hidden_state
+    torch.testing.assert_close(tokens, full[:, 5:])
     assert not any(p.requires_grad for p in encoder.model.parameters())
+
+
+def test_dinov2_without_registers_is_refused_in_one_line(tmp_path):
+    config = Dinov2Config(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
+                          patch_size=14, image_size=28)
+    Dinov2Model(config).save_pretrained(tmp_path / "dino")
+    with pytest.raises(ValueError, match="has 0 register tokens; GSFixer's DINOv2 has 4"):
+        Dinov2Encoder(ReferenceEncoderConfig(dino_path=str(tmp_path / "dino"), image_size=28))
+
+
+@pytest.mark.parametrize(("size", "expected"), [((480, 720), (350, 518)), ((720, 480), (518, 518)),
+                                                ((540, 960), (294, 518))])
+def test_reference_images_follow_vggts_crop_preprocessing(size, expected):
+    """VGGT's load_and_preprocess_images, mode "crop": width 518, height round(H * 518 / W / 14) * 14, then a
+    centre crop to 518 rows; values stay in [0, 1]."""
+    cfg = ReferenceEncoderConfig()
+    views = torch.rand(2, 3, *size)
+    out = reference_images(views, cfg)
+    assert out.shape == (2, 3, *expected) and out.min() >= 0 and out.max() <= 1
+    assert reference_grid(cfg, *size) == (expected[0] // 14, expected[1] // 14)
+    if size == (720, 480):  # 777 / 14 = 55.5 rounds (half to even, as Python's round) to 56: 784 rows, middle 518
+        full = torch.nn.functional.interpolate(views, size=(784, 518), mode="bicubic", antialias=True).clamp(0, 1)
+        torch.testing.assert_close(out, full[..., 133:651, :])
 
 
 def test_t5_from_local_directory(tmp_path):

@@ -222,3 +222,36 @@ def test_rollout_visits_the_deployment_samplers_states(stage1_adapter, guidance,
             assert torch.equal(call["text"][:batch_size], batch["text"])
             if doubled == 2:
                 assert not call["text"][batch_size:].any()  # the all-zero unconditional text
+
+
+def test_paper_stage2_rollout_is_unguided_ten_student_and_ten_teacher_forwards(stage1_adapter):
+    """Supplement: per rollout, N gradient-tracked student forwards u_i = v(z_{t'_i}, t'_i, R_s) and N no-gradient
+    teacher forwards, at N = 10 (experiment=paper); guidance is deployment's, not training's."""
+    from types import SimpleNamespace
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from tracegs.cli.app import CONF_DIR
+    from tracegs.config.schema import register_configs
+    from tracegs.training.run import build_module
+
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = OmegaConf.to_object(compose(config_name="train", overrides=[
+            "experiment=paper", "stage=stage2", f"stage.init_adapter={stage1_adapter}",
+            f"backbone.lora.rank={TINY_LORA.rank}", f"backbone.lora.alpha={TINY_LORA.alpha}"]))
+    assert cfg.stage.rollout_steps == 10 and cfg.backbone.sampler.guidance_scale == 6.0
+    module = build_module(cfg, SimpleNamespace(transformer=make_transformer(), schedule=make_schedule()))
+    assert module.guidance_scale == 1.0
+    batch = make_batch()
+    calls, handle = record_queries(module)
+    fit_steps(module, batch, steps=1)
+    handle.remove()
+    students = [c for c in calls if c["role"] == STUDENT]
+    teachers = [c for c in calls if c["role"] == TEACHER]
+    assert len(calls) == 20 and len(students) == 10 and len(teachers) == 10
+    assert all(c["grad"] for c in students) and not any(c["grad"] for c in teachers)
+    # unguided: one conditional batch per forward, the clip's own text (no all-zero unconditional half)
+    assert all(c["noisy"].shape[0] == batch["target"].shape[0] for c in calls)
+    assert all(torch.equal(c["text"], batch["text"]) for c in calls)

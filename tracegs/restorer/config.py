@@ -117,9 +117,9 @@ class ReferenceEncoderConfig:
     patch_size: int = 8
     dino_path: str | None = None
     vggt_path: str | None = None
-    image_size: int = 518  # both DINOv2 and VGGT see the views at this square size (patch 14 -> 37x37 tokens)
-    image_mean: list[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])
-    image_std: list[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])
+    # GSFixer (the paper is silent): DINOv2 and VGGT both see VGGT's preprocessing, width 518 with the aspect
+    # ratio kept (480 x 720 -> 350 x 518, 25 x 37 patches of 14), unnormalised [0, 1] (encoders.reference_images)
+    image_size: int = 518
     # Weights of DINOv2 and VGGT (frozen, inference only); paper scale "bfloat16". Tokens leave as float32.
     dtype: str = "float32"
 
@@ -166,13 +166,11 @@ class ScheduleConfig:
 
 @dataclass
 class SamplerConfig:
-    """Deployment sampling, and the Stage-2 rollout, which is the same sampler (training/stage2.py).
+    """Deployment sampling (Alg. 1, Restore).
 
-    ``guidance_scale`` is the one classifier-free guidance value of both: deployment restores with it, and
-    Stage 2 rolls the student out, and queries teacher and student, under it. 1 = no guidance (one restorer
-    evaluation per state). Any other value costs a second, unconditional evaluation per state: twice the
-    compute at deployment, and in Stage 2 twice the student and teacher compute and twice the student
-    activation memory per visited state. The paper states no value; CogVideoX's pipelines use 6.
+    ``guidance_scale``: classifier-free guidance of deployment. 1 = no guidance (one restorer evaluation per
+    state); any other value costs a second, unconditional evaluation per state. The paper states no value;
+    CogVideoX's and GSFixer's pipelines use 6. Stage 2's rollout has its own setting (``stage.guidance_scale``).
     """
 
     guidance_scale: float = 1.0

@@ -106,15 +106,53 @@ class EmbeddedReferenceEncoder:
         return ref_2d, ref_3d
 
 
+REFERENCE_PATCH = 14  # DINOv2's and VGGT's patch size
+# GSFixer drops the first five DINOv2 tokens (CLS + four registers): the with-registers ViT-L/14.
+DINO_PREFIX_TOKENS = 5
+
+
+def reference_grid(cfg: ReferenceEncoderConfig, height: int, width: int) -> tuple[int, int]:
+    """Patch rows and columns of a ``height x width`` view after ``reference_images`` (VGGT's "crop" rule)."""
+    size = cfg.image_size
+    rows = round(height * (size / width) / REFERENCE_PATCH)
+    return min(rows, size // REFERENCE_PATCH), size // REFERENCE_PATCH
+
+
+def reference_images(images: torch.Tensor, cfg: ReferenceEncoderConfig) -> torch.Tensor:
+    """(N, 3, H, W) in [0, 1] -> what GSFixer feeds both DINOv2 and VGGT: VGGT's ``load_and_preprocess_images``
+    ("crop"): width ``image_size`` (518), height scaled with the aspect ratio to a multiple of 14, bicubic,
+    centre-cropped to ``image_size`` if taller; values stay in [0, 1] (VGGT normalises inside its aggregator,
+    and GSFixer gives DINOv2 the same unnormalised tensor). Written for tensors because our frames are tensors;
+    torch's antialiased bicubic is its PIL-compatible filter (no 8-bit rounding in between)."""
+    size = cfg.image_size
+    height = round(images.shape[-2] * (size / images.shape[-1]) / REFERENCE_PATCH) * REFERENCE_PATCH
+    x = F.interpolate(images.float(), size=(height, size), mode="bicubic", align_corners=False, antialias=True)
+    x = x.clamp(0.0, 1.0)
+    if height > size:
+        top = (height - size) // 2
+        x = x[..., top:top + size, :]
+    return x
+
+
 class Dinov2Encoder:
-    """DINOv2 through transformers from a local directory; per-view patch tokens (CLS dropped)."""
+    """DINOv2 with registers through transformers from a local directory; per-view patch tokens.
+
+    As GSFixer's inference: ``last_hidden_state[:, 5:]`` (CLS and the four registers dropped) of the
+    preprocessed views, so the tokens line up one-to-one with VGGT's patch tokens and can be added.
+    """
 
     def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
-        from transformers import Dinov2Model
+        from transformers import AutoModel
 
         path = require_local_dir(cfg.dino_path, "reference_encoder.dino_path")
         dtype = torch_dtype(cfg.dtype, "reference_encoder.dtype")
-        self.model = Dinov2Model.from_pretrained(path, torch_dtype=dtype).to(_home(device, offload))
+        self.model = AutoModel.from_pretrained(path, torch_dtype=dtype).to(_home(device, offload))
+        registers = getattr(self.model.config, "num_register_tokens", 0)
+        if 1 + registers != DINO_PREFIX_TOKENS:
+            raise ValueError(
+                f"reference_encoder.dino_path={str(path)!r} has {registers} register tokens; GSFixer's DINOv2 has "
+                f"{DINO_PREFIX_TOKENS - 1} (dinov2-with-registers-large)"
+            )
         self.model.eval().requires_grad_(False)
         self.cfg, self.device, self.offload = cfg, device, offload
         self.dim = int(self.model.config.hidden_size)
@@ -127,20 +165,18 @@ class Dinov2Encoder:
     @torch.no_grad()
     def __call__(self, images: torch.Tensor) -> torch.Tensor:
         """images (N, 3, H, W) in [0, 1] -> (N, tokens, D2)."""
-        size = self.cfg.image_size
-        x = F.interpolate(
-            images.float(), size=(size, size), mode="bilinear", align_corners=False, antialias=True
-        )
-        mean = torch.tensor(self.cfg.image_mean, device=x.device).view(1, 3, 1, 1)
-        std = torch.tensor(self.cfg.image_std, device=x.device).view(1, 3, 1, 1)
         with on_device(self.model, self.device, self.offload):
-            pixels = ((x - mean) / std).to(self.device, self.model.dtype)
+            pixels = reference_images(images, self.cfg).to(self.device, self.model.dtype)
             out = self.model(pixel_values=pixels).last_hidden_state
-        return out[:, 1:].float()
+        return out[:, DINO_PREFIX_TOKENS:].float()
 
 
 class VggtEncoder:
-    """VGGT aggregator tokens of the reference pair, processed jointly (needs the ``vggt`` package)."""
+    """VGGT aggregator tokens of the reference pair, processed jointly (needs the ``vggt`` package).
+
+    As GSFixer's inference: ``output_list[-1]`` (frame and global attention of the last layer, concatenated)
+    from ``patch_start_idx`` on (the camera token and registers dropped).
+    """
 
     def __init__(self, cfg: ReferenceEncoderConfig, device: torch.device | str = "cpu", offload: bool = False):
         try:
@@ -168,12 +204,9 @@ class VggtEncoder:
     def __call__(self, ref_images: torch.Tensor) -> torch.Tensor:
         """ref_images (B, 2, 3, H, W) in [0, 1] -> (B, 2, tokens, D3) from the last aggregator layer."""
         b, v = ref_images.shape[:2]
-        size = self.cfg.image_size
-        x = F.interpolate(
-            ref_images.flatten(0, 1).float(), size=(size, size), mode="bilinear", align_corners=False
-        )
+        x = reference_images(ref_images.flatten(0, 1), self.cfg)
         with on_device(self.model, self.device, self.offload):
-            pixels = x.view(b, v, 3, size, size).to(self.device, next(self.model.parameters()).dtype)
+            pixels = x.view(b, v, *x.shape[1:]).to(self.device, next(self.model.parameters()).dtype)
             tokens, patch_start = self.model.aggregator(pixels)
         return tokens[-1][:, :, patch_start:].float()
 

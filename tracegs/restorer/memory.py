@@ -87,9 +87,9 @@ def _t5(path: Path) -> torch.nn.Module:
 
 
 def _dinov2(path: Path) -> torch.nn.Module:
-    from transformers import Dinov2Config, Dinov2Model
+    from transformers import AutoConfig, AutoModel
 
-    return _meta(lambda: Dinov2Model(Dinov2Config.from_pretrained(path)))
+    return _meta(lambda: AutoModel.from_config(AutoConfig.from_pretrained(path)))
 
 
 def _vggt(path: Path) -> torch.nn.Module:

@@ -78,6 +78,10 @@ class StageConfig:
     batch_size: int | None = None
     rollout_steps: int = 5
     memory_mode: MemoryMode = MemoryMode.stepwise
+    # Stage 2: classifier-free guidance of the rollout and of both roles' queries in the losses. 1 = none, as the
+    # supplement writes the rollout (u_i = v(z_{t'_i}, t'_i, R_s), N student + N teacher forwards); any other
+    # value adds an unconditional forward per query (the all-zero text) and doubles the student's activations.
+    guidance_scale: float = 1.0
     seed: int = 0
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
     adapter_name: str = "aligned"

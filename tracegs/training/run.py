@@ -88,7 +88,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         memory_mode=stage.memory_mode,
         seed=stage.seed,
         lora=cfg.backbone.lora,
-        guidance_scale=cfg.backbone.sampler.guidance_scale,
+        guidance_scale=stage.guidance_scale,
     )
 
 

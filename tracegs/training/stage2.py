@@ -28,12 +28,13 @@ class Stage2DistillationModule(RestorerTrainingModule):
     ``on_policy=False`` (variant E) evaluates the same objective at independently forward-noised
     pseudo-target states on the same grid.
 
-    The rollout is the deployment sampler (``sampler.solve``): same initial-noise draw, same solver, and
-    the same classifier-free guidance (``guidance_scale`` = backbone.sampler.guidance_scale). Teacher and
-    student are both queried under that guidance rule and L_traj compares their guided velocities, so the
-    student is trained on the direction it will follow at deployment. Scale 1 is the plain conditional
-    velocity (the paper's Eqs. 4-6 as written); any other scale doubles every evaluation (the unconditional
-    branch with the all-zero text embedding).
+    The rollout is the deployment sampler's solver (``sampler.solve``) with the same initial-noise draw.
+    ``guidance_scale`` (``stage.guidance_scale``) is 1 by default: the student advances with its own
+    conditional velocity u_i = v(z_{t'_i}, t'_i, R_s) and the teacher is queried once per state, N student
+    forwards with gradient and N teacher forwards without, as the supplement writes Eqs. 4-6. Any other scale
+    queries both roles under classifier-free guidance (the unconditional branch with the all-zero text
+    embedding), doubling every evaluation and the student's activations; deployment's own guidance
+    (``backbone.sampler.guidance_scale``) is separate.
 
     Memory modes give identical gradients: ``retain`` keeps the N student graphs until one backward of
     the averaged loss; ``stepwise`` back-propagates loss_i / N at each state, so only one student graph
@@ -120,8 +121,8 @@ class Stage2DistillationModule(RestorerTrainingModule):
 
     def rollout(self, batch: dict, grid: Tensor, generator: torch.Generator, velocity=None) -> list[Tensor]:
         """The student's on-policy rollout (Eq. 4) on ``grid`` from noise drawn from ``generator``: the
-        deployment solver (``sampler.solve``) with the student's guided velocity, so the visited states are
-        the deployment sampler's for the same noise, grid, guidance and adapter. ``velocity(i, z, t)``
+        deployment solver (``sampler.solve``) with the student's velocity under ``guidance_scale``, so the
+        visited states are the deployment sampler's for the same noise, grid, guidance and adapter. ``velocity(i, z, t)``
         replaces the plain student velocity (training supervises each state there); returns every state."""
         activate(self.transformer, STUDENT)
         student_cond = self.latent(batch, "student_cond")
@@ -133,7 +134,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
 
     def state_loss(self, batch: dict, state: Tensor, t: Tensor) -> tuple[dict[str, Tensor], Tensor]:
         """The teacher (no gradient) and the student queried at one state under the same guidance rule
-        (Eq. 5); returns the loss terms of Eqs. 6, 8, 9 and the student's guided velocity."""
+        (Eq. 5); returns the loss terms of Eqs. 6, 8, 9 and the student's velocity."""
         read_retrieval = self.lambda_ret != 0.0
         activate(self.transformer, TEACHER)
         with torch.no_grad():
@@ -151,7 +152,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         return terms, student.velocity
 
     def guided(self, state: Tensor, cond: Tensor, t: Tensor, batch: dict, return_retrieval: bool = False):
-        """The active adapter's prediction under ``guidance_scale`` (the deployment sampler's rule)."""
+        """The active adapter's prediction under ``guidance_scale`` (1: the plain conditional velocity)."""
         return guided_prediction(self.transformer, state, cond, t.to(state.device), self._float(batch["text"]),
                                  self._float(batch["ref_2d"]), self._float(batch["ref_3d"]), self.guidance_scale,
                                  return_retrieval=return_retrieval)

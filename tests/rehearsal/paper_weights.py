@@ -1,7 +1,7 @@
 """The README's ``weights/`` tree written with each library's ``save_pretrained``: tiny, random-initialised.
 
-Every component has the class and folder layout of the paper-scale download (GSFixer's transformer in
-diffusers format, CogVideoX-5b-I2V's ``vae/``, ``text_encoder/`` and ``tokenizer/``, DINOv2), only its
+Every component has the class and folder layout of the paper-scale download (GSFixer's transformer in its
+released diffusers layout, CogVideoX-5b-I2V's ``vae/``, ``text_encoder/`` and ``tokenizer/``, DINOv2), only its
 widths come from the rehearsal's backbone config, so the production loaders read them unchanged. VGGT is
 not installable from the package index; ``VggtDouble`` stands in for it with its aggregator's interface.
 """
@@ -13,8 +13,8 @@ import json
 from pathlib import Path
 
 import torch
+from gsfixer_layout import write_gsfixer_folder
 
-from tracegs.restorer.build import create_transformer
 from tracegs.restorer.config import BackboneConfig
 
 VAE_BLOCKS = 4  # the CogVideoX VAE's four resolution levels: spatial factor 8, as at paper scale
@@ -22,11 +22,10 @@ VGGT_REGISTER_TOKENS = 4  # VGGT's aggregator puts a camera token and four regis
 
 
 def write_transformer(cfg: BackboneConfig, weights: Path) -> None:
-    """GSFixer's restorer (reference-guided CogVideoX transformer): the frozen base, variant A and the
-    pseudo-target generator alike."""
-    torch.manual_seed(0)
-    transformer = create_transformer(cfg.transformer)
-    transformer.save_pretrained(weights / "gsfixer" / "transformer")
+    """GSFixer's released restorer at the rehearsal's widths: the frozen base, variant A and the pseudo-target
+    generator alike. Written from GSFixer's key list (tests/gsfixer_layout.py), not from our model, so a drift
+    of our module names from the released layout fails the rehearsal's loads."""
+    write_gsfixer_folder(weights / "gsfixer" / "transformer", cfg.transformer)
 
 
 def write_vae(cfg: BackboneConfig, weights: Path) -> None:

@@ -8,7 +8,8 @@ One Stage-2 training step (supplement A.4: batch 2, N = 10 visited states resamp
 twice: unguided as the paper writes the rollout (``stage.guidance_scale`` = 1, the configured value) and under
 deployment's guidance (``backbone.sampler.guidance_scale``, which earlier versions also used in Stage 2).
 The student-activation figure is the memory of one visited state's student graph, (retain - stepwise) / (N - 1):
-``retain`` keeps N graphs alive, ``stepwise`` one. Weights are random (a benchmark of memory, not of quality), the Stage-1 adapter too.
+``retain`` keeps N graphs alive, ``stepwise`` one. Weights are random (a benchmark of memory, not of quality),
+the Stage-1 adapter too.
 ``auto`` takes ``paper`` when CUDA is available.
 
 - GPU: ``torch.cuda.max_memory_allocated`` over the step, per mode, in one process (reset between modes).
@@ -172,7 +173,7 @@ def encoder_bytes() -> dict[str, int]:
         dino = Dinov2WithRegistersModel(Dinov2WithRegistersConfig(
             hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, image_size=518, patch_size=14))
         vae = AutoencoderKLCogVideoX()
-    return {"t5_xxl_encoder": size(t5), "dinov2_large": size(dino), "cogvideox_vae": size(vae),
+    return {"t5_xxl_encoder": size(t5), "dinov2_with_registers_large": size(dino), "cogvideox_vae": size(vae),
             "vggt_1b": int(1.26e9) * 2}
 
 

@@ -24,6 +24,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
+from tracegs.content import content_digest
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
@@ -196,10 +197,17 @@ class _UnitJob:
             record["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
                                                                            method)))
                                 for method, model in models.items()}
-        record["fingerprint"] = self.fingerprint
+        record["fingerprint"] = self.unit_fingerprint(key)
         record["variant"] = cfg.variant
+        # Paths relative to the evaluation folder: the record stays true when its root is copied or moved.
+        for files in (record.get("media", {}), record.get("media", {}).get("frames", {}), record.get("models", {})):
+            files.update({name: os.path.relpath(path, cfg.out_dir) for name, path in files.items() if isinstance(path, str)})
         write_json_atomic(record, unit_path(cfg.out_dir, unit.scene.name, unit.views))
         return record
+
+    def unit_fingerprint(self, key: tuple[str, int]) -> str:
+        """The job's settings and restorers with the content of the unit's scene folder (not its path)."""
+        return _fingerprint(self.fingerprint, content_digest(Path(self.source.root) / key[0]))
 
     def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
         """The whole unit in this process."""
@@ -290,13 +298,14 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
                    ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,
-                   _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods, cfg.lpips_convention))
+                   _fingerprint(refine_cfg, fit_cfg, dataclasses.replace(source, root=""), restorer_ids, cfg.methods,
+                                cfg.lpips_convention))
     done: dict[tuple[str, int], dict] = {}
     todo = []
     for key in evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards):
         path = unit_path(cfg.out_dir, *key)
         previous = json.loads(path.read_text()) if path.is_file() and not cfg.force else {}
-        if previous.get("fingerprint") == job.fingerprint:
+        if previous.get("fingerprint") == job.unit_fingerprint(key):
             done[key] = previous
         else:
             todo.append(key)

@@ -78,7 +78,7 @@ def test_sweep_points_never_share_a_folder():
 def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
     cfg = as_hydra_job("train", ["stage=stage2", "seed=2", "loss.lambda_ret=0.3", "trainer.log_every_n_steps=1"])
     name = Path(str(cfg.run_dir)).name
-    assert name.startswith("seed2,lambda_ret=0.3-") and "log_every" not in name
+    assert name.startswith("seed2_lambda_ret-0.3-") and "log_every" not in name
     assert Path(str(cfg.run_dir)).parent.name == "F"
 
 
@@ -135,6 +135,61 @@ def test_training_reads_the_cache_that_prepare_writes():
                                                          "data.prepare.split=test"])
     assert held_out.data.prepare.cache_dir != prepared.data.prepare.cache_dir
     assert compose(config_name="train", overrides=["seed=5"]).data.datamodule.cache_dir != trained.data.datamodule.cache_dir
+
+
+@pytest.mark.parametrize("overrides", [
+    ["data.synthetic.test_seeds=[100,101]", "loss.lambda_ret=0.3"],
+    ["artifacts.stage1_adapter=/some/where/adapter", "data.prepare.student_views=[3,6]"],
+    [f"data.synthetic.train_seeds=[{','.join(str(s) for s in range(40))}]", "optimizer.lr=1e-4",
+     "loss.lambda_align=0.5", "loss.lambda_ret=0.25", "experiment.stage1_steps=10"],
+])
+def test_folder_names_paste_safely_and_cut_no_value(as_hydra_job, overrides):
+    """No '=' or ',' (override syntax), no path, and every value shown whole; what does not fit is counted."""
+    name = Path(str(as_hydra_job("train", ["stage=stage2", *overrides]).run_dir)).name
+    readable = name.rsplit("-", 1)[0]
+    assert not set(name) & set("=,[]'\"/ ")
+    assert "some" not in name
+    shown = [part for part in readable.split("_") if "-" in part]
+    for part in shown:
+        key, value = part.split("-", 1)
+        assert any(o.split("=")[0].endswith(key) and o.split("=")[1].strip("[]").replace(",", "+") == value
+                   for o in overrides), part
+    counted = int(readable.rsplit("more", 1)[1]) if "_more" in readable else 0
+    assert len(shown) + counted == len(overrides)
+
+
+def test_one_root_spelled_two_ways_or_copied_is_one_run(tmp_path, monkeypatch):
+    """Paths inside the root are identified relative to it: a relative spelling, a copy elsewhere."""
+    def values(root: str) -> dict:
+        cfg = compose(config_name="train", overrides=["stage=stage2", f"paths.root_dir={root}",
+                                                      f"artifacts.stage1_adapter={root}/outputs/stage1/a"])
+        return scoped_values(cfg, "stage2")
+
+    monkeypatch.chdir(tmp_path)
+    assert values(".") == values(str(tmp_path)) == values(str(tmp_path / "copy"))
+    assert values(".")["artifacts.stage1_adapter"] == "<root>/outputs/stage1/a"
+
+
+def test_a_capture_is_known_by_its_images_and_reconstruction(tmp_path):
+    def identity(capture: Path) -> str:
+        cfg = compose(config_name="restore", overrides=[f"capture.path={capture}"])
+        return scoped_values(cfg, "restore")["capture.path"]
+
+    capture = tmp_path / "mine"
+    for name, data in (("images/0.png", b"a"), ("sparse/0/cameras.txt", b"b")):
+        (capture / name).parent.mkdir(parents=True, exist_ok=True)
+        (capture / name).write_bytes(data)
+    moved = tmp_path / "elsewhere" / "mine"
+    moved.parent.mkdir()
+    import shutil
+
+    shutil.copytree(capture, moved)
+    assert identity(capture) == identity(moved) == identity(tmp_path / "elsewhere" / ".." / "mine")
+    (capture / "images" / "0.png").write_bytes(b"edited")
+    assert identity(capture) != identity(moved)
+    before = identity(moved)
+    (moved / "sparse" / "0" / "cameras.txt").write_bytes(b"edited")
+    assert identity(moved) != before
 
 
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):

@@ -87,7 +87,10 @@ def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_pat
     assert unit["test"] == [0, 8] and not set(unit["test"]) & set(unit["captured"])  # every-8th test views
     assert len(unit["methods"]["3dgs"]["per_view"]) == 2
     assert set(unit["per_step"]) == {"baseline"} and len(unit["per_step"]["baseline"]) == 2
-    assert Path(unit["media"]["grid"]).is_file() and Path(unit["media"]["video"]).is_file()
+    # named relative to the evaluation folder, which can then be copied or moved
+    out = Path(cfg.out_dir)
+    assert (out / unit["media"]["grid"]).is_file() and (out / unit["media"]["video"]).is_file()
+    assert not Path(unit["media"]["grid"]).is_absolute()
     assert (tmp_path / "eval" / "fig6_per_step.png").is_file() and (tmp_path / "eval" / "table.md").is_file()
 
     # a rerun with the same settings skips the finished unit; a changed restorer recomputes it

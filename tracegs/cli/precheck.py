@@ -35,15 +35,18 @@ def overrides_of(argv: list[str]) -> list[str]:
     return overrides
 
 
-def parse_error(overrides: list[str]) -> str | None:
-    """One line naming the first override Hydra's grammar refuses, with the hint to quote it; None if all parse."""
+def parse_error(overrides: list[str], multirun: bool) -> str | None:
+    """One line naming the first override Hydra's grammar refuses (or, outside ``-m``, reads as a sweep), with
+    the hint to quote it; None if all parse."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import OverrideParseException
 
     parser = OverridesParser.create()
     for override in overrides:
         try:
-            parser.parse_overrides([override])
+            (parsed,) = parser.parse_overrides([override])
+            if parsed.is_sweep_override() and not multirun:
+                return f"the override {override!r} reads as a sweep over several values: {QUOTE_HINT}"
         except OverrideParseException as error:
             reasons = [line.strip() for line in str(error).splitlines()
                        if line.strip() and not line.startswith(("Error parsing", "See "))]
@@ -55,7 +58,7 @@ def check_command_line(config_dir: str, config_name: str, argv: list[str]) -> st
     """The one-line refusal of this command line, or None to go on: a parse error, or (for one job, ``--cfg job``
     included) the first error of composing and validating its config."""
     overrides = overrides_of(argv)
-    error = parse_error(overrides)
+    error = parse_error(overrides, multirun=bool({"-m", "--multirun"} & set(argv)))
     if error is not None or set(argv) & _NOT_ONE_JOB:
         return error
     if set(argv) & _CFG_FLAGS:

@@ -241,15 +241,18 @@ def _part_forked(task: tuple[tuple[str, int], GaussianFitter, str]) -> tuple[tup
     return key, part, _FORKED_JOB.part(key, cold, part)
 
 
-def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
-               progress: Progress) -> Iterator[tuple[tuple[str, int], dict]]:
+def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int, progress: Progress,
+               plain: PlainProgress) -> Iterator[tuple[tuple[str, int], dict]]:
     """Run units serially, or in ``workers`` forked processes (CPU only: 3DGS optimisation of tiny scenes is
     dominated by per-op overhead that threads cannot spread). Forked, the cold starts come first, then every
     unit's parts are queued longest first, so no worker idles while another finishes a whole unit (with a
     few units, one unit per process left one core idle for a third of the run)."""
+    items = 0  # cold starts and parts finished: the work the time left is measured on
     if workers <= 1 or not keys:
         for key in keys:
             yield key, job.run(key, progress if job.cfg.progress else None)
+            items += 1 + len(job.parts())
+            plain.update(items)
         return
     parts = job.parts()
     global _FORKED_JOB
@@ -258,11 +261,17 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
         with multiprocessing.get_context("fork").Pool(min(workers, len(keys) * len(parts)),
                                                       initializer=die_with_parent,
                                                       initargs=(os.getpid(),)) as pool:
-            colds = dict(pool.imap_unordered(_cold_start_forked, keys))
+            colds = {}
+            for key, cold in pool.imap_unordered(_cold_start_forked, keys):
+                colds[key] = cold
+                items += 1
+                plain.update(items)
             finished: dict[tuple[str, int], dict] = {key: {} for key in keys}
             tasks = [(key, colds[key], part) for part in parts for key in keys]
             for key, part, result in pool.imap_unordered(_part_forked, tasks):
                 finished[key][part] = result
+                items += 1
+                plain.update(items)
                 if len(finished[key]) == len(parts):
                     yield key, job.finish(key, finished.pop(key))
             # Let the workers exit on their own: the pool's __exit__ would SIGTERM them, and pycolmap's
@@ -313,11 +322,13 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     workers = 1 if torch.cuda.is_available() else cfg.workers
     with Progress(disable=not cfg.progress) as progress:
         overall = progress.add_task("evaluation units", total=len(todo))
-        plain = PlainProgress("evaluation units", len(todo))
-        for finished, (key, record) in enumerate(_run_units(job, todo, workers, progress), 1):
+        # Each unit is a cold start and its parts; forked, they run ``workers`` at a time across units.
+        items = len(todo) * (1 + len(job.parts())) if todo else 0
+        plain = PlainProgress(f"evaluation ({len(todo)} units): cold starts and parts", items,
+                              parallel=max(1, min(workers, len(todo) * len(job.parts()))))
+        for key, record in _run_units(job, todo, workers, progress, plain):
             done[key] = record
             progress.advance(overall)
-            plain.update(finished)
     if cfg.num_shards == 1:
         return merge_results(cfg.out_dir, scenes=scenes, views=cfg.views, methods=cfg.methods)
     return {f"{s}/views_{k}": u for (s, k), u in done.items()}

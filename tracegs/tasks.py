@@ -113,13 +113,16 @@ def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
 
     from tracegs.config.identity import differing_keys, scoped_values
     from tracegs.config.validate import ConfigError
+    from tracegs.content import root_relative
 
     record = Path(folder) / RUN_RECORD
     if not record.is_file():
         return False
     recorded = json.loads(record.read_text())
     inputs = input_digests(cfg, kind)
-    settings = {k: v for k, v in recorded.items() if not k.startswith("content.")}
+    # Records made before paths were stored relative to the root name them absolutely.
+    root = OmegaConf.select(cfg, "paths.root_dir") or "."
+    settings = {k: root_relative(v, root) for k, v in recorded.items() if not k.startswith("content.")}
     differing = differing_keys(settings, scoped_values(cfg, kind))
     if differing:
         raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
@@ -316,9 +319,10 @@ def deploy(cfg: DictConfig) -> list[Path]:
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
-    written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                            section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
-    write_run_record(cfg, "deploy", cfg.run_dir)
+    with product_lock(cfg.run_dir):
+        written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
+                                section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+        write_run_record(cfg, "deploy", cfg.run_dir)
     return written
 
 
@@ -345,8 +349,9 @@ def restore(cfg: DictConfig) -> Path:
     # The capture is one scene folder: its parent is the dataset root the COLMAP loader reads scenes from.
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
-    results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                             restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+    with product_lock(evaluation.out_dir):
+        results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
+                                 restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     out = Path(evaluation.out_dir).resolve()  # the unit names its files relative to the evaluation folder
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
@@ -537,8 +542,7 @@ def demo(cfg: DictConfig) -> Path:
     held_out_cache = None
     for index, (name, extra) in enumerate(steps, 1):
         if name == "evaluate":
-            # Quoted: folder names spell their overrides (``seed0,student_views=_3,9_-...``), and an unquoted
-            # ',' or '=' is override syntax.
+            # Quoted: the root the user chose may hold ',' or '=', which unquoted are override syntax.
             extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
                      f"evaluation.out_dir={quoted(out_dir)}")
         step_cfg = compose_run(name, extra)

@@ -233,3 +233,21 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     assert cache("backbone.reference_encoder.patch_size=4") != cache()
     restorer = "data.prepare.pseudo_target=restorer"
     assert cache(restorer, "backbone.schedule.train_time_power=0") != cache(restorer)
+
+
+def test_a_product_made_from_other_inputs_is_made_again(tmp_path):
+    """Reuse is decided by the record and the content of the inputs, never by a checkpoint being there."""
+    adapter = tmp_path / "stage1_adapter"
+    adapter.mkdir()
+    (adapter / "adapter_model.safetensors").write_bytes(b"1")
+    cfg = compose(config_name="train", overrides=["stage=stage2", f"artifacts.stage1_adapter={adapter}",
+                                                  "artifacts.baseline_weights=null"])
+    folder = tmp_path / "run"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "last.ckpt").write_bytes(b"a checkpoint")
+    assert not tasks.check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
+    tasks.write_run_record(cfg, "stage2", folder)
+    assert tasks.check_run_record(cfg, "stage2", folder)
+    (adapter / "adapter_model.safetensors").write_bytes(b"retrained")
+    assert not tasks.check_run_record(cfg, "stage2", folder)
+    assert not (folder / "checkpoints").exists() and not (folder / tasks.RUN_RECORD).exists()

@@ -32,8 +32,8 @@ def product_sums(root: Path) -> dict[str, str]:
     for path in sorted(root.rglob("*")):
         relative = path.relative_to(root)
         parts = set(relative.parts)
-        if (not path.is_file() or path.name in RECORDS_OF_A_COMMAND or path.suffix == ".log" or path.name.startswith(".")
-                or parts & {".hydra", "csv", "tensorboard"}):
+        if (not path.is_file() or path.name in RECORDS_OF_A_COMMAND or path.suffix == ".log"
+                or path.name.startswith(".") or parts & {".hydra", "csv", "tensorboard"}):
             continue
         sums[relative.as_posix()] = hashlib.sha256(path.read_bytes()).hexdigest()
     return sums
@@ -89,7 +89,7 @@ def test_a_copied_root_spelled_relatively_is_the_same_run(finished, entry_point,
 def test_two_identical_jobs_at_once_do_the_work_once(finished, forked, tmp_path):
     """A second identical job waits for the first one's lock, then reuses its product."""
     root = finished[0]
-    args = [f"paths.root_dir={root}", *SMALLEST, "stage=stage1", "experiment.stage1_steps=2"]
+    args = [f"paths.root_dir={root}", *DEMO, "stage=stage1", "experiment.stage1_steps=2"]
 
     def job() -> None:
         from hydra.core.global_hydra import GlobalHydra

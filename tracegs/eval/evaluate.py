@@ -201,7 +201,8 @@ class _UnitJob:
         record["variant"] = cfg.variant
         # Paths relative to the evaluation folder: the record stays true when its root is copied or moved.
         for files in (record.get("media", {}), record.get("media", {}).get("frames", {}), record.get("models", {})):
-            files.update({name: os.path.relpath(path, cfg.out_dir) for name, path in files.items() if isinstance(path, str)})
+            files.update({name: os.path.relpath(path, cfg.out_dir)
+                          for name, path in files.items() if isinstance(path, str)})
         write_json_atomic(record, unit_path(cfg.out_dir, unit.scene.name, unit.views))
         return record
 

@@ -15,7 +15,6 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from tracegs.errors import InputFileError, OutputPathError, TraceGSError, one_line
 
-
 # Keys of a checkpoint's hyper_parameters that Lightning's ``load_from_checkpoint`` imports and calls.
 IMPORTED_HPARAM_KEYS = ("_instantiator", "_class_path")
 

@@ -58,7 +58,7 @@ def scene_digest(scene_dir: str | Path) -> str:
 
 def root_relative(value: object, root: str | Path) -> object:
     """``value`` as ``<root>/<relative path>`` when it is a path inside ``root``, else unchanged."""
-    if not isinstance(value, str) or "/" not in value:
+    if not isinstance(value, str) or "/" not in value or value.startswith(ROOT_MARK):
         return value
     try:
         relative = Path(value).expanduser().resolve().relative_to(Path(root).expanduser().resolve())

@@ -7,11 +7,12 @@ component receives typed hyperparameters and never the whole Hydra tree.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import resource
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -145,14 +146,31 @@ def reuse_finished(cfg: DictConfig, kind: str, folder: str | Path, product: str 
     return False
 
 
-def product_lock(folder: str | Path):
+@contextlib.contextmanager
+def product_lock(folder: str | Path, field: str) -> Iterator[None]:
     """One job per product folder: a second identical job (another shell, a parallel multirun launcher) waits
-    here, then finds the product finished and reuses it."""
+    here, then finds the product finished and reuses it.
+
+    A job that fails leaves no lock file it made, nor the folder if it made it and nothing else is in it (an
+    identical job waiting on that lock would fail the same way)."""
     from filelock import FileLock
 
-    folder = Path(folder)
+    from tracegs.errors import require_writable_dir
+
+    folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
+    created = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
-    return FileLock(folder / LOCK_FILE)
+    lock = folder / LOCK_FILE
+    made_lock = not lock.exists()
+    try:
+        with FileLock(lock):
+            yield
+    except BaseException:
+        if made_lock:
+            lock.unlink(missing_ok=True)
+        if created and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
 
 
 def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
@@ -175,7 +193,7 @@ def prepare(cfg: DictConfig) -> Path:
 
     require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    with product_lock(cfg.data.prepare.cache_dir):
+    with product_lock(cfg.data.prepare.cache_dir, "data.prepare.cache_dir"):
         backbone = build_backbone(section(cfg.backbone), device=accelerator())
         synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
         manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
@@ -200,7 +218,7 @@ def train(cfg: DictConfig) -> Path | None:
         return None
     locate_artifacts(cfg, {"baseline": [], "stage1": ["baseline_weights"],
                            "stage2": ["baseline_weights", "stage1_adapter"]}[cfg.stage.name])
-    with product_lock(cfg.run_dir):
+    with product_lock(cfg.run_dir, "run_dir"):
         if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]):
             return Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]
         return train_locked(cfg)
@@ -280,7 +298,7 @@ def evaluate(cfg: DictConfig) -> dict:
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
-    with product_lock(cfg.evaluation.out_dir):
+    with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir"):
         results = run_evaluation(
             section(cfg.evaluation),
             section(cfg.data.source),
@@ -319,7 +337,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
-    with product_lock(cfg.run_dir):
+    with product_lock(cfg.run_dir, "run_dir"):
         written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
                                 section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
         write_run_record(cfg, "deploy", cfg.run_dir)
@@ -349,7 +367,7 @@ def restore(cfg: DictConfig) -> Path:
     # The capture is one scene folder: its parent is the dataset root the COLMAP loader reads scenes from.
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
-    with product_lock(evaluation.out_dir):
+    with product_lock(evaluation.out_dir, "evaluation.out_dir"):
         results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
                                  restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())

@@ -3,6 +3,7 @@ and one root seed drives every stochastic part."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -251,3 +252,18 @@ def test_a_product_made_from_other_inputs_is_made_again(tmp_path):
     (adapter / "adapter_model.safetensors").write_bytes(b"retrained")
     assert not tasks.check_run_record(cfg, "stage2", folder)
     assert not (folder / "checkpoints").exists() and not (folder / tasks.RUN_RECORD).exists()
+
+
+def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
+    """The record holds root-relative paths; reading it back under the same root (as a relative spelling, the
+    launch folder being the root) finds the same run, and so does a record holding the absolute path."""
+    monkeypatch.chdir(tmp_path)
+    cfg = compose(config_name="train", overrides=["stage=stage1", "paths.root_dir=.",
+                                                  f"artifacts.baseline_weights={tmp_path}/outputs/baseline/a"])
+    folder = tmp_path / "run"
+    tasks.write_run_record(cfg, "stage1", folder)
+    assert tasks.check_run_record(cfg, "stage1", folder)
+    record = folder / tasks.RUN_RECORD
+    values = json.loads(record.read_text())
+    record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
+    assert tasks.check_run_record(cfg, "stage1", folder)

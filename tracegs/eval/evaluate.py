@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import math
 import multiprocessing
 import os
@@ -45,6 +46,8 @@ from tracegs.splat.fit import GaussianFitter
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render_views, require_available
 from tracegs.splat.trajectory import bridge_poses
+
+log = logging.getLogger("tracegs")
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
 # [F,3,H,W] in [0,1]. Used for the video's GT column and the per-step (Fig. 6) curves.
@@ -319,6 +322,9 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
             done[key] = previous
         else:
             todo.append(key)
+    if done:
+        log.info("evaluation: %d of %d units already finished with these settings, restorers and scenes: kept "
+                 "as they are", len(done), len(done) + len(todo))
     # Forked workers must not inherit a CUDA context; GPU runs go one unit at a time.
     workers = 1 if torch.cuda.is_available() else cfg.workers
     with Progress(disable=not cfg.progress) as progress:

@@ -30,6 +30,15 @@ def test_time_left_counts_the_items_that_run_at_once(done, total, elapsed, paral
     assert seconds_left(done, total, elapsed, parallel) == pytest.approx(left, nan_ok=True)
 
 
+def test_a_resumed_run_measures_only_the_steps_it_ran(caplog, monkeypatch):
+    monkeypatch.setattr("sys.stdout.isatty", lambda: False)
+    clock = iter([0.0, 10.0])
+    monkeypatch.setattr("tracegs.console.time.monotonic", lambda: next(clock))
+    with caplog.at_level(logging.INFO, logger="tracegs"):
+        PlainProgress("train", total=100, every_s=0.0, first=80).update(90)  # 10 steps in 10 s, 10 left
+    assert caplog.records[0].getMessage().endswith("~10 s left")
+
+
 def test_shown_text_reaches_the_log_file(tmp_path, capsys):
     handler = logging.FileHandler(tmp_path / "run.log")
     logging.getLogger().addHandler(handler)

@@ -48,8 +48,10 @@ class PlainProgress:
     the end, when stdout is not a terminal (the log file gets the lines either way); ``parallel`` items run at
     once (:func:`seconds_left`)."""
 
-    def __init__(self, label: str, total: int, every_s: float = PROGRESS_EVERY_S, parallel: int = 1) -> None:
-        self.label, self.total, self.every_s, self.parallel = label, total, every_s, parallel
+    def __init__(self, label: str, total: int, every_s: float = PROGRESS_EVERY_S, parallel: int = 1,
+                 first: int = 0) -> None:
+        # ``first``: items already done before this start (a resumed run), which took none of its time.
+        self.label, self.total, self.every_s, self.parallel, self.first = label, total, every_s, parallel, first
         self.enabled = not interactive()
         self.start = self.last = time.monotonic()
 
@@ -59,5 +61,5 @@ class PlainProgress:
             return
         self.last = now
         elapsed = now - self.start
-        left = seconds_left(done, self.total, elapsed, self.parallel)
+        left = seconds_left(done - self.first, self.total - self.first, elapsed, self.parallel)
         log.info("%s: %d/%d%s, %.0f s, ~%.0f s left", self.label, done, self.total, detail, elapsed, left)

@@ -130,7 +130,8 @@ def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
                           f"({', '.join(differing[:6])} differ): choose another run_dir")
     stale = differing_keys({k: v for k, v in recorded.items() if k.startswith("content.")}, inputs)
     if stale:
-        log.info("%s: the inputs %s changed since this product was made: recomputing it", folder, ", ".join(stale))
+        changed = ", ".join(f"artifacts.{key.removeprefix('content.')}" for key in stale)
+        log.info("%s: the content of %s changed since this product was made: recomputing it", folder, changed)
         record.unlink()
         shutil.rmtree(Path(folder) / "checkpoints", ignore_errors=True)
         return False

@@ -331,7 +331,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
         overall = progress.add_task("evaluation units", total=len(todo))
         # Each unit is a cold start and its parts; forked, they run ``workers`` at a time across units.
         items = len(todo) * (1 + len(job.parts())) if todo else 0
-        plain = PlainProgress(f"evaluation ({len(todo)} units): cold starts and parts", items,
+        plain = PlainProgress("evaluation parts", items,
                               parallel=max(1, min(workers, len(todo) * len(job.parts()))))
         for key, record in _run_units(job, todo, workers, progress, plain):
             done[key] = record

@@ -148,9 +148,10 @@ def reuse_finished(cfg: DictConfig, kind: str, folder: str | Path, product: str 
 
 
 @contextlib.contextmanager
-def product_lock(folder: str | Path, field: str) -> Iterator[None]:
+def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)) -> Iterator[None]:
     """One job per product folder: a second identical job (another shell, a parallel multirun launcher) waits
-    here, then finds the product finished and reuses it.
+    here, then finds the product finished and reuses it. ``shard`` (index, count): the shards of one product
+    write their own files and run in parallel, each under its own lock.
 
     A job that fails leaves no lock file it made, nor the folder if it made it and nothing else is in it (an
     identical job waiting on that lock would fail the same way)."""
@@ -161,7 +162,7 @@ def product_lock(folder: str | Path, field: str) -> Iterator[None]:
     folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
     created = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
-    lock = folder / LOCK_FILE
+    lock = folder / (LOCK_FILE if shard[1] == 1 else f"{LOCK_FILE}.shard{shard[0]}of{shard[1]}")
     made_lock = not lock.exists()
     try:
         with FileLock(lock):
@@ -194,7 +195,8 @@ def prepare(cfg: DictConfig) -> Path:
 
     require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    with product_lock(cfg.data.prepare.cache_dir, "data.prepare.cache_dir"):
+    shard = (cfg.data.prepare.shard_index, cfg.data.prepare.num_shards)
+    with product_lock(cfg.data.prepare.cache_dir, "data.prepare.cache_dir", shard):
         backbone = build_backbone(section(cfg.backbone), device=accelerator())
         synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
         manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
@@ -299,7 +301,8 @@ def evaluate(cfg: DictConfig) -> dict:
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
-    with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir"):
+    shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
+    with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
         results = run_evaluation(
             section(cfg.evaluation),
             section(cfg.data.source),
@@ -338,7 +341,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
-    with product_lock(cfg.run_dir, "run_dir"):
+    with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
         written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
                                 section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
         write_run_record(cfg, "deploy", cfg.run_dir)

@@ -109,8 +109,8 @@ def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path
 
 
 def quoted(path: Path) -> str:
-    """A path as a quoted Hydra override value: run folders are named ``seed0,<overrides>-<digest>`` and
-    commas, brackets and '=' would otherwise be parsed as override syntax."""
+    """A path as a quoted Hydra override value: run folder names paste safely, but the root the user chose may
+    hold commas, brackets or '=', which would otherwise be parsed as override syntax."""
     return "'" + str(path).replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 

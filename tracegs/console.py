@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import time
 
@@ -33,12 +34,24 @@ def interactive() -> bool:
     return sys.stdout.isatty()
 
 
+def seconds_left(done: int, total: int, elapsed: float, parallel: int = 1) -> float:
+    """Time left from the measured throughput: ``parallel`` items run at once, each taking ``elapsed * parallel /
+    done`` on average, so the ``total - done`` left take that many rounds of ``parallel`` (the last round may be
+    partly idle). One at a time this is ``elapsed / done`` per item left."""
+    if not done:
+        return float("nan")
+    return math.ceil((total - done) / parallel) * elapsed * parallel / done
+
+
 class PlainProgress:
     """Logs ``<label>: <done>/<total>, <elapsed> s, ~<left> s left`` at most every ``PROGRESS_EVERY_S`` and at
-    the end, when stdout is not a terminal (the log file gets the lines either way)."""
+    the end, when stdout is not a terminal (the log file gets the lines either way); ``parallel`` items run at
+    once (:func:`seconds_left`)."""
 
-    def __init__(self, label: str, total: int, every_s: float = PROGRESS_EVERY_S) -> None:
-        self.label, self.total, self.every_s = label, total, every_s
+    def __init__(self, label: str, total: int, every_s: float = PROGRESS_EVERY_S, parallel: int = 1,
+                 first: int = 0) -> None:
+        # ``first``: items already done before this start (a resumed run), which took none of its time.
+        self.label, self.total, self.every_s, self.parallel, self.first = label, total, every_s, parallel, first
         self.enabled = not interactive()
         self.start = self.last = time.monotonic()
 
@@ -48,5 +61,5 @@ class PlainProgress:
             return
         self.last = now
         elapsed = now - self.start
-        left = elapsed / done * (self.total - done) if done else float("nan")
+        left = seconds_left(done - self.first, self.total - self.first, elapsed, self.parallel)
         log.info("%s: %d/%d%s, %.0f s, ~%.0f s left", self.label, done, self.total, detail, elapsed, left)

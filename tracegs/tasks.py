@@ -7,11 +7,12 @@ component receives typed hyperparameters and never the whole Hydra tree.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import resource
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -87,29 +88,101 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
         cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
 
 
-def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
-    """Refuse a folder whose recorded settings differ from ``cfg`` (an explicit ``run_dir`` or an older
-    version of the code), naming the differing keys, instead of resuming or overwriting it."""
+# The products of earlier runs each kind loads: their content is part of the record (an edit recomputes).
+INPUT_ARTIFACTS = {"stage1": ("baseline_weights",), "stage2": ("baseline_weights", "stage1_adapter")}
+LOCK_FILE = ".tracegs.lock"
+
+
+def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
+    """Content digests of the earlier products a ``kind`` run reads (tracegs.content)."""
+    from tracegs.content import content_digest
+
+    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
+    return {f"content.{name}": content_digest(path) for name, path in paths.items()
+            if path is not None and Path(path).exists()}
+
+
+def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
+    """Whether ``folder`` holds a finished ``kind`` run of exactly ``cfg`` and of the same input contents.
+
+    A folder whose recorded settings differ (an explicit ``run_dir`` or an older version of the code) is
+    refused, naming the differing keys, instead of being resumed or overwritten. A folder whose inputs changed
+    since its product was made is cleared for recomputation (its checkpoints would resume the stale run).
+    """
     import json
+    import shutil
 
     from tracegs.config.identity import differing_keys, scoped_values
     from tracegs.config.validate import ConfigError
+    from tracegs.content import root_relative
 
     record = Path(folder) / RUN_RECORD
-    if record.is_file():
-        differing = differing_keys(json.loads(record.read_text()), scoped_values(cfg, kind))
-        if differing:
-            raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
-                              f"({', '.join(differing[:6])} differ): choose another run_dir or remove that folder")
+    if not record.is_file():
+        return False
+    recorded = json.loads(record.read_text())
+    inputs = input_digests(cfg, kind)
+    # Records made before paths were stored relative to the root name them absolutely.
+    root = OmegaConf.select(cfg, "paths.root_dir") or "."
+    settings = {k: root_relative(v, root) for k, v in recorded.items() if not k.startswith("content.")}
+    differing = differing_keys(settings, scoped_values(cfg, kind))
+    if differing:
+        raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
+                          f"({', '.join(differing[:6])} differ): choose another run_dir")
+    stale = differing_keys({k: v for k, v in recorded.items() if k.startswith("content.")}, inputs)
+    if stale:
+        changed = ", ".join(f"artifacts.{key.removeprefix('content.')}" for key in stale)
+        log.info("%s: the content of %s changed since this product was made: recomputing it", folder, changed)
+        record.unlink()
+        shutil.rmtree(Path(folder) / "checkpoints", ignore_errors=True)
+        return False
+    return True
+
+
+def reuse_finished(cfg: DictConfig, kind: str, folder: str | Path, product: str | Path) -> bool:
+    """Whether ``product`` is the finished product of this very run (same settings and input contents): then
+    nothing is done, and the log says so."""
+    if check_run_record(cfg, kind, folder) and Path(product).exists():
+        log.info("%s: %s already holds this run's product (same settings and inputs): nothing to do", kind, product)
+        return True
+    return False
+
+
+@contextlib.contextmanager
+def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)) -> Iterator[None]:
+    """One job per product folder: a second identical job (another shell, a parallel multirun launcher) waits
+    here, then finds the product finished and reuses it. ``shard`` (index, count): the shards of one product
+    write their own files and run in parallel, each under its own lock.
+
+    A job that fails leaves no lock file it made, nor the folder if it made it and nothing else is in it (an
+    identical job waiting on that lock would fail the same way)."""
+    from filelock import FileLock
+
+    from tracegs.errors import require_writable_dir
+
+    folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / (LOCK_FILE if shard[1] == 1 else f"{LOCK_FILE}.shard{shard[0]}of{shard[1]}")
+    made_lock = not lock.exists()
+    try:
+        with FileLock(lock):
+            yield
+    except BaseException:
+        if made_lock:
+            lock.unlink(missing_ok=True)
+        if created and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
 
 
 def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
-    """Keep beside a finished product the settings that determine it and the whole resolved config."""
+    """Keep beside a finished product the settings that determine it (paths relative to the root), the contents
+    of the inputs it was made from, and the whole resolved config."""
     from tracegs.config.identity import scoped_values
     from tracegs.io import atomic_write, write_json_atomic
 
     folder = Path(folder)
-    write_json_atomic(scoped_values(cfg, kind), folder / RUN_RECORD)
+    write_json_atomic({**scoped_values(cfg, kind), **input_digests(cfg, kind)}, folder / RUN_RECORD)
     with atomic_write(folder / "config.yaml") as tmp:
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True))
 
@@ -122,10 +195,12 @@ def prepare(cfg: DictConfig) -> Path:
 
     require_inputs(section(cfg.data.prepare))  # before the backbone loads: bad settings cost nothing
     check_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
-    backbone = build_backbone(section(cfg.backbone), device=accelerator())
-    synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
-    manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
-    write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
+    shard = (cfg.data.prepare.shard_index, cfg.data.prepare.num_shards)
+    with product_lock(cfg.data.prepare.cache_dir, "data.prepare.cache_dir", shard):
+        backbone = build_backbone(section(cfg.backbone), device=accelerator())
+        synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
+        manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
+        write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     log.info("paired-clip cache: %s", manifest)
     return manifest
 
@@ -133,8 +208,7 @@ def prepare(cfg: DictConfig) -> Path:
 # ------------------------------------------------------------------------------------------- train
 def train(cfg: DictConfig) -> Path | None:
     """Train ``cfg.stage.name`` into ``cfg.run_dir``; variant A trains no Stage 2."""
-    from tracegs.training.config import TrainConfig
-    from tracegs.training.run import train_stage
+    from tracegs.training.run import PRODUCTS
 
     if cfg.stage.name == "stage2" and not cfg.ablation.train_stage2:
         log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
@@ -147,7 +221,17 @@ def train(cfg: DictConfig) -> Path | None:
         return None
     locate_artifacts(cfg, {"baseline": [], "stage1": ["baseline_weights"],
                            "stage2": ["baseline_weights", "stage1_adapter"]}[cfg.stage.name])
-    check_run_record(cfg, cfg.stage.name, cfg.run_dir)
+    with product_lock(cfg.run_dir, "run_dir"):
+        if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]):
+            return Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]
+        return train_locked(cfg)
+
+
+def train_locked(cfg: DictConfig) -> Path:
+    """Train (or resume) ``cfg.stage.name`` in its run folder, whose lock this process holds."""
+    from tracegs.training.config import TrainConfig
+    from tracegs.training.run import train_stage
+
     train_cfg = TrainConfig(
         stage=section(cfg.stage),
         optimizer=section(cfg.optimizer),
@@ -217,18 +301,20 @@ def evaluate(cfg: DictConfig) -> dict:
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
-    results = run_evaluation(
-        section(cfg.evaluation),
-        section(cfg.data.source),
-        section(cfg.deploy),
-        section(cfg.data.prepare.fit),
-        restorers,
-        scenes=test_scenes(cfg),
-        gt_renderer=ground_truth_renderer(cfg),
-    )
-    if cfg.evaluation.held_out_cache is not None:
-        held_out_quality(cfg, restorers)
-    write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
+    shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
+    with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
+        results = run_evaluation(
+            section(cfg.evaluation),
+            section(cfg.data.source),
+            section(cfg.deploy),
+            section(cfg.data.prepare.fit),
+            restorers,
+            scenes=test_scenes(cfg),
+            gt_renderer=ground_truth_renderer(cfg),
+        )
+        if cfg.evaluation.held_out_cache is not None:
+            held_out_quality(cfg, restorers)
+        write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     log.info("evaluation written to %s", cfg.evaluation.out_dir)
     return results
 
@@ -255,9 +341,10 @@ def deploy(cfg: DictConfig) -> list[Path]:
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
-    written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                            section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
-    write_run_record(cfg, "deploy", cfg.run_dir)
+    with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
+        written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
+                                section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+        write_run_record(cfg, "deploy", cfg.run_dir)
     return written
 
 
@@ -284,17 +371,19 @@ def restore(cfg: DictConfig) -> Path:
     # The capture is one scene folder: its parent is the dataset root the COLMAP loader reads scenes from.
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
-    results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                             restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+    with product_lock(evaluation.out_dir, "evaluation.out_dir"):
+        results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
+                                 restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
+    out = Path(evaluation.out_dir).resolve()  # the unit names its files relative to the evaluation folder
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
     show(f"\n{capture.name}: fitted from views {unit['captured']}, scored on held-out views {unit['test']}")
     for method, ply in unit["models"].items():
-        show(f"refined 3DGS ({method}): {ply}")
-    show(f"grid: {unit['media']['grid']}\nvideo: {unit['media']['video']}")
+        show(f"refined 3DGS ({method}): {out / ply}")
+    show(f"grid: {out / unit['media']['grid']}\nvideo: {out / unit['media']['video']}")
     for method, frames in unit["media"].get("frames", {}).items():
-        show(f"trajectory renders ({method}): {frames}/")
-    return Path(unit["models"][evaluation.methods[-1]])
+        show(f"trajectory renders ({method}): {out / frames}/")
+    return out / unit["models"][evaluation.methods[-1]]
 
 
 # ------------------------------------------------------------------------------------------- report
@@ -475,8 +564,7 @@ def demo(cfg: DictConfig) -> Path:
     held_out_cache = None
     for index, (name, extra) in enumerate(steps, 1):
         if name == "evaluate":
-            # Quoted: folder names spell their overrides (``seed0,student_views=_3,9_-...``), and an unquoted
-            # ',' or '=' is override syntax.
+            # Quoted: the root the user chose may hold ',' or '=', which unquoted are override syntax.
             extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
                      f"evaluation.out_dir={quoted(out_dir)}")
         step_cfg = compose_run(name, extra)

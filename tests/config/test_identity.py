@@ -3,6 +3,7 @@ and one root seed drives every stochastic part."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -78,7 +79,7 @@ def test_sweep_points_never_share_a_folder():
 def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
     cfg = as_hydra_job("train", ["stage=stage2", "seed=2", "loss.lambda_ret=0.3", "trainer.log_every_n_steps=1"])
     name = Path(str(cfg.run_dir)).name
-    assert name.startswith("seed2,lambda_ret=0.3-") and "log_every" not in name
+    assert name.startswith("seed2_lambda_ret-0.3-") and "log_every" not in name
     assert Path(str(cfg.run_dir)).parent.name == "F"
 
 
@@ -137,6 +138,61 @@ def test_training_reads_the_cache_that_prepare_writes():
     assert compose(config_name="train", overrides=["seed=5"]).data.datamodule.cache_dir != trained.data.datamodule.cache_dir
 
 
+@pytest.mark.parametrize("overrides", [
+    ["data.synthetic.test_seeds=[100,101]", "loss.lambda_ret=0.3"],
+    ["artifacts.stage1_adapter=/some/where/adapter", "data.prepare.student_views=[3,6]"],
+    [f"data.synthetic.train_seeds=[{','.join(str(s) for s in range(40))}]", "optimizer.lr=1e-4",
+     "loss.lambda_align=0.5", "loss.lambda_ret=0.25", "experiment.stage1_steps=10"],
+])
+def test_folder_names_paste_safely_and_cut_no_value(as_hydra_job, overrides):
+    """No '=' or ',' (override syntax), no path, and every value shown whole; what does not fit is counted."""
+    name = Path(str(as_hydra_job("train", ["stage=stage2", *overrides]).run_dir)).name
+    readable = name.rsplit("-", 1)[0]
+    assert not set(name) & set("=,[]'\"/ ")
+    assert "some" not in name
+    shown = [part for part in readable.split("_") if "-" in part]
+    for part in shown:
+        key, value = part.split("-", 1)
+        assert any(o.split("=")[0].endswith(key) and o.split("=")[1].strip("[]").replace(",", "+") == value
+                   for o in overrides), part
+    counted = int(readable.rsplit("more", 1)[1]) if "_more" in readable else 0
+    assert len(shown) + counted == len(overrides)
+
+
+def test_one_root_spelled_two_ways_or_copied_is_one_run(tmp_path, monkeypatch):
+    """Paths inside the root are identified relative to it: a relative spelling, a copy elsewhere."""
+    def values(root: str) -> dict:
+        cfg = compose(config_name="train", overrides=["stage=stage2", f"paths.root_dir={root}",
+                                                      f"artifacts.stage1_adapter={root}/outputs/stage1/a"])
+        return scoped_values(cfg, "stage2")
+
+    monkeypatch.chdir(tmp_path)
+    assert values(".") == values(str(tmp_path)) == values(str(tmp_path / "copy"))
+    assert values(".")["artifacts.stage1_adapter"] == "<root>/outputs/stage1/a"
+
+
+def test_a_capture_is_known_by_its_images_and_reconstruction(tmp_path):
+    def identity(capture: Path) -> str:
+        cfg = compose(config_name="restore", overrides=[f"capture.path={capture}"])
+        return scoped_values(cfg, "restore")["capture.path"]
+
+    capture = tmp_path / "mine"
+    for name, data in (("images/0.png", b"a"), ("sparse/0/cameras.txt", b"b")):
+        (capture / name).parent.mkdir(parents=True, exist_ok=True)
+        (capture / name).write_bytes(data)
+    moved = tmp_path / "elsewhere" / "mine"
+    moved.parent.mkdir()
+    import shutil
+
+    shutil.copytree(capture, moved)
+    assert identity(capture) == identity(moved) == identity(tmp_path / "elsewhere" / ".." / "mine")
+    (capture / "images" / "0.png").write_bytes(b"edited")
+    assert identity(capture) != identity(moved)
+    before = identity(moved)
+    (moved / "sparse" / "0" / "cameras.txt").write_bytes(b"edited")
+    assert identity(moved) != before
+
+
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
     folder = tmp_path / "run"
     tasks.write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
@@ -178,3 +234,36 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     assert cache("backbone.reference_encoder.patch_size=4") != cache()
     restorer = "data.prepare.pseudo_target=restorer"
     assert cache(restorer, "backbone.schedule.train_time_power=0") != cache(restorer)
+
+
+def test_a_product_made_from_other_inputs_is_made_again(tmp_path):
+    """Reuse is decided by the record and the content of the inputs, never by a checkpoint being there."""
+    adapter = tmp_path / "stage1_adapter"
+    adapter.mkdir()
+    (adapter / "adapter_model.safetensors").write_bytes(b"1")
+    cfg = compose(config_name="train", overrides=["stage=stage2", f"artifacts.stage1_adapter={adapter}",
+                                                  "artifacts.baseline_weights=null"])
+    folder = tmp_path / "run"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "last.ckpt").write_bytes(b"a checkpoint")
+    assert not tasks.check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
+    tasks.write_run_record(cfg, "stage2", folder)
+    assert tasks.check_run_record(cfg, "stage2", folder)
+    (adapter / "adapter_model.safetensors").write_bytes(b"retrained")
+    assert not tasks.check_run_record(cfg, "stage2", folder)
+    assert not (folder / "checkpoints").exists() and not (folder / tasks.RUN_RECORD).exists()
+
+
+def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
+    """The record holds root-relative paths; reading it back under the same root (as a relative spelling, the
+    launch folder being the root) finds the same run, and so does a record holding the absolute path."""
+    monkeypatch.chdir(tmp_path)
+    cfg = compose(config_name="train", overrides=["stage=stage1", "paths.root_dir=.",
+                                                  f"artifacts.baseline_weights={tmp_path}/outputs/baseline/a"])
+    folder = tmp_path / "run"
+    tasks.write_run_record(cfg, "stage1", folder)
+    assert tasks.check_run_record(cfg, "stage1", folder)
+    record = folder / tasks.RUN_RECORD
+    values = json.loads(record.read_text())
+    record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
+    assert tasks.check_run_record(cfg, "stage1", folder)

@@ -25,11 +25,22 @@ def train_stdout(*argv: str) -> str:
 
 
 def test_multirun_cfg_prints_one_config_per_job():
-    out = train_stdout("-m", "stage=stage2", "ablation=B,E", "--cfg", "job", "--resolve")
+    out = train_stdout("-m", "stage=stage2", "ablation=F,E", "--cfg", "job", "--resolve")
     documents = [yaml.safe_load(d) for d in out.split("---\n") if d.strip()]
-    assert [d["ablation"]["name"] for d in documents] == ["B", "E"]
+    assert [d["ablation"]["name"] for d in documents] == ["F", "E"]
     assert [d["policy"]["on_policy"] for d in documents] == [True, False]  # ablation E is off-policy
     assert "${" not in out
+
+
+def test_cfg_job_validates_like_the_job_would(capsys):
+    """B's teacher is the sparse fits' final snapshot, which the default cache does not prepare: the job would be
+    refused, and so is printing its config."""
+    with pytest.raises(SystemExit) as exit_:
+        train_stdout("-m", "stage=stage2", "ablation=F,B", "--cfg", "job")
+    captured = capsys.readouterr()
+    assert exit_.value.code == 2 and captured.out == ""
+    (line,) = [line for line in captured.err.splitlines() if line.strip()]
+    assert line.startswith("tracegs-train: error:") and "data.prepare.student_final_fits=true" in line
 
 
 @pytest.mark.parametrize(("trainer", "gpus", "tasks"), [("cpu", 0, 1), ("ddp_sim", 0, 2), ("ddp", 4, 4)])

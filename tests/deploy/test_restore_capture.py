@@ -4,6 +4,7 @@ the smallest sizes, with the real tiny restorer freshly initialised (no trained 
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -39,27 +40,64 @@ def capture(tmp_path_factory) -> Path:
     return generate_scene(3, cfg, root)
 
 
-def test_restore_writes_ply_video_grid_and_scores(capture, tmp_path):
-    # ablation=A deploys the baseline restorer; with no baseline weights it is the randomly initialised
-    # tiny backbone (what a user without trained weights has), run through the whole restore-refine loop.
-    result = restore(tmp_path, f"capture.path={capture}", "capture.views=3", "ablation=A",
-                     "artifacts.baseline_weights=null", *SMALLEST)
+@pytest.fixture(scope="module")
+def restored(capture, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """(launch folder, result) of one restore of ``capture``. ablation=A deploys the baseline restorer; with no
+    baseline weights it is the randomly initialised tiny backbone (what a user without trained weights has),
+    run through the whole restore-refine loop."""
+    root = tmp_path_factory.mktemp("restore")
+    result = restore(root, *RESTORE_A, f"capture.path={capture}")
     assert result.returncode == 0, result.stderr[-3000:]
-    (run,) = (tmp_path / "outputs" / "embedded" / "restore" / "A").iterdir()  # the run's identity folder
+    return root, result
+
+
+RESTORE_A = ("capture.views=3", "ablation=A", "artifacts.baseline_weights=null", *SMALLEST)
+
+
+def runs(root: Path) -> list[Path]:
+    """The run folders of variant A's restores under ``root`` (one per capture identity)."""
+    return sorted((root / "outputs" / "embedded" / "restore" / "A").iterdir())
+
+
+def test_restore_writes_ply_video_grid_and_scores(capture, restored):
+    root, result = restored
+    (run,) = runs(root)  # the run's identity folder
     results = json.loads((run / "results.json").read_text())
     assert set(results["3dgs"]) == set(results["baseline"]) == {"3"}
     assert 5.0 < results["baseline"]["3"]["psnr"] < 60.0
     unit = json.loads((run / "units" / capture.name / "views_3.json").read_text())
     assert len(unit["captured"]) == 3 and not set(unit["captured"]) & set(unit["test"])
-    refined = load_ply(unit["models"]["baseline"])
-    assert len(refined) > 0 and Path(unit["models"]["3dgs"]).is_file()
-    grid = iio.imread(unit["media"]["grid"])
+    # The unit names its files relative to the run folder, so the folder can be copied or moved.
+    refined = load_ply(run / unit["models"]["baseline"])
+    assert len(refined) > 0 and (run / unit["models"]["3dgs"]).is_file()
+    grid = iio.imread(run / unit["media"]["grid"])
     assert grid.ndim == 3 and grid.shape[0] > 2 * 24  # caption strip + two held-out views
-    assert Path(unit["media"]["video"]).stat().st_size > 0
-    frames = sorted(Path(unit["media"]["frames"]["baseline"]).glob("frame_*.png"))
+    assert (run / unit["media"]["video"]).stat().st_size > 0
+    frames = sorted((run / unit["media"]["frames"]["baseline"]).glob("frame_*.png"))
     assert len(frames) == 6 and iio.imread(frames[0]).shape == (24, 32, 3)
-    assert f"refined 3DGS (baseline): {unit['models']['baseline']}" in result.stdout
+    assert f"refined 3DGS (baseline): {run.resolve() / unit['models']['baseline']}" in result.stdout
     assert not list(run.rglob("*.tmp"))
+
+
+def test_a_copied_capture_is_the_same_run_and_an_edited_one_recomputes(capture, restored, tmp_path):
+    """The capture is known by its images and reconstruction: a copy elsewhere reuses the finished run; an image
+    replaced in the copy makes a new run, which scores the edited capture."""
+    root, _ = restored
+    (run,) = runs(root)
+    unit_file = run / "units" / capture.name / "views_3.json"
+    finished = unit_file.read_bytes(), unit_file.stat().st_mtime_ns
+    copy = tmp_path / "moved" / capture.name
+    shutil.copytree(capture, copy)
+    again = restore(root, *RESTORE_A, f"capture.path={copy}")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert runs(root) == [run] and (unit_file.read_bytes(), unit_file.stat().st_mtime_ns) == finished
+    image = sorted((copy / "images").iterdir())[0]
+    iio.imwrite(image, 255 - iio.imread(image))
+    edited = restore(root, *RESTORE_A, f"capture.path={copy}")
+    assert edited.returncode == 0, edited.stderr[-3000:]
+    (new_run,) = set(runs(root)) - {run}
+    assert json.loads((new_run / "units" / capture.name / "views_3.json").read_text())["methods"] != json.loads(
+        finished[0])["methods"]
 
 
 def test_restore_names_a_missing_capture_in_one_line(tmp_path):

@@ -21,6 +21,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
@@ -125,6 +126,8 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
 
         @functools.wraps(hydra_main)
         def main() -> Any:
+            if not os.environ.get("TRACEGS_TRACEBACK"):
+                refuse_bad_command_line(config_name, CONF_DIR, config_name, sys.argv[1:])  # before Hydra writes
             if print_configs(CONF_DIR, config_name, sys.argv[1:]):
                 return None
             sys.argv[1:] = one_job_argv(sys.argv[1:])  # a rank launched for one job of a multirun

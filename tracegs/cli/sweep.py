@@ -94,13 +94,27 @@ def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:
         parsed = OverridesParser.create().parse_overrides(overrides)
         jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
     with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
-        for number, job in enumerate(jobs):
-            cfg = compose(config_name=config_name, overrides=job, return_hydra_config=which != "job")
+        configs = [compose(config_name=config_name, overrides=job, return_hydra_config=which != "job") for job in jobs]
+        if which == "job":
+            refuse_invalid(config_name, configs)  # every job's config is valid before any is printed
+        for number, (job, cfg) in enumerate(zip(jobs, configs)):
             shown = resolve_leniently(cfg) if resolve else OmegaConf.to_container(cfg)
             if multirun:
                 print(f"# job #{number}: {' '.join(job)}")
             print(OmegaConf.to_yaml(shown["hydra"] if which == "hydra" else shown), end="---\n" if multirun else "")
     return True
+
+
+def refuse_invalid(app: str, configs: list[DictConfig]) -> None:
+    """One line on stderr and exit code 2 for the first config that fails validation."""
+    from tracegs.cli.app import USER_ERRORS, exit_with_one_line
+    from tracegs.config.validate import validate
+
+    for cfg in configs:
+        try:
+            validate(cfg)
+        except USER_ERRORS as error:
+            exit_with_one_line(app, error)
 
 
 def resolve_leniently(node: DictConfig | ListConfig) -> Any:

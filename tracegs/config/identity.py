@@ -20,10 +20,12 @@ import hashlib
 import json
 import re
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from tracegs.content import root_relative, scene_digest
 from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
 
 DIGEST_CHARS = 8
@@ -48,6 +50,8 @@ SCOPES["evaluate"] = SCOPES["deploy"]
 # A capture of the user's own (tracegs-restore): deployment's scope plus which capture and views.
 SCOPES["restore"] = (*SCOPES["deploy"], "capture")
 
+# A capture of the user's own is identified by its images and reconstruction, not by where it lies.
+CAPTURE_KEY = "capture.path"
 # Execution settings inside scoped sections: they never change a product.
 EXECUTION_KEYS = frozenset({
     "data.source.root", "data.synthetic.root",
@@ -121,13 +125,21 @@ def scope(cfg: DictConfig, kind: str) -> tuple[str, ...]:
 
 
 def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:
-    """The flattened, resolved values that determine the product of a ``kind`` run."""
+    """The flattened, resolved values that determine the product of a ``kind`` run.
+
+    A path inside the run's root is kept relative to it, so the same root reached through another spelling, or
+    copied or moved, is the same run; a capture handed in is known by its content (tracegs.content)."""
     skip = EXECUTION_KEYS | _IGNORED_PER_KIND.get(kind, frozenset())
     values: dict[str, Any] = {}
     for key in scope(cfg, kind):
         parent, _, leaf = key.rpartition(".")
         holder = OmegaConf.select(cfg, parent, throw_on_missing=True) if parent else cfg
         values.update(_leaves(holder, leaf, key, skip))
+    if values.get(CAPTURE_KEY) is not None and Path(values[CAPTURE_KEY]).expanduser().is_dir():
+        values[CAPTURE_KEY] = f"content:{scene_digest(values[CAPTURE_KEY])}"
+    root = OmegaConf.select(cfg, "paths.root_dir")
+    if root is not None:
+        values = {key: root_relative(value, root) for key, value in values.items()}
     return dict(sorted(values.items()))
 
 
@@ -154,16 +166,27 @@ def _in_scope(key: str, kind: str) -> bool:
 
 
 def readable_name(seed: int, overrides: Sequence[str], kind: str) -> str:
-    """``seed<k>`` followed by the in-scope overrides (their last key component), filesystem-safe."""
+    """``seed<k>`` and the in-scope overrides as ``<last key component>-<value>``, joined by ``_``.
+
+    The name pastes safely into a command line (no ``=``, ``,``, brackets or quotes: Hydra's override syntax),
+    names no path (a path value is left to the digest) and cuts no value: overrides that do not fit in
+    ``READABLE_MAX_CHARS`` are left out whole and counted (``more<n>``)."""
     parts = [f"seed{seed}"]
+    left_out = 0
     for override in sorted(set(overrides)):
         key = override_key(override)
         if "=" not in override or not _in_scope(key, kind):
             continue
-        value = override.split("=", 1)[1]
-        parts.append(f"{key.rsplit('.', 1)[-1]}={value}")
-    name = re.sub(r"[^A-Za-z0-9._=,+-]", "_", ",".join(parts))
-    return name[:READABLE_MAX_CHARS]
+        value = override.split("=", 1)[1].strip("[]'\"")
+        if "/" in value:
+            left_out += 1
+            continue
+        part = re.sub(r"[^A-Za-z0-9.+-]", "_", f"{key.rsplit('.', 1)[-1]}-{value.replace(',', '+')}")
+        if len("_".join([*parts, part])) > READABLE_MAX_CHARS:
+            left_out += 1
+            continue
+        parts.append(part)
+    return "_".join(parts + ([f"more{left_out}"] if left_out else []))
 
 
 def run_name(cfg: DictConfig, kind: str, overrides: Sequence[str] = ()) -> str:

@@ -10,13 +10,13 @@ unchanged, so each method restores exactly what a backbone built for it alone re
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
+from tracegs.content import content_digest
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
@@ -49,15 +49,6 @@ class RestorerArtifacts:
     ablation: str = "C"
 
 
-def digest(path: Path) -> str:
-    """Content digest of a weights file or folder: a restorer's identity (evaluation reruns a unit when it changes)."""
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    sha = hashlib.sha256()
-    for file in files:
-        sha.update(file.read_bytes())
-    return sha.hexdigest()[:16]
-
-
 def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_files: dict[str, AdapterFile | None],
                      batch: int, steps: int | None = None,
                      device: torch.device | str | None = None) -> dict[str, DiffusionRestorer]:
@@ -69,7 +60,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
                                     "(run tracegs-train stage=baseline)")
         cfg = replace(cfg, transformer=replace(cfg.transformer, pretrained_path=baseline_weights))
     base = cfg.transformer.pretrained_path
-    identity = f"base={digest(Path(base))}" if base else "base=random-init"
+    identity = f"base={content_digest(base)}" if base else "base=random-init"
     backbone = build_backbone(cfg, device=device or accelerator())
     restorers = {}
     for name, file in adapter_files.items():
@@ -78,7 +69,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
                                   field=file.field)
         restorers[name] = DiffusionRestorer(
             RestorationPipeline(backbone, adapter=None if file is None else name), batch=batch,
-            identity=identity if file is None else f"{identity} {file.label}={digest(file.path)}", steps=steps)
+            identity=identity if file is None else f"{identity} {file.label}={content_digest(file.path)}", steps=steps)
     return restorers
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import math
 import multiprocessing
 import os
@@ -24,6 +25,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
+from tracegs.content import content_digest
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
 from tracegs.data.config import SceneSourceConfig
@@ -44,6 +46,8 @@ from tracegs.splat.fit import GaussianFitter
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render_views, require_available
 from tracegs.splat.trajectory import bridge_poses
+
+log = logging.getLogger("tracegs")
 
 # Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
 # [F,3,H,W] in [0,1]. Used for the video's GT column and the per-step (Fig. 6) curves.
@@ -196,10 +200,18 @@ class _UnitJob:
             record["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
                                                                            method)))
                                 for method, model in models.items()}
-        record["fingerprint"] = self.fingerprint
+        record["fingerprint"] = self.unit_fingerprint(key)
         record["variant"] = cfg.variant
+        # Paths relative to the evaluation folder: the record stays true when its root is copied or moved.
+        for files in (record.get("media", {}), record.get("media", {}).get("frames", {}), record.get("models", {})):
+            files.update({name: os.path.relpath(path, cfg.out_dir)
+                          for name, path in files.items() if isinstance(path, str)})
         write_json_atomic(record, unit_path(cfg.out_dir, unit.scene.name, unit.views))
         return record
+
+    def unit_fingerprint(self, key: tuple[str, int]) -> str:
+        """The job's settings and restorers with the content of the unit's scene folder (not its path)."""
+        return _fingerprint(self.fingerprint, content_digest(Path(self.source.root) / key[0]))
 
     def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
         """The whole unit in this process."""
@@ -233,15 +245,18 @@ def _part_forked(task: tuple[tuple[str, int], GaussianFitter, str]) -> tuple[tup
     return key, part, _FORKED_JOB.part(key, cold, part)
 
 
-def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
-               progress: Progress) -> Iterator[tuple[tuple[str, int], dict]]:
+def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int, progress: Progress,
+               plain: PlainProgress) -> Iterator[tuple[tuple[str, int], dict]]:
     """Run units serially, or in ``workers`` forked processes (CPU only: 3DGS optimisation of tiny scenes is
     dominated by per-op overhead that threads cannot spread). Forked, the cold starts come first, then every
     unit's parts are queued longest first, so no worker idles while another finishes a whole unit (with a
     few units, one unit per process left one core idle for a third of the run)."""
+    items = 0  # cold starts and parts finished: the work the time left is measured on
     if workers <= 1 or not keys:
         for key in keys:
             yield key, job.run(key, progress if job.cfg.progress else None)
+            items += 1 + len(job.parts())
+            plain.update(items)
         return
     parts = job.parts()
     global _FORKED_JOB
@@ -250,11 +265,17 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int,
         with multiprocessing.get_context("fork").Pool(min(workers, len(keys) * len(parts)),
                                                       initializer=die_with_parent,
                                                       initargs=(os.getpid(),)) as pool:
-            colds = dict(pool.imap_unordered(_cold_start_forked, keys))
+            colds = {}
+            for key, cold in pool.imap_unordered(_cold_start_forked, keys):
+                colds[key] = cold
+                items += 1
+                plain.update(items)
             finished: dict[tuple[str, int], dict] = {key: {} for key in keys}
             tasks = [(key, colds[key], part) for part in parts for key in keys]
             for key, part, result in pool.imap_unordered(_part_forked, tasks):
                 finished[key][part] = result
+                items += 1
+                plain.update(items)
                 if len(finished[key]) == len(parts):
                     yield key, job.finish(key, finished.pop(key))
             # Let the workers exit on their own: the pool's __exit__ would SIGTERM them, and pycolmap's
@@ -290,25 +311,31 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
                    ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,
-                   _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods, cfg.lpips_convention))
+                   _fingerprint(refine_cfg, fit_cfg, dataclasses.replace(source, root=""), restorer_ids, cfg.methods,
+                                cfg.lpips_convention))
     done: dict[tuple[str, int], dict] = {}
     todo = []
     for key in evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards):
         path = unit_path(cfg.out_dir, *key)
         previous = json.loads(path.read_text()) if path.is_file() and not cfg.force else {}
-        if previous.get("fingerprint") == job.fingerprint:
+        if previous.get("fingerprint") == job.unit_fingerprint(key):
             done[key] = previous
         else:
             todo.append(key)
+    if done:
+        log.info("evaluation: %d of %d units already finished with these settings, restorers and scenes: kept "
+                 "as they are", len(done), len(done) + len(todo))
     # Forked workers must not inherit a CUDA context; GPU runs go one unit at a time.
     workers = 1 if torch.cuda.is_available() else cfg.workers
     with Progress(disable=not cfg.progress) as progress:
         overall = progress.add_task("evaluation units", total=len(todo))
-        plain = PlainProgress("evaluation units", len(todo))
-        for finished, (key, record) in enumerate(_run_units(job, todo, workers, progress), 1):
+        # Each unit is a cold start and its parts; forked, they run ``workers`` at a time across units.
+        items = len(todo) * (1 + len(job.parts())) if todo else 0
+        plain = PlainProgress("evaluation parts", items,
+                              parallel=max(1, min(workers, len(todo) * len(job.parts()))))
+        for key, record in _run_units(job, todo, workers, progress, plain):
             done[key] = record
             progress.advance(overall)
-            plain.update(finished)
     if cfg.num_shards == 1:
         return merge_results(cfg.out_dir, scenes=scenes, views=cfg.views, methods=cfg.methods)
     return {f"{s}/views_{k}": u for (s, k), u in done.items()}

@@ -15,6 +15,9 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from tracegs.errors import InputFileError, OutputPathError, TraceGSError, one_line
 
+# Keys of a checkpoint's hyper_parameters that Lightning's ``load_from_checkpoint`` imports and calls.
+IMPORTED_HPARAM_KEYS = ("_instantiator", "_class_path")
+
 
 def require_loadable_checkpoint(path: str | Path, field: str) -> None:
     """Load ``path`` with ``weights_only=True`` (memory-mapped, so cheap) before Lightning does.
@@ -24,21 +27,49 @@ def require_loadable_checkpoint(path: str | Path, field: str) -> None:
     """
     fix = f"delete it to start this stage from scratch, or set {field} to another checkpoint"
     try:
-        torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except pickle.UnpicklingError as error:
         raise InputFileError(path, "holds Python objects that safe loading (weights_only) refuses: loading them "
                                    "could run arbitrary code", fix) from error
     except (RuntimeError, EOFError, OSError, ValueError) as error:
         first_sentence = one_line(error).split(". ")[0]
         raise InputFileError(path, f"not a loadable training checkpoint ({first_sentence})", fix) from error
+    # Lightning's loader imports what these keys name (an "instantiator" and its class); this code writes neither.
+    hyper_parameters = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
+    named_code = sorted(k for k in IMPORTED_HPARAM_KEYS if isinstance(hyper_parameters, dict) and k in hyper_parameters)
+    if named_code:
+        raise InputFileError(path, f"its hyper_parameters name code to import ({', '.join(named_code)}): loading "
+                                   "it could run arbitrary code", fix)
+
+
+def finished_checkpoint_state(path: str | Path, max_steps: int) -> dict | None:
+    """The weights to export from a checkpoint that already reached ``max_steps``, else None.
+
+    Lightning resumed from such a checkpoint trains nothing and never calls the weight average's end-of-training
+    hook, so the module would keep the raw last-step weights. The checkpoint's ``state_dict`` is what the first
+    completion exported: the average where the stage averages (the callback stores the current weights beside
+    it as ``current_model_state``), else the last step's weights.
+    """
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    if max_steps < 0 or checkpoint.get("global_step", 0) < max_steps:
+        return None
+    return checkpoint
 
 
 class ConfirmedCheckpoint(ModelCheckpoint):
-    """``ModelCheckpoint`` that checks each file it saved exists.
+    """``ModelCheckpoint`` that checks each file it saved exists and also saves at the run's last step.
 
     Lightning's atomic save swallows a ``PermissionError`` (e.g. a read-only ``checkpoints/``), so
-    without this a run finishes with exit code 0 and nothing to resume from.
+    without this a run finishes with exit code 0 and nothing to resume from. Saving only every n steps would
+    leave the last steps out of ``last.ckpt`` when n does not divide ``max_steps``: a rerun would train them again.
     """
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx: int) -> None:
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        if 0 < trainer.max_steps <= trainer.global_step and not self._should_skip_saving_checkpoint(trainer):
+            candidates = self._monitor_candidates(trainer)
+            self._save_topk_checkpoint(trainer, candidates)
+            self._save_last_checkpoint(trainer, candidates)
 
     def _save_checkpoint(self, trainer, filepath: str) -> None:
         super()._save_checkpoint(trainer, filepath)

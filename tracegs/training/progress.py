@@ -11,7 +11,8 @@ class PlainTrainingProgress(Callback):
     """Step, loss and time left at a fixed interval through :class:`tracegs.console.PlainProgress`."""
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self.progress = PlainProgress("train", trainer.max_steps)
+        # A resumed run measures its time left on the steps it trains, not on those of the checkpoint.
+        self.progress = PlainProgress("train", trainer.max_steps, first=trainer.global_step)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         loss = trainer.callback_metrics.get("loss")

@@ -32,6 +32,7 @@ from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.checkpoints import (
     CheckpointOnSignal,
     ConfirmedCheckpoint,
+    finished_checkpoint_state,
     require_loadable_checkpoint,
     stopped_by_signal,
 )
@@ -127,6 +128,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         every_n_train_steps=cfg.stage.checkpoint_every_n_steps,
         save_top_k=cfg.stage.keep_checkpoints,
         save_last=True,
+        enable_version_counter=False,  # one file per step: a rerun overwrites, never adds ``last-v1.ckpt``
     )
     return L.Trainer(
         accelerator=cfg.trainer.accelerator,
@@ -224,10 +226,16 @@ def train_stage(cfg) -> Path:
         if cfg.trainer.cpu_threads is not None:
             torch.set_num_threads(cfg.trainer.cpu_threads)
         trainer = build_trainer(cfg, output_dir, module)
-        try:
-            trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
-        except SIGTERMException:
-            raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
+        finished = finished_checkpoint_state(resume, cfg.stage.max_steps) if resume else None
+        if finished is not None:
+            # Killed after its last checkpoint and before its export: export what that checkpoint holds.
+            module.on_load_checkpoint(finished)
+            module.load_state_dict(finished["state_dict"], strict=False)
+        else:
+            try:
+                trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+            except SIGTERMException:
+                raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
         product = output_dir / PRODUCTS[cfg.stage.name]
         lora_state = full_lora_state(module.transformer)  # sharded adapters gathered on every rank (a collective)
         if trainer.is_global_zero:

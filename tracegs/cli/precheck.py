@@ -1,0 +1,91 @@
+"""The command line checked before Hydra writes anything.
+
+Hydra creates the run folder (a product folder: the run's identity names it) with ``.hydra/`` and the job log
+before the task runs, so a command refused by validation would still write into the folder of a finished
+product; ``--cfg job`` prints a config without validating it, misspelt ``+`` keys included. Here the overrides
+are parsed and the job's config composed and validated first (the task validates it again, under Hydra).
+"""
+
+from __future__ import annotations
+
+import sys
+
+# Hydra's own flags that print or run something other than one job of the task.
+_NOT_ONE_JOB = {"-m", "--multirun", "--help", "-h", "--hydra-help", "--info", "-i", "--version", "--shell-completion",
+                "-sc", "--run", "-r"}
+_CFG_FLAGS = {"--cfg", "-c"}
+QUOTE_HINT = ("quote a value holding ',', '=', spaces or brackets (a path pasted from a log, say): "
+              "key='/path/with,commas'; in a shell wrap the whole override in double quotes")
+
+
+def overrides_of(argv: list[str]) -> list[str]:
+    """The overrides on a command line (what is not a flag or a flag's argument)."""
+    flags_with_values = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                         "--config-dir", "-cd", "--experimental-rerun", "--info", "-i"}
+    overrides, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+            continue
+        if arg in flags_with_values:
+            skip = arg not in ("--info", "-i")  # --info's argument is optional and never holds '='
+            continue
+        if not arg.startswith("-"):
+            overrides.append(arg)
+    return overrides
+
+
+def parse_error(overrides: list[str], multirun: bool) -> str | None:
+    """One line naming the first override Hydra's grammar refuses (or, outside ``-m``, reads as a sweep), with
+    the hint to quote it; None if all parse."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    parser = OverridesParser.create()
+    for override in overrides:
+        try:
+            (parsed,) = parser.parse_overrides([override])
+            if parsed.is_sweep_override() and not multirun:
+                return f"the override {override!r} reads as a sweep over several values: {QUOTE_HINT}"
+        except OverrideParseException as error:
+            reasons = [line.strip() for line in str(error).splitlines()
+                       if line.strip() and not line.startswith(("Error parsing", "See "))]
+            return f"cannot parse the override {override!r} ({(reasons or ['syntax error'])[0]}): {QUOTE_HINT}"
+    return None
+
+
+def check_command_line(config_dir: str, config_name: str, argv: list[str]) -> str | None:
+    """The one-line refusal of this command line, or None to go on: a parse error, or (for one job, ``--cfg job``
+    included) the first error of composing and validating its config."""
+    overrides = overrides_of(argv)
+    error = parse_error(overrides, multirun=bool({"-m", "--multirun"} & set(argv)))
+    if error is not None or set(argv) & _NOT_ONE_JOB:
+        return error
+    if set(argv) & _CFG_FLAGS:
+        position = max(argv.index(flag) for flag in set(argv) & _CFG_FLAGS) + 1
+        if position < len(argv) and argv[position] in ("hydra", "all"):
+            return None
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from tracegs.cli.app import USER_ERRORS
+    from tracegs.config.validate import validate
+    from tracegs.errors import one_line
+
+    try:
+        with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+            validate(compose(config_name=config_name, overrides=overrides))
+    except USER_ERRORS as refused:
+        return one_line(refused.args[0] if isinstance(refused, KeyError) and refused.args else refused, limit=2000)
+    except (HydraException, OmegaConfBaseException):
+        return None  # Hydra reports its own composition errors, before it writes anything
+    return None
+
+
+def refuse_bad_command_line(app: str, config_dir: str, config_name: str, argv: list[str]) -> None:
+    """Exit with code 2 and one line on stderr when :func:`check_command_line` refuses ``argv``."""
+    message = check_command_line(config_dir, config_name, argv)
+    if message is not None:
+        print(f"tracegs-{app}: error: {message}", file=sys.stderr)
+        sys.exit(2)

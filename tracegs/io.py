@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -85,7 +86,8 @@ def save_safetensors_atomic(
     """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires).
 
     A tensor holding NaN or infinity is refused (nothing is written): a cache shard or an adapter with
-    non-finite values would poison every run that reads it.
+    non-finite values would poison every run that reads it. The header's metadata carries the SHA-256 of the
+    data bytes (:data:`CHECKSUM_KEY`), so a reader can tell a file whose bytes changed after it was written.
     """
     payload = {name: t.detach().to("cpu").contiguous() for name, t in tensors.items()}
     bad = non_finite_keys(payload)
@@ -93,8 +95,9 @@ def save_safetensors_atomic(
         raise NonFiniteError(path, f"non-finite values in tensors {bad[:8]}; the file was not written",
                              "check the inputs that produced them (images, fits, learning rate)")
     with atomic_write(path) as tmp:
-        save_file(payload, str(tmp), metadata=metadata)
-        sort_header_metadata(tmp)
+        # A placeholder of the digest's length: the real digest then fits into the header in place.
+        save_file(payload, str(tmp), metadata={**(metadata or {}), CHECKSUM_KEY: "0" * CHECKSUM_LENGTH})
+        seal_header(tmp)
 
 
 def non_finite_keys(tensors: Mapping[str, torch.Tensor]) -> list[str]:
@@ -102,19 +105,34 @@ def non_finite_keys(tensors: Mapping[str, torch.Tensor]) -> list[str]:
     return [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
 
 
-def sort_header_metadata(path: Path) -> None:
-    """Rewrite a safetensors header with its ``__metadata__`` keys sorted, in place.
+# SHA-256 rather than blake2b: with the CPUs' SHA extensions it hashes about twice as fast (1.8 against
+# 0.9 GB/s measured on the 2-core VM), and verification cost is what a reader pays.
+CHECKSUM_KEY = "data_sha256"
+CHECKSUM_LENGTH = 64
+
+
+def _header(handle) -> tuple[int, dict]:
+    length = int.from_bytes(handle.read(8), "little")
+    return length, json.loads(handle.read(length))
+
+
+def _data_digest(handle) -> str:
+    """SHA-256 of everything from the handle's position to the end (the tensors' bytes)."""
+    return hashlib.file_digest(handle, "sha256").hexdigest()
+
+
+def seal_header(path: Path) -> None:
+    """Rewrite a safetensors header in place: ``__metadata__`` keys sorted and the data checksum filled in.
 
     safetensors serialises the metadata map in hash order, which differs between processes, so the same
     tensors and metadata would give different bytes (a resumed or parallel run could not be compared
     with an uninterrupted one byte for byte). The library has no option for a fixed order, hence this.
-    Reordering the members of a JSON object keeps its length, so the data offsets stay valid.
+    Reordering the members of a JSON object and replacing the checksum placeholder by a digest of the same
+    length keep the header's length, so the data offsets stay valid.
     """
     with open(path, "r+b") as handle:
-        length = int.from_bytes(handle.read(8), "little")
-        header = json.loads(handle.read(length))
-        if "__metadata__" not in header:
-            return
+        length, header = _header(handle)
+        header["__metadata__"][CHECKSUM_KEY] = _data_digest(handle)
         header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
         text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
         if len(text) > length:
@@ -123,17 +141,46 @@ def sort_header_metadata(path: Path) -> None:
         handle.write(text.ljust(length))  # the format pads headers with spaces
 
 
+_verified: set[tuple] = set()
+
+
+def checksum_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path``'s tensors cannot be trusted (no checksum, or data bytes that differ from the checksum
+    written with them), or None. A file is hashed once per process while its size and modification time
+    stay the same: readers that open a shard again (every epoch, every evaluation) pay nothing more."""
+    stat = os.stat(path)
+    identity = (os.path.abspath(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    if identity in _verified:
+        return None
+    try:
+        with open(path, "rb") as handle:
+            expected = _header(handle)[1].get("__metadata__", {}).get(CHECKSUM_KEY)
+            if expected is None:
+                return "has no data checksum (written by an older version)"
+            if _data_digest(handle) != expected:
+                return "data bytes differ from the checksum written with them (the file was damaged or edited)"
+    except (OSError, ValueError, AttributeError) as error:
+        return f"unreadable header ({one_line(error)})"
+    _verified.add(identity)
+    return None
+
+
 def read_safetensors(path: str | os.PathLike, fix: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Every tensor and the metadata of a safetensors file; a missing or damaged file raises
-    :class:`InputFileError` naming it, followed by ``fix`` (what the user should do)."""
+    """Every tensor and the metadata of a safetensors file; a missing or damaged file (including one whose
+    data differ from the checksum it carries) raises :class:`InputFileError` naming it, followed by ``fix``
+    (what the user should do). Files written elsewhere carry no checksum and are read as they are."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, "no such file" if not path.exists() else "is not a file", fix)
     try:
         with safe_open(str(path), framework="pt") as handle:
-            return {key: handle.get_tensor(key) for key in handle.keys()}, handle.metadata() or {}
+            tensors, metadata = {key: handle.get_tensor(key) for key in handle.keys()}, handle.metadata() or {}
     except (SafetensorError, OSError, ValueError) as error:
         raise InputFileError(path, f"not a readable safetensors file ({one_line(error)})", fix) from error
+    problem = checksum_problem(path) if CHECKSUM_KEY in metadata else None
+    if problem:
+        raise InputFileError(path, problem, fix)
+    return tensors, metadata
 
 
 def write_json_atomic(data: Any, path: str | os.PathLike) -> None:

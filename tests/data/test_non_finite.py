@@ -15,15 +15,17 @@ from tracegs.data.config import DataModuleConfig
 from tracegs.data.datamodule import PairedClipDataModule
 from tracegs.data.prepare import run_prepare, shard_is_valid
 from tracegs.errors import NonFiniteError
-from tracegs.io import read_safetensors, save_safetensors_atomic
+from tracegs.io import read_safetensors, save_safetensors_atomic, seal_header
 
 
 def poison(shard: Path, key: str = "latent/target") -> None:
-    """Put one NaN into ``key`` of a shard, as a damaged disk or a buggy encoder would (bypassing the guard)."""
+    """Put one NaN into ``key`` of a shard, as a buggy encoder would (bypassing the writer's guard, with a
+    checksum of the poisoned bytes, so only the non-finite checks can catch it)."""
     tensors, metadata = read_safetensors(shard, fix="")
     tensors[key] = tensors[key].clone()
     tensors[key].view(-1)[0] = float("nan")
     save_file(tensors, str(shard), metadata=metadata)
+    seal_header(shard)
 
 
 def test_a_non_finite_tensor_is_never_written(tmp_path):

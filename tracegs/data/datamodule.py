@@ -33,6 +33,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.splits import view_set_key
+from tracegs.io import checksum_problem
 
 
 def draw_seed_of(seed: int, epoch: int, index: int) -> int:
@@ -54,8 +55,9 @@ def read_manifest(cache_dir: str | Path) -> dict:
         raise CacheError(f"{path}: corrupt manifest ({error})") from error
 
 
-def check_shard(path: Path, required: list[str]) -> None:
-    """Open a shard's header and check it holds ``required`` keys; raises ``CacheError`` naming the file."""
+def verify_shard(path: Path) -> set[str]:
+    """The keys of a shard; refuses (``CacheError`` naming the file) a missing or unreadable shard and one whose
+    bytes differ from the checksum written with it: training on changed bytes would give another adapter."""
     if not path.is_file():
         raise CacheError(f"{path}: shard listed in the manifest is missing")
     try:
@@ -63,7 +65,15 @@ def check_shard(path: Path, required: list[str]) -> None:
             keys = set(f.keys())
     except (SafetensorError, OSError, ValueError) as error:
         raise CacheError(f"{path}: corrupt shard ({error})") from error
-    missing = [k for k in required if k not in keys]
+    problem = checksum_problem(path)
+    if problem:
+        raise CacheError(f"{path}: {problem}; run prepare again with the same settings to rebuild it")
+    return keys
+
+
+def check_shard(path: Path, required: list[str]) -> None:
+    """Verify a shard (:func:`verify_shard`) and check it holds ``required`` keys; raises ``CacheError``."""
+    missing = [k for k in required if k not in verify_shard(path)]
     if missing:
         raise CacheError(f"{path}: shard lacks {missing}; re-run prepare with these view sets / snapshots")
 

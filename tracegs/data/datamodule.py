@@ -55,9 +55,10 @@ def read_manifest(cache_dir: str | Path) -> dict:
         raise CacheError(f"{path}: corrupt manifest ({error})") from error
 
 
-def verify_shard(path: Path) -> set[str]:
-    """The keys of a shard; refuses (``CacheError`` naming the file) a missing or unreadable shard and one whose
-    bytes differ from the checksum written with it: training on changed bytes would give another adapter."""
+def verify_shard(path: Path, required: list[str] | None = None) -> None:
+    """Refuse (``CacheError`` naming the file) a missing or unreadable shard, one that lacks a ``required`` key,
+    and one whose ``required`` tensors (default: all) differ from the checksums written with them: training on
+    changed bytes would silently give another adapter."""
     if not path.is_file():
         raise CacheError(f"{path}: shard listed in the manifest is missing")
     try:
@@ -65,17 +66,12 @@ def verify_shard(path: Path) -> set[str]:
             keys = set(f.keys())
     except (SafetensorError, OSError, ValueError) as error:
         raise CacheError(f"{path}: corrupt shard ({error})") from error
-    problem = checksum_problem(path)
-    if problem:
-        raise CacheError(f"{path}: {problem}; run prepare again with the same settings to rebuild it")
-    return keys
-
-
-def check_shard(path: Path, required: list[str]) -> None:
-    """Verify a shard (:func:`verify_shard`) and check it holds ``required`` keys; raises ``CacheError``."""
-    missing = [k for k in required if k not in verify_shard(path)]
+    missing = [k for k in required or [] if k not in keys]
     if missing:
         raise CacheError(f"{path}: shard lacks {missing}; re-run prepare with these view sets / snapshots")
+    problem = checksum_problem(path, required)
+    if problem:
+        raise CacheError(f"{path}: {problem}; run prepare again with the same settings to rebuild it")
 
 
 class PairedClipDataset(Dataset):
@@ -96,7 +92,7 @@ class PairedClipDataset(Dataset):
         required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET), cache_keys.REF_2D,
                      cache_keys.REF_3D, cache_keys.TEXT]
         for _, _, path in self.clips:
-            check_shard(path, required)
+            verify_shard(path, required)
 
     def __len__(self) -> int:
         return len(self.clips)

@@ -10,7 +10,6 @@ unchanged, so each method restores exactly what a backbone built for it alone re
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -20,6 +19,7 @@ import torch
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
+from tracegs.io import content_digest as digest
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
@@ -49,15 +49,6 @@ class RestorerArtifacts:
     ablation: str = "C"
 
 
-def digest(path: Path) -> str:
-    """Content digest of a weights file or folder: a restorer's identity (evaluation reruns a unit when it changes)."""
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    sha = hashlib.sha256()
-    for file in files:
-        sha.update(file.read_bytes())
-    return sha.hexdigest()[:16]
-
-
 def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_files: dict[str, AdapterFile | None],
                      batch: int, steps: int | None = None,
                      device: torch.device | str | None = None) -> dict[str, DiffusionRestorer]:
@@ -75,7 +66,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
     for name, file in adapter_files.items():
         if file is not None:
             adapters.load_adapter(backbone.transformer, name, file.path, trainable=False, expected=cfg.lora,
-                                  field=file.field)
+                                  field=file.field, stage="stage2")
         restorers[name] = DiffusionRestorer(
             RestorationPipeline(backbone, adapter=None if file is None else name), batch=batch,
             identity=identity if file is None else f"{identity} {file.label}={digest(file.path)}", steps=steps)

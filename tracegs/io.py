@@ -18,7 +18,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from tracegs.errors import InputFileError, NonFiniteError, one_line
+from tracegs.errors import InputFileError, NonFiniteError, one_line, write_failure
 
 
 def _current_umask() -> int:
@@ -42,18 +42,33 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     on POSIX. On any exception the temporary file is removed and ``path`` is left untouched.
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    with refused_writes_named(target):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
-        yield tmp
-        # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
-        _with_umask_permissions(tmp, 0o666)
-        os.replace(tmp, target)
+        with refused_writes_named(target):
+            yield tmp
+            # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
+            _with_umask_permissions(tmp, 0o666)
+            os.replace(tmp, target)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+@contextlib.contextmanager
+def refused_writes_named(target: Path) -> Iterator[None]:
+    """Turn the machine refusing a write (disk full, file too large, read-only, no permission) into the one-line
+    :class:`OutputPathError` naming ``target`` and what to do; other errors pass unchanged."""
+    try:
+        yield
+    except OSError as error:
+        failure = write_failure(target, error)
+        if failure is None:
+            raise
+        raise failure from error
 
 
 @contextlib.contextmanager
@@ -65,18 +80,20 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     aside first and deleted only after the new one is in place.
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    with refused_writes_named(target):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     _with_umask_permissions(staging, 0o777)
     try:
-        yield staging
-        if target.exists():
-            retired = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
-            os.replace(target, retired / target.name)
-            os.replace(staging, target)
-            shutil.rmtree(retired)
-        else:
-            os.replace(staging, target)
+        with refused_writes_named(target):
+            yield staging
+            if target.exists():
+                retired = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
+                os.replace(target, retired / target.name)
+                os.replace(staging, target)
+                shutil.rmtree(retired)
+            else:
+                os.replace(staging, target)
     finally:
         if staging.exists():
             shutil.rmtree(staging)

@@ -267,6 +267,8 @@ def restore(cfg: DictConfig) -> Path:
     import json
     from dataclasses import replace
 
+    from tracegs.data.splits import SplitError
+    from tracegs.errors import ConfigError
     from tracegs.eval.evaluate import evaluate as run_evaluation
     from tracegs.eval.merge import unit_path
     from tracegs.eval.report import results_table_markdown
@@ -284,8 +286,12 @@ def restore(cfg: DictConfig) -> Path:
     # The capture is one scene folder: its parent is the dataset root the COLMAP loader reads scenes from.
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
-    results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                             restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+    try:
+        results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
+                                 restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+    except SplitError as error:  # the split of the capture's images: the count the user chose is capture.views
+        raise ConfigError("capture.views", f"{cfg.capture.views}: {capture}: {error}; ask for fewer views or "
+                                           "capture more images") from error
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
     show(f"\n{capture.name}: fitted from views {unit['captured']}, scored on held-out views {unit['test']}")

@@ -19,14 +19,14 @@ from typing import Any
 
 import hydra
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
 from tracegs.console import to_log_files
-from tracegs.errors import TraceGSError, one_line, require_writable_dir
+from tracegs.errors import TraceGSError, one_line, require_writable_dir, write_failure
 
 # The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
 # editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
@@ -34,6 +34,17 @@ CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+
+def user_error(error: BaseException, cfg: DictConfig) -> BaseException | None:
+    """``error`` as the user should see it: itself when the user's input caused it, the one-line
+    :func:`write_failure` when the machine refused a write that no writer of ours named, else None (a bug:
+    the traceback is the useful report)."""
+    if isinstance(error, OSError) and not isinstance(error, USER_ERRORS):
+        # Library writers (Lightning's checkpoints, Hydra's logs) may leave the file unnamed; the run folder is.
+        where = error.filename or f"a file in the run folder {OmegaConf.select(cfg, 'run_dir', default='.')}"
+        return write_failure(where, error)
+    return error
+
 
 def report_one_line(app: str, error: BaseException) -> str:
     """Print ``error`` as one line on stderr (and into the run's log files); return its message."""
@@ -112,8 +123,9 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                     with overrides_for_launched_ranks():
                         return run_task(task, cfg)
                 return run_task(task, cfg)
-            except USER_ERRORS as error:
-                if os.environ.get("TRACEGS_TRACEBACK"):
+            except (*USER_ERRORS, OSError) as raised:
+                error = user_error(raised, cfg)
+                if error is None or os.environ.get("TRACEGS_TRACEBACK"):
                     raise
                 message = report_one_line(config_name, error)
                 if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end

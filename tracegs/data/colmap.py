@@ -15,7 +15,7 @@ import torch
 
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.images import read_rgb, resize
-from tracegs.errors import InputFileError
+from tracegs.errors import InputFileError, plain_name_problem
 from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 
@@ -105,6 +105,11 @@ def read_scene_list(path: str, field: str) -> list[str]:
     if not file.is_file():
         raise FileNotFoundError(f"{field}={path!r}: scene list not found")
     names = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()]
+    for number, name in enumerate(names, 1):
+        problem = plain_name_problem(name) if name else None
+        if problem:
+            raise InputFileError(file, f"line {number}: {name!r} {problem}",
+                                 f"list plain scene names (folders under the scene root) in {field}")
     return [name for name in names if name]
 
 

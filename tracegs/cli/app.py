@@ -24,9 +24,9 @@ from omegaconf import DictConfig, OmegaConf
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
-from tracegs.config.validate import validate
+from tracegs.config.validate import validate, validate_names
 from tracegs.console import to_log_files
-from tracegs.errors import TraceGSError, one_line, require_writable_dir, write_failure
+from tracegs.errors import ConfigError, TraceGSError, one_line, require_writable_dir, write_failure
 
 # The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
 # editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
@@ -79,23 +79,25 @@ def log_libraries_through_hydra() -> None:
 
 
 class OutputsWritable(Callback):
-    """Hydra callback: check the run (or sweep) folder is a writable directory before Hydra writes into it.
+    """Hydra callback: check the names that make up the run (or sweep) folder are plain names and the folder is a
+    writable directory, before Hydra writes into it.
 
     Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
     would only see Hydra's own traceback for an output path that is a file or read-only.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config.hydra.run.dir, "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
+        self._check(config, "run", "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config.hydra.sweep.dir, "hydra.sweep.dir", kwargs.get("config_name", "run"))
+        self._check(config, "sweep", "hydra.sweep.dir", kwargs.get("config_name", "run"))
 
     @staticmethod
-    def _check(directory: str, field: str, app: str) -> None:
+    def _check(config: DictConfig, mode: str, field: str, app: str) -> None:
         try:
-            require_writable_dir(directory, field)
-        except TraceGSError as error:
+            validate_names(config)  # names become folders of the run path: one with '..' would leave the root
+            require_writable_dir(config.hydra[mode].dir, field)
+        except (TraceGSError, ConfigError) as error:
             if os.environ.get("TRACEGS_TRACEBACK"):
                 raise
             exit_with_one_line(app, error)

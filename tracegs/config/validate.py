@@ -16,7 +16,7 @@ from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
 
-__all__ = ["ConfigError", "validate"]
+__all__ = ["ConfigError", "validate", "validate_names"]
 
 
 def _require(condition: bool, field: str, message: str) -> None:
@@ -41,7 +41,7 @@ def _check_increasing(values: Iterable[int], field: str) -> list[int]:
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` naming the first field whose value is inconsistent with the others."""
     _validate_known_keys(cfg)
-    _validate_names(cfg)
+    validate_names(cfg)
     _validate_data(cfg)
     _validate_training(cfg)
     _validate_backbone(cfg)
@@ -70,7 +70,8 @@ NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "data.source.sce
                "evaluation.scenes")
 
 
-def _validate_names(cfg: DictConfig) -> None:
+def validate_names(cfg: DictConfig) -> None:
+    """Every :data:`NAME_FIELDS` value is a plain name (checked before Hydra makes the run folder of them too)."""
     for field in NAME_FIELDS:
         value = OmegaConf.select(cfg, field)
         for item in ([] if value is None else [value] if isinstance(value, str) else value):

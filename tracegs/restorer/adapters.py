@@ -222,11 +222,11 @@ def check_adapter_records(path: Path, tensors: dict[str, torch.Tensor], metadata
                           model: torch.nn.Module, stage: str, field: str) -> None:
     """The file must say it was written by ``stage`` on ``model``'s base, with float32 factors (and hold
     them): an adapter of another stage, base or precision restores differently while looking alike."""
-    dtypes = sorted({str(t.dtype).removeprefix("torch.") for t in tensors.values()} | {metadata.get(DTYPE_KEY)})
     wanted = {STAGE_KEY: ("stage", stage), BASE_KEY: ("base", base_identity(model)),
               DTYPE_KEY: ("dtype", FACTOR_DTYPE)}
+    # The dtype the factors have, whatever the metadata claims (a converted file may keep the old record).
     have = {STAGE_KEY: metadata.get(STAGE_KEY), BASE_KEY: metadata.get(BASE_KEY),
-            DTYPE_KEY: dtypes[0] if len(dtypes) == 1 else "/".join(map(str, dtypes))}
+            DTYPE_KEY: "/".join(sorted({str(t.dtype).removeprefix("torch.") for t in tensors.values()}))}
     differing = [f"{label} {have[key]!r} in the file, {value!r} here" for key, (label, value) in wanted.items()
                  if have[key] != value]
     if differing:

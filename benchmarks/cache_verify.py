@@ -1,6 +1,6 @@
 """What verifying the cache's checksums costs training: the extra fraction of data-loading time.
 
-Every shard carries a CRC-32 of each tensor; the data module checks the tensors training reads, in every shard,
+Every shard carries a checksum (XXH3) of each tensor; the data module checks the tensors training reads, in every shard,
 once per process before training starts (``tracegs.data.datamodule.verify_shard``), and later reads in the
 process pay nothing. The cost is one pass over those bytes per training process, set against the data loading
 that process does anyway: setting up the data module and serving ``max_steps`` batches. The baseline is the

@@ -7,14 +7,15 @@ import hashlib
 import json
 import mmap
 import os
+import re
 import shutil
 import tempfile
-import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
+import xxhash
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
@@ -64,11 +65,20 @@ def refused_writes_named(target: Path) -> Iterator[None]:
     :class:`OutputPathError` naming ``target`` and what to do; other errors pass unchanged."""
     try:
         yield
-    except OSError as error:
-        failure = write_failure(target, error)
+    except (OSError, SafetensorError) as error:
+        failure = write_failure(target, as_os_error(error))
         if failure is None:
             raise
         raise failure from error
+
+
+def as_os_error(error: BaseException) -> OSError:
+    """The ``OSError`` behind ``error``: safetensors' Rust writer reports one as text ("... (os error 28)")."""
+    if isinstance(error, OSError):
+        return error
+    found = re.search(r"\(os error (\d+)\)", str(error))
+    code = int(found.group(1)) if found else 0
+    return OSError(code, os.strerror(code) if code else str(error))
 
 
 @contextlib.contextmanager
@@ -105,7 +115,7 @@ def save_safetensors_atomic(
     """Write a safetensors file atomically (contiguous CPU copies, as safetensors requires).
 
     A tensor holding NaN or infinity is refused (nothing is written): a cache shard or an adapter with
-    non-finite values would poison every run that reads it. The header's metadata carries a CRC-32 of each
+    non-finite values would poison every run that reads it. The header's metadata carries a checksum (XXH3) of each
     tensor's bytes (:data:`CHECKSUM_KEY`), so a reader can tell a file whose bytes changed after it was written.
     """
     payload = {name: t.detach().to("cpu").contiguous() for name, t in tensors.items()}
@@ -123,11 +133,12 @@ def non_finite_keys(tensors: Mapping[str, torch.Tensor]) -> list[str]:
     return [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
 
 
-# CRC-32 (zlib's, in the standard library) per tensor: the checksums guard against damage (a disk, a copy, an
-# edit by hand), not against tampering, and a reader pays for them, so it checks only the tensors it reads
-# (training: the latents and tokens, half of an embedded shard). 0.5 ms per 1.7 MB shard on the 2-core VM,
-# against 1.1 ms for SHA-256 and 2 ms for blake2b, where serving the shard to training takes 1.5 ms.
-CHECKSUM_KEY = "data_crc32"  # metadata: JSON {tensor name: 8 hex digits}
+# XXH3 (xxhash) per tensor: the checksums guard against damage (a disk, a copy, an edit by hand), not
+# against tampering, and every training process pays for them before it starts, so the fastest well-kept
+# hash: 22 GB/s on the 2-core VM, against 4 for zlib's CRC-32 and 1.8 for SHA-256. A reader checks only the
+# tensors it reads (training: the latents and tokens, half of an embedded shard).
+CHECKSUM_KEY = "data_xxh3_64"  # metadata: JSON {tensor name: 16 hex digits}
+CHECKSUM_DIGITS = 16
 
 
 def _header(handle) -> tuple[int, dict]:
@@ -137,17 +148,17 @@ def _header(handle) -> tuple[int, dict]:
 
 def _placeholder_checksums(names) -> str:
     """The checksum entry with every digit zero: as long as the real one, so it can be filled in in place."""
-    return json.dumps({name: "0" * 8 for name in sorted(names)})
+    return json.dumps({name: "0" * CHECKSUM_DIGITS for name in sorted(names)})
 
 
 def _tensor_checksums(handle, length: int, header: dict, names) -> dict[str, str]:
-    """CRC-32 (8 hex digits) of each named tensor's bytes, read through a memory map (no copy)."""
+    """XXH3-64 (16 hex digits) of each named tensor's bytes, read through a memory map (no copy)."""
     start = 8 + length
     with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, memoryview(mapped) as view:
         sums = {}
         for name in names:
             begin, end = header[name]["data_offsets"]
-            sums[name] = f"{zlib.crc32(view[start + begin:start + end]):08x}"
+            sums[name] = xxhash.xxh3_64_hexdigest(view[start + begin:start + end])
         return sums
 
 

@@ -157,7 +157,8 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
 def base_identity(model: torch.nn.Module) -> str:
     """What an adapter on ``model`` was trained on: the content digest of the weights folder the base was loaded
     from (diffusers records it as ``_name_or_path``), or, for a base made in memory (a tiny or randomly
-    initialised one), a digest of its weights' values."""
+    initialised one), a digest of its weights' values at bf16 precision: the weight files' digest does not
+    depend on the dtype they are loaded in either, so one base at two precisions is one base."""
     source = dict(getattr(model, "config", {}) or {}).get("_name_or_path")
     if source and Path(source).is_dir():
         return f"weights {content_digest(source)}"
@@ -165,7 +166,9 @@ def base_identity(model: torch.nn.Module) -> str:
     for name, tensor in model.state_dict().items():
         if ".lora_" not in name:
             sha.update(name.replace(".base_layer.", ".").encode())  # as named before peft wrapped the layer
-            sha.update(tensor.detach().cpu().reshape(-1).view(torch.uint8).numpy().tobytes())
+            values = tensor.detach().cpu().reshape(-1)
+            values = values.to(torch.bfloat16) if values.is_floating_point() else values
+            sha.update(values.view(torch.uint8).numpy().tobytes())
     return f"in-memory {sha.hexdigest()[:16]}"
 
 

@@ -350,7 +350,7 @@ def privileged_report(cfg: DictConfig) -> Path:
                                 "(run tracegs-train stage=stage1 with the same settings)")
     pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
         section(cfg.backbone), cfg.artifacts.baseline_weights,
-        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1"),
+        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1", "stage1"),
          "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
         batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
     # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.

@@ -72,11 +72,15 @@ def forked():
     return fork_child
 
 
-def run_entry_point(app: str, args: list[str], cwd: Path) -> EntryPointRun:
-    """Run console script ``tracegs-<app>`` (its Hydra main) with ``args`` in a forked child of this process."""
+def run_entry_point(app: str, args: list[str], cwd: Path, in_child: Callable[[], None] | None = None
+                    ) -> EntryPointRun:
+    """Run console script ``tracegs-<app>`` (its Hydra main) with ``args`` in a forked child of this process;
+    ``in_child`` runs in the child first (e.g. to set a resource limit on it alone)."""
     out, err = cwd / f".{app}.stdout", cwd / f".{app}.stderr"
 
     def main() -> None:
+        if in_child is not None:
+            in_child()
         os.chdir(cwd)
         for variable in ("TRACEGS_TRACEBACK", "HYDRA_FULL_ERROR"):
             os.environ.pop(variable, None)

@@ -8,6 +8,7 @@ are raised at the boundary where the project reads or writes, and the entry-poin
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -23,6 +24,9 @@ class ConfigError(ValueError):
         super().__init__(f"config field '{field}': {problem}")
         self.field, self.problem = field, problem
 
+    def __reduce__(self):  # rebuilt from its fields when it crosses from a worker process
+        return type(self), (self.field, self.problem)
+
     def under(self, section: str) -> ConfigError:
         """The same error for the field as seen from the root config, ``<section>.<field>``."""
         return ConfigError(f"{section}.{self.field}", self.problem)
@@ -32,8 +36,11 @@ class TraceGSError(Exception):
     """A user-fixable problem at ``where`` (a path or config field): ``"<where>: <problem>; <fix>"``."""
 
     def __init__(self, where: str | os.PathLike, problem: str, fix: str | None = None) -> None:
-        self.where = str(where)
+        self.where, self.problem, self.fix = str(where), problem, fix
         super().__init__(f"{self.where}: {problem}" + (f"; {fix}" if fix else ""))
+
+    def __reduce__(self):  # rebuilt from its fields when it crosses from a worker process
+        return type(self), (self.where, self.problem, self.fix)
 
 
 class InputFileError(TraceGSError):
@@ -78,3 +85,46 @@ def require_writable_dir(path: str | os.PathLike, field: str) -> Path:
         raise OutputPathError(existing, f"not writable ({error.strerror or error})",
                               f"fix the folder's permissions or choose another {field}") from error
     return directory
+
+
+def plain_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be one path component under a root (a separator, ``..``, absolute, empty), or None.
+    Scene, experiment and variant names become folder names: one that is not plain would read or write
+    outside the folders the run was given."""
+    if not name or name in (".", ".."):
+        return "is empty, '.' or '..'"
+    if "/" in name or "\\" in name or "\0" in name:
+        return "holds a path separator"
+    return None
+
+
+def require_plain_name(name: str, field: str) -> str:
+    """``name`` unchanged, or :class:`ConfigError` naming ``field`` when it is not a plain name."""
+    problem = plain_name_problem(str(name))
+    if problem:
+        raise ConfigError(field, f"{name!r} {problem}; it becomes a folder name, so give a plain name "
+                                 "(no '/', no '..', not absolute)")
+    return name
+
+
+# What to do when the machine refuses a write: the file system is full, the file exceeds a size limit, the
+# file system is read-only, or the folder's permissions forbid it.
+WRITE_FAILURES = {
+    errno.ENOSPC: "free space on that file system (or set paths.root_dir elsewhere) and run the same command again",
+    errno.EDQUOT: "free space within your quota (or set paths.root_dir elsewhere) and run the same command again",
+    errno.EFBIG: "raise the file-size limit (ulimit -f) or write to a file system that allows larger files, then "
+                 "run the same command again",
+    errno.EROFS: "the file system is mounted read-only: set paths.root_dir (or the field naming this path) to a "
+                 "writable folder",
+    errno.EACCES: "fix the folder's permissions or set paths.root_dir (or the field naming this path) elsewhere",
+    errno.EPERM: "fix the folder's permissions or set paths.root_dir (or the field naming this path) elsewhere",
+}
+
+
+def write_failure(path: str | os.PathLike, error: OSError) -> OutputPathError | None:
+    """The one-line error for a write to ``path`` that the machine refused (:data:`WRITE_FAILURES`), else None.
+    Products already finished are kept and nothing half-written is left, so the fix ends with a rerun."""
+    if error.errno not in WRITE_FAILURES:
+        return None
+    return OutputPathError(path, f"cannot write ({error.strerror or os.strerror(error.errno)})",
+                           WRITE_FAILURES[error.errno])

@@ -354,6 +354,8 @@ def restore(cfg: DictConfig) -> Path:
     import json
     from dataclasses import replace
 
+    from tracegs.data.splits import SplitError
+    from tracegs.errors import ConfigError
     from tracegs.eval.evaluate import evaluate as run_evaluation
     from tracegs.eval.merge import unit_path
     from tracegs.eval.report import results_table_markdown
@@ -372,8 +374,12 @@ def restore(cfg: DictConfig) -> Path:
     source = replace(section(cfg.data.source), root=str(capture.parent), scenes=[capture.name])
     evaluation = section(cfg.evaluation)
     with product_lock(evaluation.out_dir, "evaluation.out_dir"):
-        results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                                 restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+        try:
+            results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
+                                     restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+        except SplitError as error:  # the user chose the count: capture.views
+            raise ConfigError("capture.views", f"{cfg.capture.views}: {capture}: {error}; ask for fewer views or "
+                                               "capture more images") from error
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     out = Path(evaluation.out_dir).resolve()  # the unit names its files relative to the evaluation folder
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
@@ -433,7 +439,7 @@ def privileged_report(cfg: DictConfig) -> Path:
                                 "(run tracegs-train stage=stage1 with the same settings)")
     pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
         section(cfg.backbone), cfg.artifacts.baseline_weights,
-        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1"),
+        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1", "stage1"),
          "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
         batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
     # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.

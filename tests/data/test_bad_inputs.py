@@ -156,17 +156,21 @@ def files_under(root: Path) -> set[Path]:
     return {p for p in root.rglob("*") if p.is_file()}
 
 
+def assert_refused(result, app: str, expected: str, written: set[Path]) -> None:
+    """Exit code 2, one line on stderr naming ``expected``, and no file ``written`` but Hydra's run record."""
+    lines = result.stderr_lines()
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1, result.stderr[-3000:]
+    assert lines[0].startswith(f"tracegs-{app}: error: ") and expected in lines[0], lines[0]
+    assert [p for p in written if ".hydra" not in p.parts and p.suffix != ".log"] == []
+
+
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_input_gives_one_line_exit_2_and_writes_nothing(tmp_path, entry_point, case):
     app, overrides, expected = CASES[case](tmp_path)
     before = files_under(tmp_path)
     result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}"], tmp_path)
-    lines = result.stderr_lines()
-    assert result.returncode == 2, result.stderr[-3000:]
-    assert len(lines) == 1, result.stderr[-3000:]
-    assert lines[0].startswith(f"tracegs-{app}: error: ") and expected in lines[0], lines[0]
-    written = [p for p in files_under(tmp_path) - before if ".hydra" not in p.parts and p.suffix != ".log"]
-    assert written == []
+    assert_refused(result, app, expected, files_under(tmp_path) - before)
 
 
 def test_read_only_output_folder_is_named(tmp_path, entry_point, read_only):

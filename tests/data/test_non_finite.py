@@ -1,5 +1,6 @@
-"""Non-finite numbers stop a run: never written to the cache, redone when found in it, and a NaN latent
-stops training at the batch that holds it (one line, exit 2, the last good checkpoint kept)."""
+"""Non-finite numbers stop a run: never written to the cache, redone when found in it (as is a shard whose bytes
+changed), and a NaN latent stops training at the batch that holds it (one line, exit 2, the last good checkpoint
+kept)."""
 
 from __future__ import annotations
 
@@ -10,20 +11,23 @@ import pytest
 import torch
 from safetensors.torch import save_file
 from scene_builders import tiny_configs
+from test_input_defects import overwrite_tensor_bytes
 
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.datamodule import PairedClipDataModule
 from tracegs.data.prepare import run_prepare, shard_is_valid
 from tracegs.errors import NonFiniteError
-from tracegs.io import read_safetensors, save_safetensors_atomic
+from tracegs.io import read_safetensors, save_safetensors_atomic, seal_header
 
 
 def poison(shard: Path, key: str = "latent/target") -> None:
-    """Put one NaN into ``key`` of a shard, as a damaged disk or a buggy encoder would (bypassing the guard)."""
+    """Put one NaN into ``key`` of a shard, as a buggy encoder would (bypassing the writer's guard, with a
+    checksum of the poisoned bytes, so only the non-finite checks can catch it)."""
     tensors, metadata = read_safetensors(shard, fix="")
     tensors[key] = tensors[key].clone()
     tensors[key].view(-1)[0] = float("nan")
     save_file(tensors, str(shard), metadata=metadata)
+    seal_header(shard)
 
 
 def test_a_non_finite_tensor_is_never_written(tmp_path):
@@ -33,14 +37,15 @@ def test_a_non_finite_tensor_is_never_written(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_prepare_redoes_a_shard_holding_nan(tmp_path, prepared, backbone):
+@pytest.mark.parametrize("damage", [poison, overwrite_tensor_bytes], ids=["nan", "overwritten_bytes"])
+def test_prepare_redoes_a_damaged_shard(tmp_path, prepared, backbone, damage):
     tmp, _, _, _, _ = prepared
     for part in ("synthetic", "work", "cache"):
         shutil.copytree(tmp / part, tmp_path / part)
     synthetic, source, prepare = tiny_configs(tmp_path)
     shard = tmp_path / "cache" / "scene_000" / "clip_001.safetensors"
     intact = shard.read_bytes()
-    poison(shard)
+    damage(shard)
     assert not shard_is_valid(shard)
     run_prepare(prepare, source, backbone, synthetic, progress=False)
     assert shard.read_bytes() == intact

@@ -176,7 +176,7 @@ def test_bad_input_fails_clearly_and_writes_nothing(tmp_path, backbone, damage):
         expected = (PrepareError, "SIMPLE_RADIAL.*undistort")
     else:
         prepare = replace(prepare, student_views=[3, 6, 9], dense_views=[18])
-        expected = (PrepareError, "asked for 18 training views but the scene has only 14")
+        expected = (PrepareError, "asked for 18 training views, but of the scene.s 16 images 2 are held out.*14")
     source = SceneSourceConfig(root=str(root.parent), preset="custom")
     with pytest.raises(expected[0], match=expected[1]):
         run_prepare(prepare, source, backbone, progress=False)

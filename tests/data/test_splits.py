@@ -77,5 +77,5 @@ def test_split_json_that_breaks_nesting_is_rejected(tmp_path):
 
 
 def test_more_views_than_exist_fails_clearly():
-    with pytest.raises(SplitError, match="asked for 18 training views but the scene has only 14"):
+    with pytest.raises(SplitError, match="18 training views, but of the scene.s 16 images 2 are held out.*leaving 14"):
         make_split(16, [3, 18])

@@ -8,7 +8,7 @@ import torch
 
 from tracegs.deploy.assembly import RestorerArtifacts, build_restorers
 from tracegs.restorer import adapters
-from tracegs.restorer.build import build_backbone, create_transformer
+from tracegs.restorer.build import build_backbone, create_transformer, load_transformer
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -24,11 +24,13 @@ def artifacts(tmp_path_factory) -> RestorerArtifacts:
         for p in model.parameters():  # the residual head starts at zero: give every weight a value
             p.normal_(std=0.05)
     model.save_pretrained(folder / "baseline")
+    # Trained, as Stage 2 trains it, on the base loaded from the baseline folder (the adapter records that base).
+    model = load_transformer(replace(cfg.transformer, pretrained_path=str(folder / "baseline")))
     adapters.add_adapter(model, "student", cfg.lora)
     with torch.no_grad():
         for p in adapters.adapter_parameters(model, "student"):
             p.normal_(std=0.05)
-    adapters.save_adapter(model, "student", folder / "student.safetensors")
+    adapters.save_adapter(model, "student", folder / "student.safetensors", stage="stage2")
     return RestorerArtifacts(baseline_weights=str(folder / "baseline"),
                              student_adapter=str(folder / "student.safetensors"))
 

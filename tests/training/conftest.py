@@ -17,5 +17,5 @@ def stage1_adapter(tmp_path):
         for p in adapter_parameters(transformer, "aligned"):
             p.copy_(0.2 * torch.randn(p.shape, generator=g))
     path = tmp_path / "stage1_adapter.safetensors"
-    save_adapter(transformer, "aligned", path)
+    save_adapter(transformer, "aligned", path, stage="stage1")
     return path

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from safetensors.torch import save_file
 from training_support import (
     CHANNELS,
     FRAMES,
@@ -25,6 +24,7 @@ from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.splits import view_set_key
 from tracegs.errors import ConfigMismatchError
+from tracegs.io import save_safetensors_atomic
 from tracegs.restorer.adapters import read_adapter
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
@@ -59,7 +59,7 @@ def write_cache(root: Path, clips: int = 4) -> Path:
         }
         rel = f"scene_a/clip_{clip:03d}.safetensors"
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        save_file({k: v.half() for k, v in tensors.items()}, str(root / rel))
+        save_safetensors_atomic({k: v.half() for k, v in tensors.items()}, root / rel)
         paths.append(rel)
     manifest = {"teacher_views": [view_set_key(3), view_set_key(None)], "scenes": {"scene_a": {"clips": paths}}}
     (root / MANIFEST).write_text(json.dumps(manifest))

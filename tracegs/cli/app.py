@@ -19,15 +19,15 @@ from typing import Any
 
 import hydra
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.schema import register_configs
-from tracegs.config.validate import validate
+from tracegs.config.validate import validate, validate_names
 from tracegs.console import to_log_files
-from tracegs.errors import TraceGSError, one_line, require_writable_dir
+from tracegs.errors import ConfigError, TraceGSError, one_line, require_writable_dir, write_failure
 
 # The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
 # editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
@@ -35,6 +35,17 @@ CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
+
+def user_error(error: BaseException, cfg: DictConfig) -> BaseException | None:
+    """``error`` as the user should see it: itself when the user's input caused it, the one-line
+    :func:`write_failure` when the machine refused a write that no writer of ours named, else None (a bug:
+    the traceback is the useful report)."""
+    if isinstance(error, OSError) and not isinstance(error, USER_ERRORS):
+        # Library writers (Lightning's checkpoints, Hydra's logs) may leave the file unnamed; the run folder is.
+        where = error.filename or f"a file in the run folder {OmegaConf.select(cfg, 'run_dir', default='.')}"
+        return write_failure(where, error)
+    return error
+
 
 def report_one_line(app: str, error: BaseException) -> str:
     """Print ``error`` as one line on stderr (and into the run's log files); return its message."""
@@ -69,23 +80,25 @@ def log_libraries_through_hydra() -> None:
 
 
 class OutputsWritable(Callback):
-    """Hydra callback: check the run (or sweep) folder is a writable directory before Hydra writes into it.
+    """Hydra callback: check the names that make up the run (or sweep) folder are plain names and the folder is a
+    writable directory, before Hydra writes into it.
 
     Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
     would only see Hydra's own traceback for an output path that is a file or read-only.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config.hydra.run.dir, "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
+        self._check(config, "run", "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config.hydra.sweep.dir, "hydra.sweep.dir", kwargs.get("config_name", "run"))
+        self._check(config, "sweep", "hydra.sweep.dir", kwargs.get("config_name", "run"))
 
     @staticmethod
-    def _check(directory: str, field: str, app: str) -> None:
+    def _check(config: DictConfig, mode: str, field: str, app: str) -> None:
         try:
-            require_writable_dir(directory, field)
-        except TraceGSError as error:
+            validate_names(config)  # names become folders of the run path: one with '..' would leave the root
+            require_writable_dir(config.hydra[mode].dir, field)
+        except (TraceGSError, ConfigError) as error:
             if os.environ.get("TRACEGS_TRACEBACK"):
                 raise
             exit_with_one_line(app, error)
@@ -113,8 +126,9 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                     with overrides_for_launched_ranks():
                         return run_task(task, cfg)
                 return run_task(task, cfg)
-            except USER_ERRORS as error:
-                if os.environ.get("TRACEGS_TRACEBACK"):
+            except (*USER_ERRORS, OSError) as raised:
+                error = user_error(raised, cfg)
+                if error is None or os.environ.get("TRACEGS_TRACEBACK"):
                     raise
                 message = report_one_line(config_name, error)
                 if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end

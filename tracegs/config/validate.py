@@ -14,9 +14,9 @@ from omegaconf.errors import ConfigKeyError
 
 from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
-from tracegs.errors import ConfigError
+from tracegs.errors import ConfigError, require_plain_name
 
-__all__ = ["ConfigError", "validate"]
+__all__ = ["ConfigError", "validate", "validate_names"]
 
 
 def _require(condition: bool, field: str, message: str) -> None:
@@ -41,6 +41,7 @@ def _check_increasing(values: Iterable[int], field: str) -> list[int]:
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` naming the first field whose value is inconsistent with the others."""
     _validate_known_keys(cfg)
+    validate_names(cfg)
     _validate_data(cfg)
     _validate_training(cfg)
     _validate_backbone(cfg)
@@ -62,6 +63,19 @@ def _validate_known_keys(cfg: DictConfig) -> None:
         field = error.full_key or str(error.key)
         raise ConfigError(field, "is not a field of the schema (misspelt, or added with '+'); "
                                  "see --cfg job for the valid keys") from error
+
+
+# Config values that become one folder name under a configured root (lists: every item).
+NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "data.source.scenes", "data.datamodule.val_scenes",
+               "evaluation.scenes")
+
+
+def validate_names(cfg: DictConfig) -> None:
+    """Every :data:`NAME_FIELDS` value is a plain name (checked before Hydra makes the run folder of them too)."""
+    for field in NAME_FIELDS:
+        value = OmegaConf.select(cfg, field)
+        for item in ([] if value is None else [value] if isinstance(value, str) else value):
+            require_plain_name(str(item), field)
 
 
 def _validate_data(cfg: DictConfig) -> None:
@@ -203,6 +217,15 @@ def _validate_deployment(cfg: DictConfig) -> None:
     )
 
 
+# Deployment's clips run between two captured reference views (Algorithm 1), so K >= 2.
+MIN_CAPTURED_VIEWS = 2
+
+
 def _validate_evaluation(cfg: DictConfig) -> None:
     unknown = [m for m in cfg.evaluation.methods if m not in METHODS]
     _require(not unknown, "evaluation.methods", f"unknown methods {unknown}; choose from {list(METHODS)}")
+    # capture.views first: tracegs-restore's evaluation.views is made of it, and the user typed capture.views.
+    for field, values in (("capture.views", [cfg.capture.views]), ("evaluation.views", cfg.evaluation.views)):
+        small = [v for v in values if int(v) < MIN_CAPTURED_VIEWS]
+        _require(not small, field, f"{small[0] if small else ''} captured views: deployment needs at least "
+                                   f"{MIN_CAPTURED_VIEWS} (its clips run between two captured reference views)")

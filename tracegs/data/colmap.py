@@ -6,17 +6,20 @@ imported inside the functions that need it, after PIL and torch are loaded.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from tracegs.data.config import SceneSourceConfig
-from tracegs.errors import InputFileError, one_line
+from tracegs.data.images import read_rgb, resize
+from tracegs.errors import InputFileError, plain_name_problem
 from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
+
+log = logging.getLogger(__name__)
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 RADIAL_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
@@ -64,13 +67,12 @@ class Scene:
         return len(self.cameras)
 
     def load_image(self, index: int) -> torch.Tensor:
-        """Image ``index`` as float [3, H, W] in [0, 1], resized to its camera's size if needed."""
+        """Image ``index`` as float [3, H, W] in [0, 1] (any supported mode, upright: ``data.images``), resized
+        to its camera's size if needed."""
         camera = self.cameras[index]
-        with Image.open(self.image_paths[index]) as pil:
-            pil = pil.convert("RGB")
-            if pil.size != (camera.width, camera.height):
-                pil = pil.resize((camera.width, camera.height), Image.Resampling.LANCZOS)
-            array = np.asarray(pil, dtype=np.float32) / 255.0
+        array = read_rgb(self.image_paths[index])
+        if array.shape[:2] != (camera.height, camera.width):
+            array = resize(array, camera.width, camera.height)
         return torch.from_numpy(array).permute(2, 0, 1).contiguous()
 
     def extent(self) -> float:
@@ -103,6 +105,11 @@ def read_scene_list(path: str, field: str) -> list[str]:
     if not file.is_file():
         raise FileNotFoundError(f"{field}={path!r}: scene list not found")
     names = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()]
+    for number, name in enumerate(names, 1):
+        problem = plain_name_problem(name) if name else None
+        if problem:
+            raise InputFileError(file, f"line {number}: {name!r} {problem}",
+                                 f"list plain scene names (folders under the scene root) in {field}")
     return [name for name in names if name]
 
 
@@ -192,16 +199,27 @@ def normalize_scene(scene: Scene) -> Scene:
                    world_scale=radius)
 
 
-def decoded_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image after decoding all of it: a truncated or corrupt file fails here, at
-    scene load, rather than in the middle of a fit after other products were written."""
-    try:
-        with Image.open(path) as pil:
-            pil.load()
-            return pil.size
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:  # PIL's decode errors
-        raise InputFileError(path, f"cannot decode the image ({one_line(error)})",
-                             "replace it with an intact copy or remove it from the COLMAP model") from error
+def same_aspect_ratio(size: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether two (width, height) sizes are one picture at two scales, up to the pixel a downscale rounds."""
+    (w, h), (W, H) = size, other
+    return abs(w * H - h * W) <= max(W, H)
+
+
+def camera_for_image(camera: Camera, path: Path, sparse: Path) -> Camera:
+    """``camera`` for the image at ``path`` as decoded (all of it, so a truncated, corrupt or unsupported file
+    fails here, at scene load, rather than in the middle of a fit after other products were written).
+
+    Downscaled folders (images_4, ...) keep COLMAP's full-resolution intrinsics: an image of the same aspect
+    ratio gets them scaled; one of another aspect ratio (rotated, cropped, another photograph) is refused.
+    """
+    height, width = read_rgb(path).shape[:2]
+    if (width, height) == (camera.width, camera.height):
+        return camera
+    if not same_aspect_ratio((width, height), (camera.width, camera.height)):
+        raise InputFileError(path, f"image is {width}x{height} but its camera in {sparse} is "
+                                   f"{camera.width}x{camera.height} (another aspect ratio)",
+                             "use the images the COLMAP model was made from, or reconstruct these")
+    return camera.rescaled(width, height)
 
 
 def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
@@ -228,14 +246,19 @@ def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     if missing:
         raise FileNotFoundError(f"{missing[0]}: listed in {sparse} but absent ({len(missing)} missing)")
     cameras = []
+    scaled: set[tuple[tuple[int, int], tuple[int, int]]] = set()
     for image, path in zip(images, paths):
-        camera = camera_from_colmap(image.camera, image.cam_from_world().matrix(), sparse)
-        # Downscaled folders (images_4, ...) keep COLMAP's full-resolution intrinsics: rescale them.
-        width, height = decoded_size(path)
-        width, height = cfg.width or width, cfg.height or height
+        calibrated = camera_from_colmap(image.camera, image.cam_from_world().matrix(), sparse)
+        camera = camera_for_image(calibrated, path, sparse)
+        if camera is not calibrated:
+            scaled.add(((calibrated.width, calibrated.height), (camera.width, camera.height)))
+        width, height = cfg.width or camera.width, cfg.height or camera.height  # the configured frame size
         if (width, height) != (camera.width, camera.height):
             camera = camera.rescaled(width, height)
         cameras.append(camera)
+    for (W, H), (w, h) in sorted(scaled):
+        log.info("%s: images of %dx%d with cameras of %dx%d in %s: intrinsics scaled to the images",
+                 name, w, h, W, H, sparse)
     index_of = {im.image_id: i for i, im in enumerate(images)}
     point_ids = sorted(reconstruction.points3D)
     points = np.zeros((len(point_ids), 3), dtype=np.float32)

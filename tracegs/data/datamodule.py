@@ -33,6 +33,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.splits import view_set_key
+from tracegs.io import checksum_problem
 
 
 def draw_seed_of(seed: int, epoch: int, index: int) -> int:
@@ -54,8 +55,10 @@ def read_manifest(cache_dir: str | Path) -> dict:
         raise CacheError(f"{path}: corrupt manifest ({error})") from error
 
 
-def check_shard(path: Path, required: list[str]) -> None:
-    """Open a shard's header and check it holds ``required`` keys; raises ``CacheError`` naming the file."""
+def verify_shard(path: Path, required: list[str] | None = None) -> None:
+    """Refuse (``CacheError`` naming the file) a missing or unreadable shard, one that lacks a ``required`` key,
+    and one whose ``required`` tensors (default: all) differ from the checksums written with them: training on
+    changed bytes would silently give another adapter."""
     if not path.is_file():
         raise CacheError(f"{path}: shard listed in the manifest is missing")
     try:
@@ -63,9 +66,12 @@ def check_shard(path: Path, required: list[str]) -> None:
             keys = set(f.keys())
     except (SafetensorError, OSError, ValueError) as error:
         raise CacheError(f"{path}: corrupt shard ({error})") from error
-    missing = [k for k in required if k not in keys]
+    missing = [k for k in required or [] if k not in keys]
     if missing:
         raise CacheError(f"{path}: shard lacks {missing}; re-run prepare with these view sets / snapshots")
+    problem = checksum_problem(path, required)
+    if problem:
+        raise CacheError(f"{path}: {problem}; run prepare again with the same settings to rebuild it")
 
 
 class PairedClipDataset(Dataset):
@@ -86,7 +92,7 @@ class PairedClipDataset(Dataset):
         required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET), cache_keys.REF_2D,
                      cache_keys.REF_3D, cache_keys.TEXT]
         for _, _, path in self.clips:
-            check_shard(path, required)
+            verify_shard(path, required)
 
     def __len__(self) -> int:
         return len(self.clips)

@@ -51,6 +51,7 @@ from tracegs.data.synthetic import (
 from tracegs.errors import InputFileError, require_writable_dir
 from tracegs.io import (
     atomic_write,
+    checksum_problem,
     non_finite_keys,
     read_safetensors,
     save_safetensors_atomic,
@@ -222,14 +223,17 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
 
 
 def shard_is_valid(path: Path, settings: str | None = None) -> bool:
-    """A shard exists, is readable, holds only finite numbers and (if given) was made with ``settings``.
+    """A shard exists, is readable, matches the checksum written with it, holds only finite numbers and (if
+    given) was made with ``settings``.
 
-    Atomic writes make partial files impossible, but a disk can still damage them, a shard made with
-    other settings is not a finished unit of this run, and one with NaN would poison training.
+    Atomic writes make partial files impossible, but a disk or a user can still change their bytes, a shard
+    made with other settings is not a finished unit of this run, and one with NaN would poison training.
     """
     try:
         tensors, metadata = read_safetensors(path, fix="")
     except InputFileError:
+        return False
+    if checksum_problem(path):
         return False
     made_with = metadata.get("settings")
     return (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)

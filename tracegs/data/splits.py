@@ -150,7 +150,8 @@ def make_split(
     previous_name = "the empty set"
     for count in counts:
         if count > len(train):
-            raise SplitError(f"asked for {count} training views but the scene has only {len(train)}")
+            raise SplitError(f"asked for {count} training views, but of the scene's {num_images} images "
+                             f"{len(test)} are held out for testing, leaving {len(train)} usable")
         if count in json_sets:
             path, chosen = json_sets[count]
             if not set(previous) <= set(chosen):

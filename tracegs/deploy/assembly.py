@@ -20,6 +20,7 @@ from tracegs.content import content_digest
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
+from tracegs.io import content_digest as digest
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
@@ -31,12 +32,13 @@ STUDENT_LABEL = "student"
 
 @dataclass
 class AdapterFile:
-    """An adapter file to load on the shared backbone; ``field`` is the config field that names it (errors)
-    and ``label`` its name in the restorer's identity."""
+    """An adapter file to load on the shared backbone; ``field`` is the config field that names it (errors),
+    ``label`` its name in the restorer's identity and ``stage`` the training stage that must have written it."""
 
     path: Path
     field: str
     label: str
+    stage: str = "stage2"
 
 
 @dataclass
@@ -66,7 +68,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
     for name, file in adapter_files.items():
         if file is not None:
             adapters.load_adapter(backbone.transformer, name, file.path, trainable=False, expected=cfg.lora,
-                                  field=file.field)
+                                  field=file.field, stage=file.stage)
         restorers[name] = DiffusionRestorer(
             RestorationPipeline(backbone, adapter=None if file is None else name), batch=batch,
             identity=identity if file is None else f"{identity} {file.label}={content_digest(file.path)}", steps=steps)

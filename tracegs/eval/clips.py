@@ -21,7 +21,7 @@ from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
-from tracegs.data.datamodule import CacheError, read_manifest
+from tracegs.data.datamodule import CacheError, read_manifest, verify_shard
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -49,10 +49,13 @@ def _scene_mean(per_scene: Mapping[str, list[float]]) -> float:
 
 
 def held_out_clips(cache_dir: str | Path) -> tuple[list[str], list[tuple[str, Path]]]:
-    """The student condition keys of a prepared cache and its (scene, shard path) list, in manifest order."""
+    """The student condition keys of a prepared cache and its (scene, shard path) list, in manifest order; every
+    shard is verified against its checksum first, so a damaged one stops the evaluation before any work."""
     manifest = read_manifest(cache_dir)
     conditions = [condition_key(k, s) for k in manifest["student_views"] for s in manifest["student_snapshots"]]
     shards = [(scene, Path(cache_dir) / rel) for scene, entry in manifest["scenes"].items() for rel in entry["clips"]]
+    for _, path in shards:
+        verify_shard(path)
     return conditions, shards
 
 

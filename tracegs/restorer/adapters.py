@@ -8,13 +8,15 @@ teacher or freeze the student. ``activate`` switches the active adapter and then
 LoRA factors are always float32, whatever the base dtype: diffusers' ``add_adapter`` gives new factors the
 dtype of the layer they adapt, so on the paper's bf16 base they (and AdamW's state) would be bf16 and an lr
 1e-5 step, far below bf16's ~4e-3 relative resolution, would mostly round away. Saved adapters therefore
-hold float32, and loading copies into float32 factors (a bf16 file is upcast exactly, nothing is downcast).
+hold float32 and say so in their metadata. An adapter this project wrote is refused in another dtype; a file
+from elsewhere is copied into float32 factors (a bf16 file is upcast exactly, nothing is downcast).
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
 import json
 import re
 import warnings
@@ -25,12 +27,16 @@ from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
 
 from tracegs.errors import ConfigMismatchError, InputFileError
-from tracegs.io import atomic_directory, read_safetensors, save_safetensors_atomic
+from tracegs.io import atomic_directory, content_digest, read_safetensors, save_safetensors_atomic
 
 from .config import LoraConfig
 
 # diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
 METADATA_KEY = "lora_adapter_metadata"
+# What a saved adapter says it is (safetensors metadata), checked on loading: the training stage that wrote it,
+# the base weights it was trained on, and its factors' dtype (rank and alpha are in METADATA_KEY's config).
+STAGE_KEY, BASE_KEY, DTYPE_KEY = "tracegs_stage", "tracegs_base", "tracegs_dtype"
+FACTOR_DTYPE = "float32"  # see the module docstring
 # peft's own adapter folder (``PeftModel.from_pretrained`` reads it): a config and prefixed weights.
 PEFT_CONFIG_FILE = "adapter_config.json"
 PEFT_WEIGHTS_FILE = "adapter_model.safetensors"
@@ -148,16 +154,38 @@ def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -
     activate(model, src)
 
 
-def save_adapter(model: torch.nn.Module, name: str, path: str | Path, state_dict: dict | None = None) -> None:
+def base_identity(model: torch.nn.Module) -> str:
+    """What an adapter on ``model`` was trained on: the content digest of the weights folder the base was loaded
+    from (diffusers records it as ``_name_or_path``), or, for a base made in memory (a tiny or randomly
+    initialised one), a digest of its weights' values at bf16 precision: the weight files' digest does not
+    depend on the dtype they are loaded in either, so one base at two precisions is one base."""
+    source = dict(getattr(model, "config", {}) or {}).get("_name_or_path")
+    if source and Path(source).is_dir():
+        return f"weights {content_digest(source)}"
+    sha = hashlib.sha256()
+    for name, tensor in model.state_dict().items():
+        if ".lora_" not in name:
+            sha.update(name.replace(".base_layer.", ".").encode())  # as named before peft wrapped the layer
+            values = tensor.detach().cpu().reshape(-1)
+            values = values.to(torch.bfloat16) if values.is_floating_point() else values
+            sha.update(values.view(torch.uint8).numpy().tobytes())
+    return f"in-memory {sha.hexdigest()[:16]}"
+
+
+def save_adapter(model: torch.nn.Module, name: str, path: str | Path, state_dict: dict | None = None,
+                 stage: str | None = None) -> None:
     """Save adapter ``name``: a ``*.safetensors`` path gets diffusers' ``save_lora_adapter`` layout (peft keys,
     adapter config in the metadata); any other path becomes peft's adapter folder, which
     ``PeftModel.from_pretrained(transformer, path)`` loads as it is. ``state_dict``: the model's weights when
-    ``model.state_dict()`` does not hold them whole (a sharded model; tracegs.training.strategy.full_lora_state)."""
+    ``model.state_dict()`` does not hold them whole (a sharded model; tracegs.training.strategy.full_lora_state).
+    The metadata also records ``stage`` (the training stage writing it), the base (:func:`base_identity`) and
+    the factors' dtype, which :func:`load_adapter` checks."""
     _require(model, name)
     config = model.peft_config[name].to_dict()
     config = {k: (sorted(v) if isinstance(v, set) else v) for k, v in config.items()}
     tensors = get_peft_model_state_dict(model, state_dict=state_dict, adapter_name=name)
-    metadata = {"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True)}
+    metadata = {"format": "pt", METADATA_KEY: json.dumps(config, sort_keys=True), BASE_KEY: base_identity(model),
+                DTYPE_KEY: FACTOR_DTYPE, **({STAGE_KEY: stage} if stage else {})}
     path = Path(path)
     if path.suffix == ".safetensors":
         save_safetensors_atomic(tensors, path, metadata=metadata)
@@ -193,12 +221,30 @@ def check_adapter_config(path: Path, stored: dict, expected: LoraConfig, field: 
         )
 
 
+def check_adapter_records(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str],
+                          model: torch.nn.Module, stage: str, field: str) -> None:
+    """The file must say it was written by ``stage`` on ``model``'s base, with float32 factors (and hold
+    them): an adapter of another stage, base or precision restores differently while looking alike."""
+    wanted = {STAGE_KEY: ("stage", stage), BASE_KEY: ("base", base_identity(model)),
+              DTYPE_KEY: ("dtype", FACTOR_DTYPE)}
+    # The dtype the factors have, whatever the metadata claims (a converted file may keep the old record).
+    have = {STAGE_KEY: metadata.get(STAGE_KEY), BASE_KEY: metadata.get(BASE_KEY),
+            DTYPE_KEY: "/".join(sorted({str(t.dtype).removeprefix("torch.") for t in tensors.values()}))}
+    differing = [f"{label} {have[key]!r} in the file, {value!r} here" for key, (label, value) in wanted.items()
+                 if have[key] != value]
+    if differing:
+        raise ConfigMismatchError(path, "adapter of another kind: " + "; ".join(differing),
+                                  f"point {field} at the {stage} adapter trained on this base, or re-run {stage}")
+
+
 def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable: bool,
-                 expected: LoraConfig | None = None, field: str = "the adapter path") -> None:
+                 expected: LoraConfig | None = None, field: str = "the adapter path", stage: str | None = None
+                 ) -> None:
     """Load an adapter file or peft adapter folder as ``name`` (created from its config if absent); exact key
     match required.
 
-    ``expected`` (the run's LoRA config) is compared with the file's before the model is touched;
+    ``expected`` (the run's LoRA config) is compared with the file's before the model is touched, and so, when
+    ``stage`` is given, are the stage, base and dtype the file records (:func:`check_adapter_records`);
     ``field`` is the config field that named the file (quoted in errors).
     """
     path = Path(path)
@@ -214,6 +260,8 @@ def load_adapter(model: torch.nn.Module, name: str, path: str | Path, trainable:
         if stored is None:
             raise InputFileError(path, f"no '{METADATA_KEY}' metadata to check against backbone.lora", fix)
         check_adapter_config(path, stored, expected, field)
+    if stage is not None:
+        check_adapter_records(path, tensors, metadata, model, stage, field)
     if name not in adapter_names(model):
         if stored is None:
             raise AdapterFileError(f"{path}: no '{METADATA_KEY}' metadata to rebuild adapter {name!r}")

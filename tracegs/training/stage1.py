@@ -59,4 +59,4 @@ class Stage1AlignmentModule(RestorerTrainingModule):
 
     def save_adapter(self, path, state_dict: dict | None = None) -> None:
         """Write the aligned adapter phi (safetensors) that Stage 2 clones into teacher and student."""
-        save_adapter(self.transformer, self.adapter_name, path, state_dict)
+        save_adapter(self.transformer, self.adapter_name, path, state_dict, stage="stage1")

@@ -71,7 +71,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
         load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=typed(lora, LoraConfig),
-                     field="stage.init_adapter")
+                     field="stage.init_adapter", stage="stage1")
         clone_adapter(self.transformer, STUDENT, TEACHER, trainable=False)
         activate(self.transformer, STUDENT)
 
@@ -166,4 +166,4 @@ class Stage2DistillationModule(RestorerTrainingModule):
 
     def save_student(self, path, state_dict: dict | None = None) -> None:
         """Write the distilled student adapter phi_S (the only thing deployment needs)."""
-        save_adapter(self.transformer, STUDENT, path, state_dict)
+        save_adapter(self.transformer, STUDENT, path, state_dict, stage="stage2")

@@ -37,7 +37,10 @@ from torch import Tensor
 from tracegs.splat.rasterize import OCCLUSION_EPS
 
 SOURCE = Path(__file__).with_name("rasterize_compiled.cpp")
-COMPILE_FLAGS = ["-O3"]  # no -march=native: the cache directory may be shared by machines with other CPUs
+# -fopenmp-simd: the pixel loops' `omp simd` hints only (no OpenMP runtime); -fno-trapping-math lets the
+# compiler turn float comparisons into vector selects (nothing here reads floating-point exception flags); no
+# -march=native, the cache directory may be shared by machines with other CPUs.
+COMPILE_FLAGS = ["-O3", "-fopenmp-simd", "-fno-trapping-math"]
 log = logging.getLogger(__name__)
 
 _float_p = ctypes.POINTER(ctypes.c_float)
@@ -62,10 +65,10 @@ def _library() -> ctypes.CDLL:
                          + " ".join(COMPILE_FLAGS).encode()).hexdigest()[:16]
     path = load(f"tracegs_rasterize_{key}", [str(SOURCE)], extra_cflags=COMPILE_FLAGS, is_python_module=False)
     library = ctypes.CDLL(path)
-    library.rasterize_forward.restype = None
+    library.rasterize_forward.restype = ctypes.c_int
     library.rasterize_forward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_int, ctypes.c_float] + [_float_p] * 7 + [
         _int64_p]
-    library.rasterize_backward.restype = None
+    library.rasterize_backward.restype = ctypes.c_int
     library.rasterize_backward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_int] + [_float_p] * 6 + [_int64_p] + [
         _float_p] * 6
     return library

@@ -247,9 +247,10 @@ template <int tile_size>
           const int on = (local < lt[p]) & (power >= g.min_power) & (raw >= kAlphaMin);
           const int free = on & (raw < kAlphaMax);  // clamped alphas do not depend on o or the power
           const float alpha = on ? std::min(raw, kAlphaMax) : 0.0f;
-          const float before = t[p] / (1.0f - alpha);  // T_k; unchanged where the pair is skipped
+          const float inverse = 1.0f / (1.0f - alpha);
+          const float before = t[p] * inverse;  // T_k; unchanged where the pair is skipped
           const float h = hs[p];
-          const float grad_alpha = before * h - (bh[p] + bf[p]) / (1.0f - alpha);
+          const float grad_alpha = before * h - (bh[p] + bf[p]) * inverse;
           w[p] = alpha * before;
           bh[p] += w[p] * h;
           t[p] = before;

@@ -40,12 +40,14 @@ def require_available(backend: str, field: str) -> None:
         raise ValueError(f"{field}='gsplat' needs CUDA and the gsplat package; use 'torch' (CPU) or 'auto' here")
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """The backend `render` uses; "auto" keeps float64 models (gradient checks) on the exact torch backend, the
+    compiled one computes in float32."""
     backend = RenderBackend.parse(backend, "render backend").value
     if backend == "auto":
         if device.type == "cuda":
             return "gsplat" if gsplat_available() else "torch"
-        return "compiled" if compiled_available() else "torch"
+        return "compiled" if dtype == torch.float32 and compiled_available() else "torch"
     if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
         raise ValueError("render backend 'gsplat' needs the gsplat package and the model on a CUDA device")
     if backend == "compiled" and device.type != "cpu":
@@ -82,7 +84,7 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
 
     backend: "compiled" (the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure PyTorch, any
     device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat for CUDA
-    tensors when importable, compiled on the CPU when a compiler is present, else torch).
+    tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
     """
     degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_SH_DEGREE:
@@ -92,7 +94,7 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
     if background is None:
         background = means.new_zeros(3)
     background = background.to(means)
-    backend = resolve_backend(backend, means.device)
+    backend = resolve_backend(backend, means.device, means.dtype)
     if backend == "gsplat":
         return _render_gsplat(model, camera, background, degree)
     return _render_cpu(model, camera, background, degree, backend)

@@ -73,6 +73,20 @@ std::vector<Splat> pack(int64_t m, const float* means2d, const float* conics, co
   return packed;
 }
 
+// What forward and backward both walk: the tile grid, every tile's splats, the packed splats.
+struct Scene {
+  int64_t tiles_x, tiles_y;
+  Bins bins;
+  std::vector<Splat> splats;
+
+  Scene(int64_t m, int64_t width, int64_t height, int tile_size, const float* means2d, const float* conics,
+        const float* opacities, const float* extents)
+      : tiles_x((width + tile_size - 1) / tile_size),
+        tiles_y((height + tile_size - 1) / tile_size),
+        bins(bin_tiles(m, means2d, extents, tiles_x, tiles_y, tile_size)),
+        splats(pack(m, means2d, conics, opacities)) {}
+};
+
 // exp(x) for x <= 88 without a libm call, so the pixel loops vectorise: Cody-Waite reduction x = n ln2 + r,
 // |r| <= ln2 / 2, and Cephes' degree-6 expf polynomial (relative error about 1e-7, that of std::exp in float).
 // Forward and backward both use it, so the backward pass recomputes exactly the forward alphas.
@@ -121,10 +135,8 @@ template <int tile_size>
                                            float occlusion_eps, const float* means2d, const float* conics,
                                            const float* opacities, const float* features, const float* extents,
                                            float* out, float* final_transmittance, int64_t* stop) {
-  const int64_t tiles_x = (width + tile_size - 1) / tile_size, tiles_y = (height + tile_size - 1) / tile_size;
   constexpr int pixels = tile_size * tile_size;
-  const Bins bins = bin_tiles(m, means2d, extents, tiles_x, tiles_y, tile_size);
-  const std::vector<Splat> splats = pack(m, means2d, conics, opacities);
+  const Scene scene(m, width, height, tile_size, means2d, conics, opacities, extents);
   TilePixels<tile_size> tile_pixels;
   std::vector<float> transmittance(pixels), alpha(pixels), colour(channels * pixels);  // colour [C, pixels]
   std::vector<int32_t> last(pixels);  // relative to the tile's first pair: int32 keeps the loops float-wide
@@ -132,9 +144,10 @@ template <int tile_size>
   const float* py = tile_pixels.y;
   float* t = transmittance.data();
   float* al = alpha.data();
-  for (int64_t ty = 0; ty < tiles_y; ++ty)
-    for (int64_t tx = 0; tx < tiles_x; ++tx) {
-      const int64_t tile = ty * tiles_x + tx, first = bins.offsets[tile], end = bins.offsets[tile + 1];
+  for (int64_t ty = 0; ty < scene.tiles_y; ++ty)
+    for (int64_t tx = 0; tx < scene.tiles_x; ++tx) {
+      const int64_t tile = ty * scene.tiles_x + tx;
+      const int64_t first = scene.bins.offsets[tile], end = scene.bins.offsets[tile + 1];
       tile_pixels.place(tx, ty, width, height);
       for (int p = 0; p < pixels; ++p) t[p] = tile_pixels.index[p] >= 0 ? 1.0f : 0.0f;  // 0: never composited
       std::fill(colour.begin(), colour.end(), 0.0f);
@@ -144,8 +157,8 @@ template <int tile_size>
 #pragma omp simd reduction(max : open)
         for (int p = 0; p < pixels; ++p) open = std::max(open, t[p]);
         if (open < occlusion_eps) break;  // every pixel of the tile is opaque
-        const int32_t s = bins.splats[i];
-        const Splat g = splats[s];
+        const int32_t s = scene.bins.splats[i];
+        const Splat g = scene.splats[s];
         const auto local = static_cast<int32_t>(i - first);
         int any = 0;  // bitwise logic below: short-circuit operators are branches and stop vectorisation
 #pragma omp simd reduction(| : any)
@@ -192,10 +205,8 @@ template <int tile_size>
                                             const float* final_transmittance, const int64_t* stop,
                                             const float* grad_out, const float* grad_final, float* grad_means2d,
                                             float* grad_conics, float* grad_opacities, float* grad_features) {
-  const int64_t tiles_x = (width + tile_size - 1) / tile_size, tiles_y = (height + tile_size - 1) / tile_size;
   constexpr int pixels = tile_size * tile_size;
-  const Bins bins = bin_tiles(m, means2d, extents, tiles_x, tiles_y, tile_size);
-  const std::vector<Splat> splats = pack(m, means2d, conics, opacities);
+  const Scene scene(m, width, height, tile_size, means2d, conics, opacities, extents);
   TilePixels<tile_size> tile_pixels;
   std::vector<float> transmittance(pixels), behind(pixels), behind_final(pixels), weight(pixels), h_values(pixels);
   std::vector<float> grad(channels * pixels);  // dL/dout [C, pixels]
@@ -209,9 +220,9 @@ template <int tile_size>
   float* hs = h_values.data();  // h_k = f_k . dL/dout per pixel
   const float* gr = grad.data();
   const int32_t* lt = last.data();
-  for (int64_t ty = 0; ty < tiles_y; ++ty)
-    for (int64_t tx = 0; tx < tiles_x; ++tx) {
-      const int64_t first = bins.offsets[ty * tiles_x + tx];
+  for (int64_t ty = 0; ty < scene.tiles_y; ++ty)
+    for (int64_t tx = 0; tx < scene.tiles_x; ++tx) {
+      const int64_t first = scene.bins.offsets[ty * scene.tiles_x + tx];
       tile_pixels.place(tx, ty, width, height);
       int64_t end = first;
       for (int p = 0; p < pixels; ++p) {
@@ -222,11 +233,12 @@ template <int tile_size>
         const int64_t pixel_stop = pixel >= 0 ? stop[pixel] : first;
         last[p] = static_cast<int32_t>(pixel_stop - first);
         end = std::max(end, pixel_stop);
-        for (int64_t k = 0; k < channels; ++k) grad[k * pixels + p] = pixel >= 0 ? grad_out[pixel * channels + k] : 0.0f;
+        for (int64_t k = 0; k < channels; ++k)
+          grad[k * pixels + p] = pixel >= 0 ? grad_out[pixel * channels + k] : 0.0f;
       }
       for (int64_t i = end - 1; i >= first; --i) {
-        const int32_t s = bins.splats[i];
-        const Splat g = splats[s];
+        const int32_t s = scene.bins.splats[i];
+        const Splat g = scene.splats[s];
         const auto local = static_cast<int32_t>(i - first);
         const float* f = features + s * channels;
         std::fill(hs, hs + pixels, 0.0f);

@@ -139,3 +139,24 @@ def test_fit_on_compiled_backend_matches_reference_backend_psnr():
         scores[backend] = sum(psnr(image, view.image) for image, view in zip(rendered, views)) / len(views)
     assert scores["torch"] > 20.0  # the fit did learn the scene
     assert abs(scores["compiled"] - scores["torch"]) <= 0.05, scores
+
+
+def test_auto_falls_back_to_torch_with_one_warning_when_the_build_fails(tmp_path, monkeypatch, caplog):
+    from tracegs.splat import rasterize_compiled
+
+    broken = tmp_path / "rasterize_compiled.cpp"
+    broken.write_text("this is not C++\n")
+    monkeypatch.setattr(rasterize_compiled, "SOURCE", broken)
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
+    rasterize_compiled._library.cache_clear()
+    rasterize_compiled.compiled_available.cache_clear()
+    try:
+        with caplog.at_level("WARNING", logger=rasterize_compiled.__name__):
+            assert resolve_backend("auto", torch.device("cpu")) == "torch"
+            assert resolve_backend("auto", torch.device("cpu")) == "torch"
+        assert len(caplog.records) == 1 and "pure-PyTorch" in caplog.records[0].getMessage()
+        model = random_scene(20, seed=1)
+        assert render(model, ring_cameras(1)[0]).image.shape == (3, 48, 72)  # auto still renders
+    finally:
+        rasterize_compiled._library.cache_clear()
+        rasterize_compiled.compiled_available.cache_clear()

@@ -4,8 +4,8 @@ Same inputs, tiles, depth order, 1/255 alpha threshold, 0.99 alpha clamp and tra
 `rasterize_tiles`; projection and SH stay in PyTorch autograd, only the compositing is compiled
 (`rasterize_compiled.cpp`). The pure-PyTorch backend spends most of its time on the fixed overhead of many small
 tensor operations; the compiled loop walks each tile's splats once, updates the tile's pixels in SIMD registers,
-stops when the tile is opaque and needs no intermediate tensors, which makes the compositing ~20x faster (the
-projection and SH in PyTorch then take about half of a render).
+stops when the tile is opaque and needs no intermediate tensors, which makes the compositing more than ten
+times faster (the projection and SH in PyTorch then take about half of a render's forward and backward).
 
 Why this tool: `torch.utils.cpp_extension.load` compiles at first use with the C++ compiler and ninja (a
 declared dependency) into the torch extensions cache (``~/.cache/torch_extensions``, or

@@ -13,8 +13,9 @@ from tracegs.modes import Mode
 class RenderBackend(Mode):
     """The rasterizer (tracegs.splat.render)."""
 
-    auto = "auto"  # gsplat where CUDA and the package are present, else torch
-    torch = "torch"  # tiled pure-PyTorch rasterizer
+    auto = "auto"  # gsplat where CUDA and the package are present, else compiled, else torch (no compiler)
+    compiled = "compiled"  # the tiled rasterizer compiled to one C++ loop per pixel (CPU)
+    torch = "torch"  # tiled pure-PyTorch rasterizer (readable reference; any device)
     dense = "dense"  # every Gaussian on every pixel (small images; the reference for the tiled one)
     gsplat = "gsplat"  # CUDA only
 

@@ -1,4 +1,4 @@
-"""`render`: one signature for both rasterizer backends (pure PyTorch, and gsplat on CUDA)."""
+"""`render`: one signature for every rasterizer backend (compiled CPU, pure PyTorch, dense, gsplat on CUDA)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from tracegs.splat.config import GaussianFitConfig, RenderBackend
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
 from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
+from tracegs.splat.rasterize_compiled import compiled_available, rasterize_compiled
 from tracegs.splat.sh import sh_to_rgb
 
 
@@ -39,12 +40,18 @@ def require_available(backend: str, field: str) -> None:
         raise ValueError(f"{field}='gsplat' needs CUDA and the gsplat package; use 'torch' (CPU) or 'auto' here")
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """The backend `render` uses; "auto" keeps float64 models (gradient checks) on the exact torch backend, the
+    compiled one computes in float32."""
     backend = RenderBackend.parse(backend, "render backend").value
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+        if device.type == "cuda":
+            return "gsplat" if gsplat_available() else "torch"
+        return "compiled" if dtype == torch.float32 and compiled_available() else "torch"
     if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
         raise ValueError("render backend 'gsplat' needs the gsplat package and the model on a CUDA device")
+    if backend == "compiled" and device.type != "cpu":
+        raise ValueError(f"render backend 'compiled' runs on the CPU, the model is on {device}")
     return backend
 
 
@@ -75,8 +82,9 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
            backend: str = "auto") -> RenderOutput:
     """Render `model` from `camera` (main paper: R = Render(G, P)).
 
-    backend: "torch" (tile-culled pure PyTorch, any device), "dense" (every Gaussian at every pixel; slow
-    reference), "gsplat" (CUDA), "auto" (gsplat for CUDA tensors when importable, else torch).
+    backend: "compiled" (the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure PyTorch, any
+    device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat for CUDA
+    tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
     """
     degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_SH_DEGREE:
@@ -86,12 +94,14 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
     if background is None:
         background = means.new_zeros(3)
     background = background.to(means)
-    if resolve_backend(backend, means.device) == "gsplat":
+    backend = resolve_backend(backend, means.device, means.dtype)
+    if backend == "gsplat":
         return _render_gsplat(model, camera, background, degree)
-    return _render_torch(model, camera, background, degree, dense=backend == "dense")
+    return _render_cpu(model, camera, background, degree, backend)
 
 
-def _render_torch(model: GaussianModel, camera: Camera, background: Tensor, degree: int, dense: bool) -> RenderOutput:
+def _render_cpu(model: GaussianModel, camera: Camera, background: Tensor, degree: int, backend: str) -> RenderOutput:
+    """Projection and SH in PyTorch autograd, then the `backend` rasterizer ("compiled", "torch" or "dense")."""
     width, height = camera.width, camera.height
     opacities = model.opacities
     projected = project_gaussians(model.means, model.quats, model.log_scales, opacities, camera)
@@ -108,8 +118,10 @@ def _render_torch(model: GaussianModel, camera: Camera, background: Tensor, degr
     colours = sh_to_rgb(degree, gather(model.sh), gather(model.means) - camera.center)
     features = torch.cat([colours, gather(projected.depths)[:, None]], dim=-1)
     splat = (gather(means2d[0]), gather(projected.conics), gather(opacities), features)
-    if dense:
+    if backend == "dense":
         out, transmittance = rasterize_dense(*splat, width, height)
+    elif backend == "compiled":
+        out, transmittance = rasterize_compiled(*splat, gather(projected.extents), width, height)
     else:
         out, transmittance = rasterize_tiles(*splat, gather(projected.extents), width, height)
 

@@ -10,7 +10,7 @@ from conftest import random_scene, ring_cameras
 from gsplat.strategy import DefaultStrategy
 
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
-from tracegs.splat.fit import GaussianFitter, View, camera_extent, fit_gaussians, photometric_loss
+from tracegs.splat.fit import GaussianFitter, View, camera_extent, fit_gaussians, mean_ssim, photometric_loss
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render
 
@@ -139,6 +139,22 @@ def test_photometric_loss_is_l1_plus_weighted_dssim():
     l1 = (shifted - image).abs().mean().item()
     assert photometric_loss(shifted, image, 0.0).item() == pytest.approx(l1, rel=1e-6)
     assert photometric_loss(shifted, image, 0.2).item() > 0.8 * l1
+
+
+@pytest.mark.parametrize("window", [11, 7])
+def test_stacked_ssim_equals_kornia_in_value_and_gradient(window):
+    """The fitter's SSIM blurs its five moments in one call; it must be kornia's SSIM, gradients included."""
+    import kornia
+
+    generator = torch.Generator().manual_seed(1)
+    target = torch.rand(3, 48, 72, generator=generator)
+    ours = torch.rand(3, 48, 72, generator=generator, requires_grad=True)
+    theirs = ours.detach().clone().requires_grad_(True)
+    mean_ssim(ours, target, window).backward()
+    reference = kornia.metrics.ssim(theirs[None], target[None], window).mean()
+    reference.backward()
+    assert mean_ssim(ours, target, window).item() == pytest.approx(reference.item(), abs=1e-6)
+    torch.testing.assert_close(ours.grad, theirs.grad, rtol=1e-4, atol=1e-9)
 
 
 def test_fitter_input_errors_are_clear():

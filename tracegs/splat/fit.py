@@ -43,11 +43,30 @@ def camera_extent(cameras: Sequence[Camera]) -> float:
     return radius if radius > 0 else 1.0
 
 
+def mean_ssim(rendered: Tensor, target: Tensor, window: int = 11) -> Tensor:
+    """Mean SSIM of two [C,H,W] images: kornia's `metrics.ssim` (Gaussian window, sigma 1.5, reflect padding,
+    c1 = 0.01^2, c2 = 0.03^2, eps 1e-12), equal to it to rounding.
+
+    The five local moments are blurred in one call of kornia's separable filter on a stacked image, where
+    `kornia.metrics.ssim` filters each moment apart: at the embedded 48 x 72 images the ten small convolutions
+    and their backward cost more than the rasterizer, and stacking halves the loss's share of a 3DGS step.
+    """
+    kernel = kornia.filters.get_gaussian_kernel1d(window, 1.5, device=rendered.device, dtype=rendered.dtype)
+    channels = rendered.shape[0]
+    moments = torch.cat([rendered, target, rendered * rendered, target * target, rendered * target])[None]
+    blurred = kornia.filters.filter2d_separable(moments, kernel, kernel, border_type="reflect")[0]
+    mu1, mu2, mean11, mean22, mean12 = blurred.split(channels)
+    mu12, mu1_sq, mu2_sq = mu1 * mu2, mu1 * mu1, mu2 * mu2
+    c1, c2 = 0.01**2, 0.03**2
+    numerator = (2.0 * mu12 + c1) * (2.0 * (mean12 - mu12) + c2)
+    denominator = (mu1_sq + mu2_sq + c1) * ((mean11 - mu1_sq) + (mean22 - mu2_sq) + c2)
+    return (numerator / (denominator + 1e-12)).mean()
+
+
 def photometric_loss(rendered: Tensor, target: Tensor, ssim_weight: float, window: int = 11) -> Tensor:
     """(1 - lambda) L1 + lambda (1 - SSIM), the 3DGS reconstruction loss (lambda = 0.2)."""
     l1 = (rendered - target).abs().mean()
-    ssim = kornia.metrics.ssim(rendered[None], target[None], window).mean()
-    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - mean_ssim(rendered, target, window))
 
 
 def _merge_infos(infos: list[dict]) -> dict:

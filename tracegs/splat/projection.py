@@ -25,10 +25,9 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ], dim=-1).reshape(-1, 3, 3)
 
 
-def covariance_3d(quats: Tensor, log_scales: Tensor) -> Tensor:
-    """World-space covariances R S S^T R^T [N,3,3]."""
-    rs = quat_to_rotmat(quats) * log_scales.exp()[:, None, :]
-    return rs @ rs.transpose(1, 2)
+def covariance_factor(quats: Tensor, log_scales: Tensor) -> Tensor:
+    """R S [N,3,3], the factor of the world-space covariance Sigma = (R S)(R S)^T."""
+    return quat_to_rotmat(quats) * log_scales.exp()[:, None, :]
 
 
 @dataclass
@@ -60,7 +59,9 @@ def project_gaussians(means: Tensor, quats: Tensor, log_scales: Tensor, opacitie
     zeros = torch.zeros_like(tz)
     jacobian = torch.stack([fx / tz, zeros, -fx * u_c / tz, zeros, fy / tz, -fy * v_c / tz], dim=-1).reshape(-1, 2, 3)
     jw = jacobian @ rotation
-    cov2d = jw @ covariance_3d(quats, log_scales) @ jw.transpose(1, 2)
+    # J W Sigma W^T J^T = (J W R S)(J W R S)^T: two small batched products instead of three.
+    jwrs = jw @ covariance_factor(quats, log_scales)
+    cov2d = jwrs @ jwrs.transpose(1, 2)
     cxx = cov2d[:, 0, 0] + LOW_PASS_VARIANCE
     cxy = cov2d[:, 0, 1]
     cyy = cov2d[:, 1, 1] + LOW_PASS_VARIANCE

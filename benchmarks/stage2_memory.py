@@ -62,21 +62,28 @@ def _batch(backbone, batch_size: int, frame_size: tuple[int, int]) -> dict:
     return random_batch(t, frames, 2 * rows * cols, batch_size, seed=0)  # two views of patch-14 tokens
 
 
-def _module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
+def _base_transformer(backbone, device: str):
+    """The frozen base of the measured step, random from seed 0 and built in bf16 directly (no 20 GB float32
+    copy at 5B); the Stage-1 adapter is made on this same base, whose identity its file records."""
     import torch
 
     from tracegs.restorer.build import create_transformer
+
+    torch.manual_seed(0)
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.bfloat16)
+    try:
+        return create_transformer(backbone.transformer, device).requires_grad_(False)
+    finally:
+        torch.set_default_dtype(previous)
+
+
+def _module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
     from tracegs.restorer.schedules import build_schedule
     from tracegs.training.config import OptimizerConfig
     from tracegs.training.stage2 import Stage2DistillationModule
 
-    torch.manual_seed(0)
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.bfloat16)  # build the base in bf16 directly (no 20 GB float32 copy at 5B)
-    try:
-        transformer = create_transformer(backbone.transformer, device).requires_grad_(False)
-    finally:
-        torch.set_default_dtype(previous)
+    transformer = _base_transformer(backbone, device)
     if backbone.transformer.gradient_checkpointing:
         transformer.enable_gradient_checkpointing()
     return Stage2DistillationModule(
@@ -135,24 +142,23 @@ def _cpu_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter:
                             mmap_threshold=True)
 
 
-def _make_adapter(backbone, path: Path) -> None:
-    """A random Stage-1 adapter at the config's rank: only the LoRA factors get memory (the base stays on the
-    meta device, so the paper-scale file costs its 252 MiB, not the 5B model)."""
+def _make_adapter(backbone, path: Path, device: str) -> None:
+    """A random Stage-1 adapter at the config's rank on the measured step's base (the file records that base's
+    identity, which Stage 2 checks); the base is freed before anything is measured."""
     import torch
 
     from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
-    from tracegs.restorer.build import create_transformer
-    from tracegs.training.strategy import lora_factors
 
-    model = create_transformer(backbone.transformer, "meta")
+    model = _base_transformer(backbone, device)
     add_adapter(model, "aligned", backbone.lora)
-    for factor in lora_factors(model, "aligned"):
-        factor.to_empty(device="cpu")
     torch.manual_seed(0)
     with torch.no_grad():
         for param in adapter_parameters(model, "aligned"):
             param.normal_(0.0, 0.02)
-    save_adapter(model, "aligned", path)
+    save_adapter(model, "aligned", path, stage="stage1")
+    del model
+    if device == "cuda":
+        torch.cuda.empty_cache()
 
 
 def encoder_bytes() -> dict[str, int]:
@@ -197,7 +203,7 @@ def main(argv: list[str] | None = None) -> dict:
     peaks: dict[float, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         adapter = Path(tmp) / "stage1_adapter.safetensors"
-        _make_adapter(backbone, adapter)
+        _make_adapter(backbone, adapter, "cuda" if scale == "paper" else "cpu")
         for guidance in (unguided, guided):
             peaks[guidance] = {
                 mode: (_step_peak_mib(scale, mode, args.rollout, args.batch, str(adapter), guidance)

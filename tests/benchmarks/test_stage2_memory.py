@@ -27,3 +27,12 @@ def test_paper_component_bytes_on_the_meta_device():
 def test_paper_shape_step_fits_and_stepwise_needs_less():
     summary = stage2_memory.main(["--scale", "paper"])
     assert summary["peak_mib"]["stepwise"] < summary["peak_mib"]["retain"]
+
+
+@pytest.mark.slow
+def test_rehearsal_step_trains_from_a_stage1_adapter_made_on_its_base():
+    """The CPU measurement end to end: the adapter it writes must pass Stage 2's stage/base/dtype check."""
+    summary = stage2_memory.main(["--scale", "rehearsal", "--rollout", "2", "--batch", "1"])
+    assert summary["scale"] == "rehearsal"
+    assert set(summary["peak_mib"]) == set(summary["peak_mib_guidance_before"]) == {"retain", "stepwise"}
+    assert all(value > 0 for value in summary["peak_mib"].values())

@@ -34,6 +34,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from queue import Empty
 
 import lightning as L
 
@@ -54,19 +55,26 @@ def _reset_peak() -> None:
         handle.write("5")
 
 
-def _build(mode: str, rollout: int, batch_size: int, adapter: Path):
+def _base():
+    """(backbone config, the measured step's frozen base: the embedded transformer, random from seed 0). The
+    Stage-1 adapter is made on this same base, whose identity its file records and Stage 2 checks."""
     import torch
 
     from tracegs.restorer.build import create_transformer
     from tracegs.restorer.config import BackboneConfig
+
+    cfg = BackboneConfig()
+    torch.manual_seed(0)
+    return cfg, create_transformer(cfg.transformer).requires_grad_(False)
+
+
+def _build(mode: str, rollout: int, batch_size: int, adapter: Path):
     from tracegs.restorer.schedules import build_schedule
     from tracegs.training.config import OptimizerConfig
     from tracegs.training.stage2 import Stage2DistillationModule
 
-    cfg = BackboneConfig()
+    cfg, transformer = _base()
     tc = cfg.transformer
-    torch.manual_seed(0)
-    transformer = create_transformer(tc).requires_grad_(False)
     module = Stage2DistillationModule(
         transformer,
         build_schedule(cfg.schedule),
@@ -170,19 +178,17 @@ def _measure(mode: str, rollout: int, batch_size: int, steps: int, adapter: str,
 
 
 def _make_adapter(path: Path) -> None:
+    """A random Stage-1 adapter on the measured step's base."""
     import torch
 
     from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
-    from tracegs.restorer.build import create_transformer
-    from tracegs.restorer.config import BackboneConfig
 
-    cfg = BackboneConfig()
-    transformer = create_transformer(cfg.transformer)
+    cfg, transformer = _base()
     add_adapter(transformer, "aligned", cfg.lora)
     with torch.no_grad():
         for p in adapter_parameters(transformer, "aligned"):
             p.normal_(0.0, 0.02)
-    save_adapter(transformer, "aligned", path)
+    save_adapter(transformer, "aligned", path, stage="stage1")
 
 
 def _run_worker(mode: str, rollout: int, args, adapter: Path, mmap_threshold: bool) -> dict:
@@ -201,9 +207,16 @@ def in_fresh_process(target, args: tuple, label: str, mmap_threshold: bool):
     queue = context.Queue()
     worker = context.Process(target=target, args=(*args, queue))
     worker.start()
-    result = queue.get()
+    while True:  # a worker that dies puts nothing on the queue: poll, so its failure ends the benchmark
+        try:
+            result = queue.get(timeout=1.0)
+            break
+        except Empty:
+            if not worker.is_alive():
+                result = None
+                break
     worker.join()
-    if worker.exitcode != 0:
+    if worker.exitcode != 0 or result is None:
         sys.exit(f"measurement of {label} failed (exit code {worker.exitcode})")
     return result
 

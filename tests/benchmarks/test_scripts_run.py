@@ -1,0 +1,36 @@
+"""Every benchmark script runs to its JSON line from a clean checkout (slow: each measures for real).
+
+A benchmark is only read when someone reruns it, so a change elsewhere that breaks one (a new check on the
+files it writes, say) would otherwise go unseen until then.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+# stage2_memory.py runs in test_stage2_memory.py; prepare_data.py prepares the whole demo cache (4 min), which
+# the prepare tests cover.
+RUNS = {
+    "rasterizer.py": [],
+    "restorer.py": [],
+    "stage2.py": ["--rollouts", "2", "--steps", "1"],
+    "cache_verify.py": ["--scenes", "1", "--repeats", "1", "--out", "{tmp}/cache"],
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(RUNS))
+def test_benchmark_ends_with_its_json_line(script, tmp_path):
+    args = [a.format(tmp=tmp_path) for a in RUNS[script]]
+    done = subprocess.run([sys.executable, str(BENCHMARKS / script), *args], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    assert isinstance(figures, dict) and figures

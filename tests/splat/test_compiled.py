@@ -146,9 +146,9 @@ def test_auto_falls_back_to_torch_with_one_warning_when_the_build_fails(tmp_path
 
     broken = tmp_path / "rasterize_compiled.cpp"
     broken.write_text("this is not C++\n")
-    monkeypatch.setattr(rasterize_compiled, "SOURCE", broken)
+    monkeypatch.setattr(rasterize_compiled, "SOURCES", (broken,))
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
-    rasterize_compiled._library.cache_clear()
+    rasterize_compiled.library.cache_clear()
     rasterize_compiled.compiled_available.cache_clear()
     try:
         with caplog.at_level("WARNING", logger=rasterize_compiled.__name__):
@@ -158,5 +158,5 @@ def test_auto_falls_back_to_torch_with_one_warning_when_the_build_fails(tmp_path
         model = random_scene(20, seed=1)
         assert render(model, ring_cameras(1)[0]).image.shape == (3, 48, 72)  # auto still renders
     finally:
-        rasterize_compiled._library.cache_clear()
+        rasterize_compiled.library.cache_clear()
         rasterize_compiled.compiled_available.cache_clear()

@@ -1,23 +1,27 @@
-"""The tile rasterizer of `rasterize.py` compiled to C++, forward and backward (CPU, float32).
+"""The tile rasterizer of `rasterize.py` compiled to C++, forward and backward (CPU, float32), and the library
+it is built into.
 
 Same inputs, tiles, depth order, 1/255 alpha threshold, 0.99 alpha clamp and transmittance cut-off as
-`rasterize_tiles`; projection and SH stay in PyTorch autograd, only the compositing is compiled
-(`rasterize_compiled.cpp`). The pure-PyTorch backend spends most of its time on the fixed overhead of many small
-tensor operations; the compiled loop walks each tile's splats once, updates the tile's pixels in SIMD registers,
-stops when the tile is opaque and needs no intermediate tensors, which makes the compositing more than ten
-times faster (the projection and SH in PyTorch then take about half of a render's forward and backward).
+`rasterize_tiles` (`rasterize_compiled.cpp`). The pure-PyTorch backend spends most of its time on the fixed
+overhead of many small tensor operations; the compiled loop walks each tile's splats once, updates the tile's
+pixels in SIMD registers, stops when the tile is opaque and needs no intermediate tensors, which makes the
+compositing more than ten times faster. The same library holds the per-Gaussian projection and SH colour of the
+compiled backend (`preprocess_compiled.py`), which in PyTorch would then take half of a render: `render`'s
+compiled backend is two compiled autograd nodes, preprocessing and compositing. The compositing reads the visible
+Gaussians through an index in depth order, so nothing is gathered or scattered in PyTorch.
 
 Why this tool: `torch.utils.cpp_extension.load` compiles at first use with the C++ compiler and ninja (a
 declared dependency) into the torch extensions cache (``~/.cache/torch_extensions``, or
 ``$TORCH_EXTENSIONS_DIR``), guards the build with a lock file so concurrent processes (forked workers, parallel
 pytest) build once and the others wait, and reuses the library afterwards. It is not built at install time
-because pip's build isolation would pull a CUDA torch. The source includes no torch headers and exposes a plain C
+because pip's build isolation would pull a CUDA torch. The sources include no torch headers and expose a plain C
 ABI called through ctypes: with ``torch/extension.h`` and pybind11 the one-time compile takes ~45 s on a 2-core
-machine, without them ~2 s. numba was the alternative; it is not a dependency here and would JIT-compile in every
-fresh worker process. The build directory is named by a hash of the source and of the torch installation, so
-checkouts or venvs with different sources never rebuild a library another process has loaded.
+machine, without them a few seconds. numba was the alternative; it is not a dependency here and would
+JIT-compile in every fresh worker process. The build directory is named by a hash of the sources and of the
+torch installation, so checkouts or venvs with different sources never rebuild a library another process has
+loaded.
 
-The kernel is single-threaded: the embedded pipeline already runs one single-threaded fit per core. It is
+The kernels are single-threaded: the embedded pipeline already runs one single-threaded fit per core. It is
 compiled for tiles of 4, 8 and 16 pixels (`TILE_SIZES`); `rasterize_tiles` uses 4.
 Where no compiler is available, `compiled_available()` is False after one logged warning and the `auto`
 backend falls back to the pure-PyTorch rasterizer.
@@ -38,7 +42,7 @@ from torch import Tensor
 
 from tracegs.splat.rasterize import OCCLUSION_EPS
 
-SOURCES = (Path(__file__).with_name("rasterize_compiled.cpp"), Path(__file__).with_name("preprocess_compiled.cpp"))
+SOURCES = tuple(Path(__file__).with_name(name) for name in ("rasterize_compiled.cpp", "preprocess_compiled.cpp"))
 # -fopenmp-simd: the pixel loops' `omp simd` hints only (no OpenMP runtime); -fno-trapping-math lets the
 # compiler turn float comparisons into vector selects (nothing here reads floating-point exception flags); no
 # -march=native, the cache directory may be shared by machines with other CPUs.
@@ -72,10 +76,11 @@ def library() -> ctypes.CDLL:
     compiled = ctypes.CDLL(path)
     int64, floats = ctypes.c_int64, [_float_p]
     compiled.rasterize_forward.restype = ctypes.c_int
-    compiled.rasterize_forward.argtypes = [int64, _int64_p] + [int64] * 3 + [ctypes.c_int, ctypes.c_float] + floats * 7 + [
-        _int64_p]
+    compiled.rasterize_forward.argtypes = ([int64, _int64_p] + [int64] * 3 + [ctypes.c_int, ctypes.c_float]
+                                           + floats * 7 + [_int64_p])
     compiled.rasterize_backward.restype = ctypes.c_int
-    compiled.rasterize_backward.argtypes = [int64, _int64_p] + [int64] * 3 + [ctypes.c_int] + floats * 6 + [_int64_p] + floats * 6
+    compiled.rasterize_backward.argtypes = ([int64, _int64_p] + [int64] * 3 + [ctypes.c_int] + floats * 6 + [_int64_p]
+                                            + floats * 6)
     compiled.preprocess_forward.restype = int64
     compiled.preprocess_forward.argtypes = [int64, ctypes.c_int, int64, int64] + floats * 12 + [
         ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_bool), _int64_p]

@@ -83,9 +83,9 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
            backend: str = "auto") -> RenderOutput:
     """Render `model` from `camera` (main paper: R = Render(G, P)).
 
-    backend: "compiled" (the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure PyTorch, any
-    device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat for CUDA
-    tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
+    backend: "compiled" (projection, SH and the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure
+    PyTorch, any device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat
+    for CUDA tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
     """
     degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_SH_DEGREE:

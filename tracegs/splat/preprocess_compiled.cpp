@@ -164,18 +164,17 @@ int sh_basis(int degree, const float* d, float* basis, float (*gradient)[3]) {
   return 16;
 }
 
-// Coefficient k (0 = dc) of one Gaussian's colour channel c.
-inline float coefficient(const float* sh_dc, const float* sh_rest, int64_t g, int k, int c) {
-  return k == 0 ? sh_dc[3 * g + c] : sh_rest[(g * kShRest + k - 1) * 3 + c];
+// The first `terms` SH coefficients [terms][3] of Gaussian g (dc first), copied together.
+void load_coefficients(int terms, const float* sh_dc, const float* sh_rest, int64_t g, float (*coefficients)[3]) {
+  std::copy(sh_dc + 3 * g, sh_dc + 3 * g + 3, coefficients[0]);
+  std::copy(sh_rest + g * kShRest * 3, sh_rest + (g * kShRest + terms - 1) * 3, coefficients[1]);
 }
 
 // The colour before the clamp at 0: sum_k basis_k coefficient_k + 0.5 per channel.
-void sh_colour(int terms, const float* basis, const float* sh_dc, const float* sh_rest, int64_t g, float* rgb) {
-  for (int c = 0; c < 3; ++c) {
-    float sum = 0.0f;
-    for (int k = 0; k < terms; ++k) sum += basis[k] * coefficient(sh_dc, sh_rest, g, k, c);
-    rgb[c] = sum + 0.5f;
-  }
+void sh_colour(int terms, const float* basis, const float (*coefficients)[3], float* rgb) {
+  rgb[0] = rgb[1] = rgb[2] = 0.5f;
+  for (int k = 0; k < terms; ++k)
+    for (int c = 0; c < 3; ++c) rgb[c] += basis[k] * coefficients[k][c];
 }
 
 inline bool finite(float x) { return std::isfinite(x); }
@@ -194,7 +193,7 @@ int64_t preprocess_forward(int64_t n, int degree, int64_t width, int64_t height,
                            int64_t* order) {
   const View view(world_to_camera, K, width, height);
   int64_t count = 0;
-  float basis[16];
+  float basis[16], coefficients[16][3];
   for (int64_t g = 0; g < n; ++g) {
     const Projection P = project(view, means + 3 * g, quats + 4 * g, log_scales + 3 * g);
     const float mx = view.fx * P.u + view.cx, my = view.fy * P.v + view.cy;
@@ -220,7 +219,8 @@ int64_t preprocess_forward(int64_t n, int degree, int64_t width, int64_t height,
     order[count++] = g;
     const Direction D = direction(view, means + 3 * g);
     const int terms = sh_basis(degree, D.d, basis, nullptr);
-    sh_colour(terms, basis, sh_dc, sh_rest, g, f);
+    load_coefficients(terms, sh_dc, sh_rest, g, coefficients);
+    sh_colour(terms, basis, coefficients, f);
     for (int c = 0; c < 3; ++c) f[c] = std::max(f[c], 0.0f);
   }
   std::stable_sort(order, order + count, [features](int64_t i, int64_t j) { return features[4 * i + 3] <
@@ -241,7 +241,7 @@ void preprocess_backward(int64_t n, int degree, int64_t width, int64_t height, c
   std::fill(grad_log_scales, grad_log_scales + 3 * n, 0.0f);
   std::fill(grad_sh_dc, grad_sh_dc + 3 * n, 0.0f);
   std::fill(grad_sh_rest, grad_sh_rest + kShRest * 3 * n, 0.0f);
-  float basis[16], basis_gradient[16][3];
+  float basis[16], basis_gradient[16][3], coefficients[16][3];
   for (int64_t g = 0; g < n; ++g) {
     const float* gm2 = grad_means2d + 2 * g;
     const float* gcon = grad_conics + 3 * g;
@@ -256,7 +256,8 @@ void preprocess_backward(int64_t n, int degree, int64_t width, int64_t height, c
       const Direction D = direction(view, means + 3 * g);
       const int terms = sh_basis(degree, D.d, basis, basis_gradient);
       float rgb[3], g_rgb[3];
-      sh_colour(terms, basis, sh_dc, sh_rest, g, rgb);
+      load_coefficients(terms, sh_dc, sh_rest, g, coefficients);
+      sh_colour(terms, basis, coefficients, rgb);
       for (int c = 0; c < 3; ++c) g_rgb[c] = rgb[c] >= 0.0f ? gf[c] : 0.0f;  // clamp_min(0) passes at 0
       float g_dir[3] = {0.0f, 0.0f, 0.0f};
       for (int k = 0; k < terms; ++k) {
@@ -264,7 +265,7 @@ void preprocess_backward(int64_t n, int degree, int64_t width, int64_t height, c
         float weight = 0.0f;  // sum_c coefficient_kc dL/drgb_c
         for (int c = 0; c < 3; ++c) {
           target[c] = basis[k] * g_rgb[c];
-          weight += coefficient(sh_dc, sh_rest, g, k, c) * g_rgb[c];
+          weight += coefficients[k][c] * g_rgb[c];
         }
         for (int j = 0; j < 3; ++j) g_dir[j] += weight * basis_gradient[k][j];
       }

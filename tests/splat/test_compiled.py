@@ -142,6 +142,15 @@ def test_auto_backend_is_compiled_on_cpu_float32_and_exact_for_float64():
     assert resolve_backend("auto", cpu, torch.float64) == "torch"
 
 
+def test_explicit_compiled_backend_computes_float64_models_in_float32():
+    model = random_scene(300, seed=6, dtype=torch.float64)
+    compiled, grads_compiled = rendered_with_grads(model, "compiled")
+    reference, grads_reference = rendered_with_grads(model, "torch")
+    assert (compiled.image - reference.image).abs().max() < 1e-4
+    assert all(g.dtype == torch.float64 for g in grads_compiled[:-1])  # the parameters' dtype
+    assert_grads_close(grads_compiled, grads_reference, 1e-3)
+
+
 def test_fit_on_compiled_backend_matches_reference_backend_psnr():
     """A 3DGS fit with densification reaches the same training-view PSNR on both backends (within 0.05 dB)."""
     truth = random_scene(150, seed=11)

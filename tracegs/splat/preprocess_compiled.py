@@ -38,11 +38,12 @@ class _CompiledPreprocess(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means: Tensor, quats: Tensor, log_scales: Tensor, opacities: Tensor, sh_dc: Tensor,
                 sh_rest: Tensor, world_to_camera: Tensor, K: Tensor, width: int, height: int, degree: int):
-        inputs = [x.contiguous() for x in (means, quats, log_scales, opacities, sh_dc, sh_rest)]
-        camera = [x.contiguous() for x in (world_to_camera, K)]
+        inputs = [x.detach().to(torch.float32).contiguous() for x in (means, quats, log_scales, opacities, sh_dc,
+                                                                       sh_rest)]
+        camera = [x.detach().to(torch.float32).contiguous() for x in (world_to_camera, K)]
         n = means.shape[0]
-        means2d, conics = means.new_empty(1, n, 2), means.new_empty(n, 3)
-        features, extents = means.new_empty(n, 4), means.new_empty(n, 2)
+        means2d, conics = torch.empty(1, n, 2), torch.empty(n, 3)
+        features, extents = torch.empty(n, 4), torch.empty(n, 2)
         radii = torch.empty(1, n, 2, dtype=torch.int32)
         visible = torch.empty(n, dtype=torch.bool)
         order = torch.empty(n, dtype=torch.int64)
@@ -51,6 +52,7 @@ class _CompiledPreprocess(torch.autograd.Function):
         order = order[:count]
         ctx.mark_non_differentiable(extents, radii, visible, order)
         ctx.setup = (n, degree, width, height)
+        ctx.dtypes = [x.dtype for x in (means, quats, log_scales, sh_dc, sh_rest)]
         ctx.save_for_backward(*camera, *inputs)
         return means2d, conics, features, extents, radii, visible, order
 
@@ -64,13 +66,15 @@ class _CompiledPreprocess(torch.autograd.Function):
         library().preprocess_backward(n, degree, width, height,
                                       *map(pointer, (world_to_camera, K, means, quats, log_scales, sh_dc, sh_rest)),
                                       *map(pointer, upstream), *map(pointer, grads))
-        grad_means, grad_quats, grad_log_scales, grad_sh_dc, grad_sh_rest = grads
+        grad_means, grad_quats, grad_log_scales, grad_sh_dc, grad_sh_rest = (
+            grad.to(dtype) for grad, dtype in zip(grads, ctx.dtypes))
         return grad_means, grad_quats, grad_log_scales, None, grad_sh_dc, grad_sh_rest, None, None, None, None, None
 
 
 def preprocess_compiled(means: Tensor, quats: Tensor, log_scales: Tensor, opacities: Tensor, sh_dc: Tensor,
                         sh_rest: Tensor, camera: Camera, degree: int) -> PreprocessedGaussians:
-    """Project float32 CPU Gaussians for `camera` and colour them at SH `degree` (`opacities` only cull)."""
+    """Project CPU Gaussians for `camera` and colour them at SH `degree` (`opacities` only cull), computing in
+    float32 (gradients come back in the parameters' dtype)."""
     outputs = _CompiledPreprocess.apply(means, quats, log_scales, opacities.detach(), sh_dc, sh_rest,
                                         camera.world_to_camera, camera.K, camera.width, camera.height, degree)
     return PreprocessedGaussians(*outputs)

@@ -4,8 +4,9 @@ What `projection.project_gaussians`, `projection.visible_mask`, `projection.radi
 `sh.sh_to_rgb` compute for the torch backend, as one loop over the Gaussians with the chain rule written out by
 hand (`preprocess_compiled.cpp`), the way gsplat fuses projection and spherical harmonics on CUDA. In PyTorch
 these few hundred flops per Gaussian are hundreds of small tensor operations and autograd nodes whose fixed cost
-exceeded the compiled compositing itself. The PyTorch functions stay the readable reference; the tests compare
-both, images and gradients. Built into the same library as the compiled rasterizer (`rasterize_compiled.py`).
+was about that of the compiled compositing itself (half of a render); compiled, they cost several times less.
+The PyTorch functions stay the readable reference; the tests compare both, images and gradients. Built into the
+same library as the compiled rasterizer (`rasterize_compiled.py`).
 """
 
 from __future__ import annotations

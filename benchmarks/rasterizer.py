@@ -2,8 +2,9 @@
 
 For 1k, 5k and 20k random Gaussians rendered at 96x144, measures one forward+backward pass (loss = sum of the
 squared image) of `render(..., backend="compiled")`, `backend="torch"` and `backend="dense"` (every Gaussian
-evaluated at every pixel), side by side in one run, the largest image difference of each tiled backend to the
-dense one, and how far the compiled backend's gradients are from the dense reference's.
+evaluated at every pixel), side by side in one run (each a whole render: projection, SH colour and
+compositing; the compiled backend runs all three in C++), the largest image difference of each tiled backend
+to the dense one, and how far the compiled backend's gradients are from the dense reference's.
 
 Method, so the figures can be read correctly:
 - every (backend, size) runs in its own fresh subprocess with one intra-op thread; the compiled backend's first

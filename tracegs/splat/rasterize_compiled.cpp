@@ -26,7 +26,7 @@ struct Splat {  // what the inner loop reads, packed together
   // Below this power alpha < 1/255 for sure (a margin under log(1 / (255 o)) so rounding never decides): most
   // (pixel, splat) pairs of a tile are skipped without evaluating exp.
   float min_power;
-  float pad;
+  int32_t row;  // the splat's row in the input buffers
 };
 
 // The splats of every tile, front to back: `splats[offsets[t] .. offsets[t + 1])`.
@@ -40,17 +40,18 @@ int64_t clamp_tile(float coordinate, int tile_size, int64_t tiles) {
   return std::min(std::max<int64_t>(index, 0), tiles - 1);
 }
 
-Bins bin_tiles(int64_t m, const float* means2d, const float* extents, int64_t tiles_x, int64_t tiles_y,
-               int tile_size) {
+Bins bin_tiles(int64_t m, const int64_t* order, const float* means2d, const float* extents, int64_t tiles_x,
+               int64_t tiles_y, int tile_size) {
   std::vector<int64_t> box(4 * m);  // x0, x1, y0, y1 (inclusive) per splat
   Bins bins;
   bins.offsets.assign(tiles_x * tiles_y + 1, 0);
   for (int64_t s = 0; s < m; ++s) {
     int64_t* b = &box[4 * s];
-    b[0] = clamp_tile(means2d[2 * s] - extents[2 * s], tile_size, tiles_x);
-    b[1] = clamp_tile(means2d[2 * s] + extents[2 * s], tile_size, tiles_x);
-    b[2] = clamp_tile(means2d[2 * s + 1] - extents[2 * s + 1], tile_size, tiles_y);
-    b[3] = clamp_tile(means2d[2 * s + 1] + extents[2 * s + 1], tile_size, tiles_y);
+    const int64_t r = order[s];
+    b[0] = clamp_tile(means2d[2 * r] - extents[2 * r], tile_size, tiles_x);
+    b[1] = clamp_tile(means2d[2 * r] + extents[2 * r], tile_size, tiles_x);
+    b[2] = clamp_tile(means2d[2 * r + 1] - extents[2 * r + 1], tile_size, tiles_y);
+    b[3] = clamp_tile(means2d[2 * r + 1] + extents[2 * r + 1], tile_size, tiles_y);
     for (int64_t ty = b[2]; ty <= b[3]; ++ty)
       for (int64_t tx = b[0]; tx <= b[1]; ++tx) ++bins.offsets[ty * tiles_x + tx + 1];
   }
@@ -65,11 +66,14 @@ Bins bin_tiles(int64_t m, const float* means2d, const float* extents, int64_t ti
   return bins;
 }
 
-std::vector<Splat> pack(int64_t m, const float* means2d, const float* conics, const float* opacities) {
+std::vector<Splat> pack(int64_t m, const int64_t* order, const float* means2d, const float* conics,
+                        const float* opacities) {
   std::vector<Splat> packed(m);
-  for (int64_t s = 0; s < m; ++s)
-    packed[s] = {means2d[2 * s], means2d[2 * s + 1], conics[3 * s], conics[3 * s + 1], conics[3 * s + 2],
-                 opacities[s], std::log(kAlphaMin / opacities[s]) - 1e-3f, 0.0f};
+  for (int64_t s = 0; s < m; ++s) {
+    const int64_t r = order[s];
+    packed[s] = {means2d[2 * r], means2d[2 * r + 1], conics[3 * r], conics[3 * r + 1], conics[3 * r + 2],
+                 opacities[r], std::log(kAlphaMin / opacities[r]) - 1e-3f, static_cast<int32_t>(r)};
+  }
   return packed;
 }
 
@@ -79,12 +83,12 @@ struct Scene {
   Bins bins;
   std::vector<Splat> splats;
 
-  Scene(int64_t m, int64_t width, int64_t height, int tile_size, const float* means2d, const float* conics,
-        const float* opacities, const float* extents)
+  Scene(int64_t m, const int64_t* order, int64_t width, int64_t height, int tile_size, const float* means2d,
+        const float* conics, const float* opacities, const float* extents)
       : tiles_x((width + tile_size - 1) / tile_size),
         tiles_y((height + tile_size - 1) / tile_size),
-        bins(bin_tiles(m, means2d, extents, tiles_x, tiles_y, tile_size)),
-        splats(pack(m, means2d, conics, opacities)) {}
+        bins(bin_tiles(m, order, means2d, extents, tiles_x, tiles_y, tile_size)),
+        splats(pack(m, order, means2d, conics, opacities)) {}
 };
 
 // exp(x) for x <= 88 without a libm call, so the pixel loops vectorise: Cody-Waite reduction x = n ln2 + r,
@@ -131,12 +135,13 @@ struct TilePixels {
 // (within the pixel's tile list) one past the last splat composited into the pixel (the backward pass starts
 // there).
 template <int tile_size>
-[[gnu::always_inline]] inline void forward(int64_t m, int64_t channels, int64_t width, int64_t height,
-                                           float occlusion_eps, const float* means2d, const float* conics,
-                                           const float* opacities, const float* features, const float* extents,
-                                           float* out, float* final_transmittance, int64_t* stop) {
+[[gnu::always_inline]] inline void forward(int64_t m, const int64_t* order, int64_t channels, int64_t width,
+                                           int64_t height, float occlusion_eps, const float* means2d,
+                                           const float* conics, const float* opacities, const float* features,
+                                           const float* extents, float* out, float* final_transmittance,
+                                           int64_t* stop) {
   constexpr int pixels = tile_size * tile_size;
-  const Scene scene(m, width, height, tile_size, means2d, conics, opacities, extents);
+  const Scene scene(m, order, width, height, tile_size, means2d, conics, opacities, extents);
   TilePixels<tile_size> tile_pixels;
   std::vector<float> transmittance(pixels), alpha(pixels), colour(channels * pixels);  // colour [C, pixels]
   std::vector<int32_t> last(pixels);  // relative to the tile's first pair: int32 keeps the loops float-wide
@@ -171,7 +176,7 @@ template <int tile_size>
           any |= on;
         }
         if (!any) continue;
-        const float* f = features + s * channels;
+        const float* f = features + static_cast<int64_t>(g.row) * channels;
         for (int64_t k = 0; k < channels; ++k) {
           float* c = colour.data() + k * pixels;
           const float fk = f[k];
@@ -199,14 +204,14 @@ template <int tile_size>
 // alpha_k = o_k exp(power_k) where it is neither skipped nor clamped. Gradients are added into the grad buffers
 // (zeroed by the caller).
 template <int tile_size>
-[[gnu::always_inline]] inline void backward(int64_t m, int64_t channels, int64_t width, int64_t height,
-                                            const float* means2d, const float* conics, const float* opacities,
-                                            const float* features, const float* extents,
+[[gnu::always_inline]] inline void backward(int64_t m, const int64_t* order, int64_t channels, int64_t width,
+                                            int64_t height, const float* means2d, const float* conics,
+                                            const float* opacities, const float* features, const float* extents,
                                             const float* final_transmittance, const int64_t* stop,
                                             const float* grad_out, const float* grad_final, float* grad_means2d,
                                             float* grad_conics, float* grad_opacities, float* grad_features) {
   constexpr int pixels = tile_size * tile_size;
-  const Scene scene(m, width, height, tile_size, means2d, conics, opacities, extents);
+  const Scene scene(m, order, width, height, tile_size, means2d, conics, opacities, extents);
   TilePixels<tile_size> tile_pixels;
   std::vector<float> transmittance(pixels), behind(pixels), behind_final(pixels), weight(pixels), h_values(pixels);
   std::vector<float> grad(channels * pixels);  // dL/dout [C, pixels]
@@ -240,7 +245,7 @@ template <int tile_size>
         const int32_t s = scene.bins.splats[i];
         const Splat g = scene.splats[s];
         const auto local = static_cast<int32_t>(i - first);
-        const float* f = features + s * channels;
+        const float* f = features + static_cast<int64_t>(g.row) * channels;
         std::fill(hs, hs + pixels, 0.0f);
         for (int64_t k = 0; k < channels; ++k) {
           const float fk = f[k];
@@ -277,18 +282,19 @@ template <int tile_size>
           any |= on;
         }
         if (!any) continue;
-        grad_means2d[2 * s] += g_mx;
-        grad_means2d[2 * s + 1] += g_my;
-        grad_conics[3 * s] += g_a;
-        grad_conics[3 * s + 1] += g_b;
-        grad_conics[3 * s + 2] += g_c;
-        grad_opacities[s] += g_o;
+        const int64_t r = g.row;
+        grad_means2d[2 * r] += g_mx;
+        grad_means2d[2 * r + 1] += g_my;
+        grad_conics[3 * r] += g_a;
+        grad_conics[3 * r + 1] += g_b;
+        grad_conics[3 * r + 2] += g_c;
+        grad_opacities[r] += g_o;
         for (int64_t k = 0; k < channels; ++k) {
           float sum = 0.0f;
           const float* gk = gr + k * pixels;
 #pragma omp simd reduction(+ : sum)
           for (int p = 0; p < pixels; ++p) sum += w[p] * gk[p];
-          grad_features[s * channels + k] += sum;
+          grad_features[r * channels + k] += sum;
         }
       }
     }
@@ -314,25 +320,26 @@ template <int tile_size>
 
 extern "C" {
 
+// m splats, the rows `order[0 .. m)` of the input buffers front to back (their gradients go to the same rows).
 // Returns 0, or 1 for an unsupported tile size (4, 8 and 16 are compiled).
-MULTIVERSION int rasterize_forward(int64_t m, int64_t channels, int64_t width, int64_t height, int tile_size,
-                                   float occlusion_eps, const float* means2d, const float* conics,
+MULTIVERSION int rasterize_forward(int64_t m, const int64_t* order, int64_t channels, int64_t width, int64_t height,
+                                   int tile_size, float occlusion_eps, const float* means2d, const float* conics,
                                    const float* opacities, const float* features, const float* extents, float* out,
                                    float* final_transmittance, int64_t* stop) {
-#define FORWARD(size) forward<size>(m, channels, width, height, occlusion_eps, means2d, conics, opacities, \
-                                    features, extents, out, final_transmittance, stop)
+#define FORWARD(size) forward<size>(m, order, channels, width, height, occlusion_eps, means2d, conics, \
+                                    opacities, features, extents, out, final_transmittance, stop)
   TILE_SIZES(FORWARD)
 }
 
-MULTIVERSION int rasterize_backward(int64_t m, int64_t channels, int64_t width, int64_t height, int tile_size,
-                                    const float* means2d, const float* conics, const float* opacities,
+MULTIVERSION int rasterize_backward(int64_t m, const int64_t* order, int64_t channels, int64_t width, int64_t height,
+                                    int tile_size, const float* means2d, const float* conics, const float* opacities,
                                     const float* features, const float* extents, const float* final_transmittance,
                                     const int64_t* stop, const float* grad_out, const float* grad_final,
                                     float* grad_means2d, float* grad_conics, float* grad_opacities,
                                     float* grad_features) {
-#define BACKWARD(size) backward<size>(m, channels, width, height, means2d, conics, opacities, features, extents, \
-                                      final_transmittance, stop, grad_out, grad_final, grad_means2d, grad_conics, \
-                                      grad_opacities, grad_features)
+#define BACKWARD(size) backward<size>(m, order, channels, width, height, means2d, conics, opacities, features, \
+                                      extents, final_transmittance, stop, grad_out, grad_final, grad_means2d, \
+                                      grad_conics, grad_opacities, grad_features)
   TILE_SIZES(BACKWARD)
 }
 

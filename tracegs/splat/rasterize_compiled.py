@@ -1,23 +1,27 @@
-"""The tile rasterizer of `rasterize.py` compiled to C++, forward and backward (CPU, float32).
+"""The tile rasterizer of `rasterize.py` compiled to C++, forward and backward (CPU, float32), and the library
+it is built into.
 
 Same inputs, tiles, depth order, 1/255 alpha threshold, 0.99 alpha clamp and transmittance cut-off as
-`rasterize_tiles`; projection and SH stay in PyTorch autograd, only the compositing is compiled
-(`rasterize_compiled.cpp`). The pure-PyTorch backend spends most of its time on the fixed overhead of many small
-tensor operations; the compiled loop walks each tile's splats once, updates the tile's pixels in SIMD registers,
-stops when the tile is opaque and needs no intermediate tensors, which makes the compositing more than ten
-times faster (the projection and SH in PyTorch then take about half of a render's forward and backward).
+`rasterize_tiles` (`rasterize_compiled.cpp`). The pure-PyTorch backend spends most of its time on the fixed
+overhead of many small tensor operations; the compiled loop walks each tile's splats once, updates the tile's
+pixels in SIMD registers, stops when the tile is opaque and needs no intermediate tensors, which makes the
+compositing more than ten times faster. The same library holds the per-Gaussian projection and SH colour of the
+compiled backend (`preprocess_compiled.py`), which in PyTorch would then take half of a render: `render`'s
+compiled backend is two compiled autograd nodes, preprocessing and compositing. The compositing reads the visible
+Gaussians through an index in depth order, so nothing is gathered or scattered in PyTorch.
 
 Why this tool: `torch.utils.cpp_extension.load` compiles at first use with the C++ compiler and ninja (a
 declared dependency) into the torch extensions cache (``~/.cache/torch_extensions``, or
 ``$TORCH_EXTENSIONS_DIR``), guards the build with a lock file so concurrent processes (forked workers, parallel
 pytest) build once and the others wait, and reuses the library afterwards. It is not built at install time
-because pip's build isolation would pull a CUDA torch. The source includes no torch headers and exposes a plain C
+because pip's build isolation would pull a CUDA torch. The sources include no torch headers and expose a plain C
 ABI called through ctypes: with ``torch/extension.h`` and pybind11 the one-time compile takes ~45 s on a 2-core
-machine, without them ~2 s. numba was the alternative; it is not a dependency here and would JIT-compile in every
-fresh worker process. The build directory is named by a hash of the source and of the torch installation, so
-checkouts or venvs with different sources never rebuild a library another process has loaded.
+machine, without them a few seconds. numba was the alternative; it is not a dependency here and would
+JIT-compile in every fresh worker process. The build directory is named by a hash of the sources and of the
+torch installation, so checkouts or venvs with different sources never rebuild a library another process has
+loaded.
 
-The kernel is single-threaded: the embedded pipeline already runs one single-threaded fit per core. It is
+The kernels are single-threaded: the embedded pipeline already runs one single-threaded fit per core. It is
 compiled for tiles of 4, 8 and 16 pixels (`TILE_SIZES`); `rasterize_tiles` uses 4.
 Where no compiler is available, `compiled_available()` is False after one logged warning and the `auto`
 backend falls back to the pure-PyTorch rasterizer.
@@ -38,7 +42,7 @@ from torch import Tensor
 
 from tracegs.splat.rasterize import OCCLUSION_EPS
 
-SOURCE = Path(__file__).with_name("rasterize_compiled.cpp")
+SOURCES = tuple(Path(__file__).with_name(name) for name in ("rasterize_compiled.cpp", "preprocess_compiled.cpp"))
 # -fopenmp-simd: the pixel loops' `omp simd` hints only (no OpenMP runtime); -fno-trapping-math lets the
 # compiler turn float comparisons into vector selects (nothing here reads floating-point exception flags); no
 # -march=native, the cache directory may be shared by machines with other CPUs.
@@ -60,28 +64,36 @@ def _ninja_on_path() -> None:
 
 
 @functools.cache
-def _library() -> ctypes.CDLL:
+def library() -> ctypes.CDLL:
+    """The compiled library (rasterizer and preprocessing), built at first use."""
     from torch.utils.cpp_extension import load
 
     _ninja_on_path()
-    key = hashlib.sha256(SOURCE.read_bytes() + torch.__version__.encode() + torch.__file__.encode()
-                         + " ".join(COMPILE_FLAGS).encode()).hexdigest()[:16]
-    path = load(f"tracegs_rasterize_{key}", [str(SOURCE)], extra_cflags=COMPILE_FLAGS, is_python_module=False)
-    library = ctypes.CDLL(path)
-    library.rasterize_forward.restype = ctypes.c_int
-    library.rasterize_forward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_int, ctypes.c_float] + [_float_p] * 7 + [
-        _int64_p]
-    library.rasterize_backward.restype = ctypes.c_int
-    library.rasterize_backward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_int] + [_float_p] * 6 + [_int64_p] + [
-        _float_p] * 6
-    return library
+    key = hashlib.sha256(b"".join(source.read_bytes() for source in SOURCES) + torch.__version__.encode()
+                         + torch.__file__.encode() + " ".join(COMPILE_FLAGS).encode()).hexdigest()[:16]
+    path = load(f"tracegs_rasterize_{key}", [str(source) for source in SOURCES], extra_cflags=COMPILE_FLAGS,
+                is_python_module=False)
+    compiled = ctypes.CDLL(path)
+    int64, floats = ctypes.c_int64, [_float_p]
+    compiled.rasterize_forward.restype = ctypes.c_int
+    compiled.rasterize_forward.argtypes = ([int64, _int64_p] + [int64] * 3 + [ctypes.c_int, ctypes.c_float]
+                                           + floats * 7 + [_int64_p])
+    compiled.rasterize_backward.restype = ctypes.c_int
+    compiled.rasterize_backward.argtypes = ([int64, _int64_p] + [int64] * 3 + [ctypes.c_int] + floats * 6 + [_int64_p]
+                                            + floats * 6)
+    compiled.preprocess_forward.restype = int64
+    compiled.preprocess_forward.argtypes = [int64, ctypes.c_int, int64, int64] + floats * 12 + [
+        ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_bool), _int64_p]
+    compiled.preprocess_backward.restype = None
+    compiled.preprocess_backward.argtypes = [int64, ctypes.c_int, int64, int64] + floats * 15
+    return compiled
 
 
 @functools.cache
 def compiled_available() -> bool:
     """Whether the compiled rasterizer builds and loads here (compiled once per machine, then cached)."""
     try:
-        _library()
+        library()
     except Exception as error:  # no compiler, no ninja, a failed build: the torch backend still works
         log.warning("compiled rasterizer unavailable (%s: %s); using the pure-PyTorch rasterizer",
                     type(error).__name__, str(error).strip().splitlines()[-1] if str(error).strip() else "")
@@ -89,8 +101,13 @@ def compiled_available() -> bool:
     return True
 
 
-def _pointer(tensor: Tensor, kind=_float_p):
-    return ctypes.cast(tensor.data_ptr(), kind)
+_POINTER_TYPES = {torch.float32: _float_p, torch.int64: _int64_p, torch.int32: ctypes.POINTER(ctypes.c_int32),
+                  torch.bool: ctypes.POINTER(ctypes.c_bool)}
+
+
+def pointer(tensor: Tensor):
+    """The C pointer to a contiguous CPU tensor's data."""
+    return ctypes.cast(tensor.data_ptr(), _POINTER_TYPES[tensor.dtype])
 
 
 class _CompiledComposite(torch.autograd.Function):
@@ -99,38 +116,43 @@ class _CompiledComposite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, extents: Tensor,
-                width: int, height: int, tile_size: int) -> tuple[Tensor, Tensor]:
+                order: Tensor, width: int, height: int, tile_size: int) -> tuple[Tensor, Tensor]:
         inputs = [x.detach().to(torch.float32).contiguous() for x in (means2d, conics, opacities, features, extents)]
-        count, channels = features.shape
+        order = order.contiguous()
+        channels = features.shape[-1]
         out = inputs[0].new_empty(height, width, channels)
         final = inputs[0].new_empty(height, width)
         stop = torch.empty(height, width, dtype=torch.int64)
-        _library().rasterize_forward(count, channels, width, height, tile_size, OCCLUSION_EPS,
-                                     *map(_pointer, inputs), _pointer(out), _pointer(final), _pointer(stop, _int64_p))
+        library().rasterize_forward(order.shape[0], pointer(order), channels, width, height, tile_size, OCCLUSION_EPS,
+                                    *map(pointer, inputs), pointer(out), pointer(final), pointer(stop))
         ctx.size = (width, height, tile_size)
         ctx.dtypes = [x.dtype for x in (means2d, conics, opacities, features)]
-        ctx.save_for_backward(*inputs, final, stop)
+        ctx.save_for_backward(*inputs, order, final, stop)
         return out.to(features.dtype), final.to(features.dtype)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor, grad_final: Tensor):
-        *inputs, final, stop = ctx.saved_tensors
+        *inputs, order, final, stop = ctx.saved_tensors
         width, height, tile_size = ctx.size
         grad_out = grad_out.to(torch.float32).contiguous()
         grad_final = grad_final.to(torch.float32).contiguous()
         grads = [torch.zeros_like(x) for x in inputs[:4]]
-        count, channels = inputs[3].shape
-        _library().rasterize_backward(count, channels, width, height, tile_size, *map(_pointer, inputs),
-                                      _pointer(final), _pointer(stop, _int64_p), _pointer(grad_out),
-                                      _pointer(grad_final), *map(_pointer, grads))
-        return (*(grad.to(dtype) for grad, dtype in zip(grads, ctx.dtypes)), None, None, None, None)
+        library().rasterize_backward(order.shape[0], pointer(order), inputs[3].shape[-1], width, height, tile_size,
+                                     *map(pointer, inputs), pointer(final), pointer(stop), pointer(grad_out),
+                                     pointer(grad_final), *map(pointer, grads))
+        return (*(grad.to(dtype) for grad, dtype in zip(grads, ctx.dtypes)), None, None, None, None, None)
 
 
 def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, extents: Tensor,
-                       width: int, height: int, tile_size: int = 4) -> tuple[Tensor, Tensor]:
-    """`rasterize_tiles` compiled: inputs sorted front to back on the CPU; returns ([H,W,C], [H,W])."""
+                       width: int, height: int, tile_size: int = 4, order: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor]:
+    """`rasterize_tiles` compiled; returns ([H,W,C], [H,W]). The splats are the rows `order` (int64, front to back)
+    of the inputs, all rows in their given order when None; the others get zero gradient. `means2d` may carry
+    a leading camera axis of size 1 ([1,N,2], as `render` keeps it)."""
     if means2d.device.type != "cpu":
         raise ValueError(f"the compiled rasterizer runs on the CPU, got tensors on {means2d.device}")
     if tile_size not in TILE_SIZES:
         raise ValueError(f"the compiled rasterizer supports tile sizes {TILE_SIZES}, got {tile_size}")
-    return _CompiledComposite.apply(means2d, conics, opacities, features, extents, width, height, tile_size)
+    if order is None:
+        order = torch.arange(features.shape[0])
+    return _CompiledComposite.apply(means2d, conics, opacities, features, extents, order, width, height, tile_size)

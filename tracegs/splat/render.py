@@ -12,6 +12,7 @@ from torch import Tensor
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig, RenderBackend
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
+from tracegs.splat.preprocess_compiled import preprocess_compiled
 from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
 from tracegs.splat.rasterize_compiled import compiled_available, rasterize_compiled
@@ -82,9 +83,9 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
            backend: str = "auto") -> RenderOutput:
     """Render `model` from `camera` (main paper: R = Render(G, P)).
 
-    backend: "compiled" (the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure PyTorch, any
-    device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat for CUDA
-    tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
+    backend: "compiled" (projection, SH and the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure
+    PyTorch, any device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat
+    for CUDA tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
     """
     degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_SH_DEGREE:
@@ -97,11 +98,13 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
     backend = resolve_backend(backend, means.device, means.dtype)
     if backend == "gsplat":
         return _render_gsplat(model, camera, background, degree)
+    if backend == "compiled":
+        return _render_compiled(model, camera, background, degree)
     return _render_cpu(model, camera, background, degree, backend)
 
 
 def _render_cpu(model: GaussianModel, camera: Camera, background: Tensor, degree: int, backend: str) -> RenderOutput:
-    """Projection and SH in PyTorch autograd, then the `backend` rasterizer ("compiled", "torch" or "dense")."""
+    """Projection and SH in PyTorch autograd, then the `backend` rasterizer ("torch" or "dense")."""
     width, height = camera.width, camera.height
     opacities = model.opacities
     projected = project_gaussians(model.means, model.quats, model.log_scales, opacities, camera)
@@ -120,16 +123,33 @@ def _render_cpu(model: GaussianModel, camera: Camera, background: Tensor, degree
     splat = (gather(means2d[0]), gather(projected.conics), gather(opacities), features)
     if backend == "dense":
         out, transmittance = rasterize_dense(*splat, width, height)
-    elif backend == "compiled":
-        out, transmittance = rasterize_compiled(*splat, gather(projected.extents), width, height)
     else:
         out, transmittance = rasterize_tiles(*splat, gather(projected.extents), width, height)
+    radii = radii_from_extents(projected.extents, visible)[None]
+    return _composed_output(out, transmittance, background, means2d, radii, visible)
 
+
+def _render_compiled(model: GaussianModel, camera: Camera, background: Tensor, degree: int) -> RenderOutput:
+    """Projection, SH and compositing all compiled: two autograd nodes (and the opacity sigmoid) per render."""
+    opacities = model.opacities
+    pre = preprocess_compiled(model.means, model.quats, model.log_scales, opacities, model.sh_dc, model.sh_rest,
+                              camera, degree)
+    if pre.means2d.requires_grad:
+        pre.means2d.retain_grad()
+    out, transmittance = rasterize_compiled(pre.means2d, pre.conics, opacities, pre.features, pre.extents,
+                                            camera.width, camera.height, order=pre.order)
+    return _composed_output(out, transmittance, background, pre.means2d, pre.radii, pre.visible)
+
+
+def _composed_output(out: Tensor, transmittance: Tensor, background: Tensor, means2d: Tensor, radii: Tensor,
+                     visible: Tensor) -> RenderOutput:
+    """The render from composited colour and depth `out` [H,W,4] and the final `transmittance` [H,W]."""
+    height, width = transmittance.shape
     image = out[..., :3] + transmittance[..., None] * background
     alpha = 1.0 - transmittance
     depth = out[..., 3] / alpha.clamp_min(1e-10)
-    info = {"means2d": means2d, "radii": radii_from_extents(projected.extents, visible)[None], "width": width,
-            "height": height, "n_cameras": 1, "gaussian_ids": None, "visible": visible}
+    info = {"means2d": means2d, "radii": radii, "width": width, "height": height, "n_cameras": 1,
+            "gaussian_ids": None, "visible": visible}
     return RenderOutput(image.permute(2, 0, 1), alpha[None], depth[None], info)
 
 

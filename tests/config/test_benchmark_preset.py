@@ -10,10 +10,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from tracegs.benchmark import benchmark_steps, estimate_minutes
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
-from tracegs.tasks import upstream_config
+from tracegs.pipeline.benchmark import benchmark_steps, estimate_minutes
+from tracegs.pipeline.upstream import upstream_config
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 APP_CONFIG = {"prepare": "prepare", "train": "train", "evaluate": "evaluate", "report": "report"}
@@ -55,7 +55,7 @@ def test_preset_has_enough_scenes_and_seeds():
 
 def test_the_default_run_fits_the_hour():
     cfg = compose(config_name="benchmark")
-    steps = benchmark_steps(cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
+    steps = benchmark_steps(cfg.ablation.name, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
     minutes = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
                                len(cfg.evaluation.views), len(cfg.benchmark.training_seeds), len(steps),
                                cfg.benchmark.held_out_clips_per_scene)
@@ -69,7 +69,7 @@ def test_the_default_run_fits_the_hour():
 def test_every_step_composes_and_validates(tmp_path):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
-    for step in benchmark_steps(0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
+    for step in benchmark_steps("F", 0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
         cfg = as_job(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
         assert cfg.paths.root_dir == "/tmp/elsewhere"
@@ -83,7 +83,7 @@ def _step(steps, label):
 
 
 def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path):
-    steps = benchmark_steps(0, [0, 1], tmp_path)
+    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
     evaluations = [as_job("evaluate", list(_step(steps, f"seed {s}: evaluate {m}").overrides))
                    for s, m in ((0, "[3dgs,baseline,tracegs]"), (1, "[baseline,tracegs]"))]
     first, second = evaluations
@@ -100,7 +100,7 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path):
 
 
 def test_each_replicate_finds_its_own_upstream_products(tmp_path):
-    steps = benchmark_steps(0, [0, 1], tmp_path)
+    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
     for seed in (0, 1):
         trained = {stage: str(as_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides)).run_dir)
                    for stage, label in (("baseline", "A"), ("stage1", "Stage 1"), ("stage2", "Stage 2"))}
@@ -119,6 +119,6 @@ def test_each_replicate_finds_its_own_upstream_products(tmp_path):
 
 def test_seeds_must_be_listed_once(tmp_path):
     with pytest.raises(ValueError, match="repeats"):
-        benchmark_steps(0, [1, 1], tmp_path)
+        benchmark_steps("F", 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):
-        benchmark_steps(0, [], tmp_path)
+        benchmark_steps("F", 0, [], tmp_path)

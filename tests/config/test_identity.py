@@ -11,10 +11,11 @@ from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from tracegs import tasks
 from tracegs.config.identity import derive_seed, scoped_values
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError
+from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
+from tracegs.pipeline.upstream import locate_artifacts
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -86,7 +87,7 @@ def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
 def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
     cfg = as_hydra_job("train", ["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
                                  "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
-    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
     # The earlier stages were run with the experiment's shared settings and their own stage defaults.
     stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
     baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
@@ -106,7 +107,7 @@ def test_a_stage2_only_setting_reuses_the_baseline_and_stage1_runs(as_hydra_job,
     # The Stage-2 sweep a researcher runs after `train stage=baseline` and `train stage=stage1` with no overrides:
     # it must find those runs, not ask for an A and a Stage 1 retrained under a setting they never read.
     cfg = as_hydra_job("train", ["stage=stage2", stage2_only])
-    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
     assert cfg.artifacts.baseline_weights == str(Path(run_dir(["stage=baseline"])) / "baseline_transformer")
     assert cfg.artifacts.stage1_adapter == str(Path(run_dir(["stage=stage1"])) / "stage1_adapter")
     assert cfg.run_dir != run_dir(["stage=stage2"])
@@ -123,7 +124,7 @@ def test_settings_a_stage_reads_still_rename_it():
 
 def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     cfg = as_hydra_job("evaluate", ["ablation=E", "seed=1", "loss.lambda_ret=0.3"])
-    tasks.locate_artifacts(cfg, ["student_adapter"])
+    locate_artifacts(cfg, ["student_adapter"])
     student = run_dir(["stage=stage2", "ablation=E", "seed=1", "loss.lambda_ret=0.3"])
     assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
 
@@ -195,12 +196,12 @@ def test_a_capture_is_known_by_its_images_and_reconstruction(tmp_path):
 
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
     folder = tmp_path / "run"
-    tasks.write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
-    tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
+    write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
+    check_run_record(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
                            "stage2", folder)
     assert OmegaConf.load(folder / "config.yaml").stage.name == "stage2"
     with pytest.raises(ConfigError, match=r"loss\.lambda_ret"):
-        tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
+        check_run_record(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
                                "stage2", folder)
 
 
@@ -246,12 +247,12 @@ def test_a_product_made_from_other_inputs_is_made_again(tmp_path):
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)
     (folder / "checkpoints" / "last.ckpt").write_bytes(b"a checkpoint")
-    assert not tasks.check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
-    tasks.write_run_record(cfg, "stage2", folder)
-    assert tasks.check_run_record(cfg, "stage2", folder)
+    assert not check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
+    write_run_record(cfg, "stage2", folder)
+    assert check_run_record(cfg, "stage2", folder)
     (adapter / "adapter_model.safetensors").write_bytes(b"retrained")
-    assert not tasks.check_run_record(cfg, "stage2", folder)
-    assert not (folder / "checkpoints").exists() and not (folder / tasks.RUN_RECORD).exists()
+    assert not check_run_record(cfg, "stage2", folder)
+    assert not (folder / "checkpoints").exists() and not (folder / RUN_RECORD).exists()
 
 
 def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
@@ -261,9 +262,9 @@ def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
     cfg = compose(config_name="train", overrides=["stage=stage1", "paths.root_dir=.",
                                                   f"artifacts.baseline_weights={tmp_path}/outputs/baseline/a"])
     folder = tmp_path / "run"
-    tasks.write_run_record(cfg, "stage1", folder)
-    assert tasks.check_run_record(cfg, "stage1", folder)
-    record = folder / tasks.RUN_RECORD
+    write_run_record(cfg, "stage1", folder)
+    assert check_run_record(cfg, "stage1", folder)
+    record = folder / RUN_RECORD
     values = json.loads(record.read_text())
     record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
-    assert tasks.check_run_record(cfg, "stage1", folder)
+    assert check_run_record(cfg, "stage1", folder)

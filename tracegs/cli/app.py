@@ -10,7 +10,6 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
-import importlib.resources
 import logging
 import os
 import sys
@@ -24,14 +23,11 @@ from omegaconf import DictConfig, OmegaConf
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
+from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
 from tracegs.console import to_log_files
 from tracegs.errors import ConfigError, TraceGSError, one_line, require_writable_dir, write_failure
-
-# The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
-# editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
-CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs.conf")))
 
 # Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
 USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)

@@ -44,7 +44,7 @@ class Task(Mode):
 
 
 class ReportKind(Mode):
-    """What ``tracegs-report`` merges (tracegs.tasks.report)."""
+    """What ``tracegs-report`` merges (tracegs.pipeline.reports)."""
 
     main = "main"  # evaluation shards -> results.json (Tables 1/2)
     prepare = "prepare"  # prepare shards -> one cache manifest
@@ -106,7 +106,7 @@ class ArtifactsConfig:
     """Products of earlier stages that later tasks load, at fixed places under the experiment folder."""
 
     # Each is "auto" (the product of the run that the run-identity rule finds for this configuration, see
-    # tracegs.tasks.locate_artifacts) or an explicit path.
+    # tracegs.pipeline.upstream.locate_artifacts) or an explicit path.
     # Variant A's transformer (a diffusers directory written by ``stage=baseline``). null = the backbone's
     # own ``transformer.pretrained_path`` (paper scale: GSFixer's pretrained restorer is variant A).
     baseline_weights: str | None = AUTO
@@ -147,6 +147,8 @@ class AblationConfig:
 
     name: str = MISSING
     description: str = MISSING
+    # Its row in Table 3: the sweep trains and the report lists the variants in this order.
+    row: int = MISSING
     # Variant A evaluates the frozen baseline restorer and trains nothing.
     train_stage2: bool = MISSING
     # The evaluation method that stands for this variant in Table 3 (variant A: the baseline restorer);

@@ -37,11 +37,16 @@ def report(cfg: DictConfig) -> Path:
             "ablation": ablation_report}[kind](cfg)
 
 
+def ablation_inputs(cfg: DictConfig) -> list[Path]:
+    """The folders in ``report.inputs``, else the evaluation folder of every variant (conf/ablation/) that this
+    command line's settings give, in Table 3's row order."""
+    return [Path(p) for p in cfg.report.inputs] or [
+        Path(upstream_config(cfg, "evaluate", variant.name).evaluation.out_dir) for variant in table3_variants()]
+
+
 def ablation_report(cfg: DictConfig) -> Path:
-    """Table 3 from the evaluations of every variant (conf/ablation/), or of the folders in ``report.inputs``."""
-    inputs = list(cfg.report.inputs) or [upstream_config(cfg, "evaluate", variant.name).evaluation.out_dir
-                                         for variant in table3_variants()]
-    table = write_ablation_report([Path(p) for p in inputs], Path(cfg.report.output_dir))
+    """Table 3 from the evaluations of an ablation sweep (:func:`ablation_inputs`)."""
+    table = write_ablation_report(ablation_inputs(cfg), Path(cfg.report.output_dir))
     show(table.read_text())
     intervals = table.with_name("table3_intervals.md")
     if intervals.is_file():

@@ -16,6 +16,7 @@ from hydra.core.global_hydra import GlobalHydra
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
+from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 from tracegs.pipeline.upstream import section
 
@@ -23,9 +24,22 @@ GROUP = "ablation"
 
 
 def table3_variants() -> list[AblationConfig]:
-    """Every variant of the ablation group on the active Hydra search path, in Table 3's row order."""
-    options = GlobalHydra.instance().config_loader().get_group_options(GROUP)
-    variants = [section(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation) for option in options]
+    """Every variant of the ablation group on the active Hydra search path, in Table 3's row order.
+
+    A variant's name must be its file's: the run folders (``.../stage2/<name>/``) and the upstream lookup
+    (``ablation=<name>``) use it; two variants on one row would leave the table's order undefined."""
+    variants = []
+    rows: dict[int, str] = {}
+    for option in GlobalHydra.instance().config_loader().get_group_options(GROUP):
+        variant = section(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
+        if variant.name != option:
+            raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "
+                                               f"name it {option!r}, as its file")
+        if variant.row in rows:
+            raise ConfigError(f"{GROUP}.row", f"{GROUP}/{option}.yaml and {GROUP}/{rows[variant.row]}.yaml both "
+                                              f"take Table 3 row {variant.row}")
+        rows[variant.row] = option
+        variants.append(variant)
     return sorted(variants, key=lambda variant: variant.row)
 
 

@@ -8,12 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from tracegs.cli.app import CONF_DIR
-from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
 
 CONF = Path(CONF_DIR)
@@ -45,11 +44,7 @@ NEEDS_EXPERIMENT = {
 }
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        yield
+pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def group_options() -> list[tuple[str, str]]:

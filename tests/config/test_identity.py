@@ -7,39 +7,20 @@ import json
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
+from hydra import compose
 from omegaconf import OmegaConf
 
 from tracegs.config.identity import derive_seed, scoped_values
-from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts
-
-CONF = Path(__file__).resolve().parents[2] / "conf"
 
 # Every part that draws random numbers, by its seed field.
 SEED_FIELDS = ("stage.seed", "data.prepare.seed", "data.prepare.fit.seed", "data.datamodule.seed", "deploy.seed",
                "backbone.sampler.seed")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        yield
-
-
-@pytest.fixture
-def as_hydra_job():
-    """Compose like a Hydra app does for a command line, so the job's overrides are known."""
-    def start(config_name: str, overrides: list[str]):
-        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        return cfg
-    yield start
-    HydraConfig.instance().cfg = None
+pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def run_dir(overrides: list[str], config_name: str = "train") -> str:

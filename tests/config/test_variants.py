@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
@@ -60,15 +59,8 @@ def hydra_in(request):
         contexts.append(context)
 
     yield enter
-    HydraConfig.instance().cfg = None
     for context in contexts:
         context.__exit__(None, None, None)
-
-
-def as_job(config_name: str, overrides: list[str]):
-    cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-    HydraConfig.instance().set_config(cfg)
-    return cfg
 
 
 def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
@@ -81,7 +73,7 @@ def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
 
 
 def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(conf_with_new_variant, hydra_in,
-                                                                               tmp_path):
+                                                                               as_hydra_job, tmp_path):
     hydra_in(conf_with_new_variant)
     # composed
     cfg = compose(config_name="train", overrides=["stage=stage2", "ablation=G"])
@@ -99,7 +91,7 @@ def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(c
                              capture_output=True, text=True).stdout.strip() for flag in ((), ("--trained",))]
     assert listed == [",".join(names), ",".join(names[1:])]
     # reported: Table 3 reads every variant's evaluation folder, the new one's last
-    report = as_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
+    report = as_hydra_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
                                f"report.output_dir={tmp_path / 'report'}"])
     inputs = ablation_inputs(report)
     assert len(set(inputs)) == len(names) and inputs[-1].parent.name == "G"

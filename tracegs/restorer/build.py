@@ -8,13 +8,12 @@ import torch
 from safetensors import SafetensorError
 
 from tracegs.errors import InputFileError, one_line
-
-from .codec import Codec, build_codec
-from .config import BackboneConfig, TransformerConfig
-from .encoders import TextEncoder, build_reference_encoder, build_text_encoder
-from .loading import require_local_dir, torch_dtype
-from .schedules import NoiseSchedule, build_schedule
-from .transformer import ReferenceGuidedTransformer
+from tracegs.restorer.codec import Codec, build_codec
+from tracegs.restorer.config import BackboneConfig, TransformerConfig
+from tracegs.restorer.encoders import TextEncoder, build_reference_encoder, build_text_encoder
+from tracegs.restorer.loading import require_local_dir, torch_dtype
+from tracegs.restorer.schedules import NoiseSchedule, build_schedule
+from tracegs.restorer.transformer import ReferenceGuidedTransformer
 
 
 class CheckpointMismatchError(ValueError):

@@ -8,10 +8,10 @@ from collections.abc import Callable, Iterator
 import torch
 from rich.progress import track
 
-from . import adapters
-from .build import Backbone
-from .schedules import NoiseSchedule
-from .transformer import ReferenceGuidedTransformer, RestorerOutput
+from tracegs.restorer import adapters
+from tracegs.restorer.build import Backbone
+from tracegs.restorer.schedules import NoiseSchedule
+from tracegs.restorer.transformer import ReferenceGuidedTransformer, RestorerOutput
 
 
 def guided_prediction(

@@ -82,7 +82,8 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_
 def test_each_replicate_finds_its_own_upstream_products(tmp_path, as_hydra_job):
     steps = benchmark_steps("F", 0, [0, 1], tmp_path)
     for seed in (0, 1):
-        trained = {stage: str(as_hydra_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides)).run_dir)
+        trained = {stage: str(as_hydra_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
+                              .run_dir)
                    for stage, label in (("baseline", "A"), ("stage1", "Stage 1"), ("stage2", "Stage 2"))}
         methods = "[3dgs,baseline,tracegs]" if seed == 0 else "[baseline,tracegs]"
         evaluation = as_hydra_job("evaluate", list(_step(steps, f"seed {seed}: evaluate {methods}").overrides))

@@ -148,7 +148,8 @@ def test_ablation_variants_match_design(variant):
     assert cfg.loss.lambda_ret == pytest.approx(lambda_ret)
     assert cfg.ablation.train_stage2 == trains
     # A sweep scores each variant by the method standing for it (launch/sweep_ablation.sh).
-    swept = compose(config_name="evaluate", overrides=[f"ablation={variant}", "evaluation.methods=[${ablation.method}]"])
+    swept = compose(config_name="evaluate",
+                    overrides=[f"ablation={variant}", "evaluation.methods=[${ablation.method}]"])
     assert list(swept.evaluation.methods) == ["tracegs" if trains else "baseline"]
     # B..F share one Stage-1 checkpoint and the same Stage-2 budget.
     assert cfg.stage.init_adapter == compose(config_name="train").stage.init_adapter

@@ -117,7 +117,8 @@ def test_training_reads_the_cache_that_prepare_writes():
     held_out = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4",
                                                          "data.prepare.split=test"])
     assert held_out.data.prepare.cache_dir != prepared.data.prepare.cache_dir
-    assert compose(config_name="train", overrides=["seed=5"]).data.datamodule.cache_dir != trained.data.datamodule.cache_dir
+    other_seed = compose(config_name="train", overrides=["seed=5"])
+    assert other_seed.data.datamodule.cache_dir != trained.data.datamodule.cache_dir
 
 
 @pytest.mark.parametrize("overrides", [

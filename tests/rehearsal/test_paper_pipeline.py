@@ -7,8 +7,8 @@ pseudo-targets, evaluation's baseline), never trained.
 
 ``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
 only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
-it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
-with gsplat.
+it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs
+it on CUDA with gsplat.
 """
 
 from __future__ import annotations
@@ -170,7 +170,8 @@ def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data
     if trainer in TWO_PROCESSES:
         assert (run.stdout + run.stderr).count("Starting with 2 processes") >= 1 + 6  # Stage 1, Stage 2 B..F
     table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *overrides), key="report.output_dir")
-    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
+    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:]
+            if line.startswith("|")]
     assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
 
 

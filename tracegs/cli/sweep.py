@@ -68,7 +68,8 @@ class SweepSummary(Callback):
             return
         failed = [o for o in self.outcomes if o[1] != "ok"]
         app = config.hydra.help.app_name
-        print(f"{app}: {len(self.outcomes) - len(failed)} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
+        succeeded = len(self.outcomes) - len(failed)
+        print(f"{app}: {succeeded} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
         for number, (overrides, outcome) in enumerate(self.outcomes):
             print(f"  #{number} {overrides}: {outcome}", file=sys.stderr)
         if failed:

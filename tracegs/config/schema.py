@@ -92,7 +92,8 @@ class DataConfig:
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     prepare: PrepareConfig = field(default_factory=lambda: PrepareConfig(
         cache_dir=CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
-        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
+        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-"
+                 "${tracegs.cache:${data.prepare.split}}",
         seed=seeded("prepare"), fit=GaussianFitConfig(seed=seeded("fit"))))
     datamodule: DataModuleConfig = field(default_factory=lambda: DataModuleConfig(
         cache_dir=CACHE_ROOT + "-train-${tracegs.cache:train}", seed=seeded("datamodule")))
@@ -191,7 +192,8 @@ class TraceGSConfig:
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
-    backbone: BackboneConfig = field(default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
+    backbone: BackboneConfig = field(
+        default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
     data: DataConfig = field(default_factory=DataConfig)
     stage: StageConfig = field(default_factory=lambda: StageConfig(seed=seeded("training")))
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)

@@ -184,7 +184,8 @@ def ablation_intervals_markdown(variants: Mapping[str, tuple[Mapping, str]]) -> 
 # ------------------------------------------------------------------------------------------ Fig. 6
 
 
-def per_step_intervals(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]]) -> dict[str, list[Interval]]:
+def per_step_intervals(
+        unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]]) -> dict[str, list[Interval]]:
     """Per label and reverse step: the mean clean-frame PSNR with its interval over scenes. ``unit_curves`` maps
     (scene, views) to each label's curve; the view counts of a scene are averaged first (Fig. 6 averages
     across view settings)."""

@@ -137,7 +137,8 @@ def _check_compatible(cfg: BackboneConfig, codec: Codec | None, reference_encode
         )
     if cfg.text_encoder.max_length != t.max_text_seq_length:
         problems.append(
-            f"text_encoder.max_length {cfg.text_encoder.max_length} != transformer.max_text_seq_length {t.max_text_seq_length}"
+            f"text_encoder.max_length {cfg.text_encoder.max_length} != "
+            f"transformer.max_text_seq_length {t.max_text_seq_length}"
         )
     for attr, field in (("dim_2d", "ref_2d_dim"), ("dim_3d", "ref_3d_dim")):
         have = getattr(reference_encoder, attr, None)

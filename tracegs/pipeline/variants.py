@@ -13,12 +13,12 @@ from collections.abc import Iterable
 
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
 from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
-from tracegs.pipeline.upstream import section
 
 GROUP = "ablation"
 
@@ -31,7 +31,7 @@ def table3_variants() -> list[AblationConfig]:
     variants = []
     rows: dict[int, str] = {}
     for option in GlobalHydra.instance().config_loader().get_group_options(GROUP):
-        variant = section(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
+        variant = OmegaConf.to_object(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
         if variant.name != option:
             raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "
                                                f"name it {option!r}, as its file")

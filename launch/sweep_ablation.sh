@@ -26,11 +26,15 @@ if [[ " $* " != *"experiment="* && " $* " != *"data="* ]]; then
   set -- 'data.prepare.dense_views=[12,18,null]' 'data.prepare.student_final_fits=true' "$@"
   step tracegs-prepare "$@"
 fi
+# The variants are the files of conf/ablation/ in their Table 3 rows; those that train a student get Stage 2.
+variants=$("$BIN/python" -m tracegs.pipeline.variants)
+trained=$("$BIN/python" -m tracegs.pipeline.variants --trained)
 step tracegs-train stage=baseline "$@"
 step tracegs-train stage=stage1 "$@"
-step tracegs-train stage=stage2 ablation=B,C,D,E,F-,F job_name=train-stage2-B-F "$@"
-# Each variant is scored by the method that stands for it (A: baseline restorer, B..F: their student).
-step tracegs-evaluate ablation=A,B,C,D,E,F-,F 'evaluation.methods=[${ablation.method}]' job_name=evaluate-A-F "$@"
+step tracegs-train stage=stage2 "ablation=$trained" "job_name=train-stage2-${trained%%,*}-${trained##*,}" "$@"
+# Each variant is scored by the method that stands for it (the frozen baseline restorer or its student).
+step tracegs-evaluate "ablation=$variants" 'evaluation.methods=[${ablation.method}]' \
+  "job_name=evaluate-${variants%%,*}-${variants##*,}" "$@"
 step tracegs-report report.kind=ablation "$@"
 # Held-out clips with ground truth exist for the embedded synthetic benchmark only.
 if $embedded; then

@@ -18,6 +18,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+
+from tracegs.config.location import CONF_DIR
+from tracegs.config.schema import register_configs
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -26,6 +31,28 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def hydra_context():
+    """Hydra initialised on the package's config tree, for a module's ``compose`` calls."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        yield
+
+
+@pytest.fixture
+def as_hydra_job():
+    """Compose like a Hydra app does for a command line, so the job's overrides are known (the upstream lookup
+    of tracegs.pipeline.upstream reads them)."""
+
+    def start(config_name: str, overrides: list[str]):
+        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+        HydraConfig.instance().set_config(cfg)
+        return cfg
+
+    yield start
+    HydraConfig.instance().cfg = None
 
 
 @dataclasses.dataclass

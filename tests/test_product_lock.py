@@ -6,7 +6,7 @@ import pytest
 from filelock import FileLock, Timeout
 
 from tracegs.errors import OutputPathError
-from tracegs.tasks import LOCK_FILE, product_lock
+from tracegs.pipeline.records import LOCK_FILE, product_lock
 
 
 def held(path) -> bool:

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from test_tasks import SMALLEST
 
-from tracegs.tasks import LOCK_FILE
+from tracegs.pipeline.records import LOCK_FILE
 
 # The averaged baseline must train more than one step, or its average equals its last weights.
 DEMO = (*(o for o in SMALLEST if not o.startswith("experiment.baseline_steps")), "experiment.baseline_steps=3")

@@ -1,4 +1,4 @@
-"""Every task of tracegs/tasks.py at the smallest size of the embedded experiment, run through its console
+"""Every task of tracegs/pipeline/ at the smallest size of the embedded experiment, run through its console
 script (tracegs.cli.app) as a user runs it.
 
 ``tracegs-demo`` runs prepare (train and held-out splits), the three training stages and the evaluation

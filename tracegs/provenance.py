@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import os
 import platform
+import resource
 import subprocess
+import sys
 from pathlib import Path
 
 
@@ -51,3 +53,11 @@ def machine() -> dict[str, str | int]:
 def describe(seed: int) -> dict:
     """The provenance record of one run: commit, seed and machine."""
     return {"commit": git_commit(), "seed": seed, "machine": machine()}
+
+
+def peak_rss_gib() -> float:
+    """Peak resident memory of this process and its finished children, in GiB (Linux: ru_maxrss in KiB)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    scale = 1024**3 if sys.platform == "darwin" else 1024**2
+    return max(own, children) / scale

@@ -6,37 +6,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
+from hydra import compose
 from omegaconf import OmegaConf
 
-from tracegs.benchmark import benchmark_steps, estimate_minutes
-from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
-from tracegs.tasks import upstream_config
+from tracegs.pipeline.benchmark import benchmark_steps, estimate_minutes
+from tracegs.pipeline.upstream import upstream_config
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
 APP_CONFIG = {"prepare": "prepare", "train": "train", "evaluate": "evaluate", "report": "report"}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        yield
-
-
-def as_job(config_name: str, overrides: list[str]):
-    """Compose as the child process's Hydra app does, so its command-line overrides are known."""
-    cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-    HydraConfig.instance().set_config(cfg)
-    return cfg
-
-
-@pytest.fixture(autouse=True)
-def reset_hydra_job():
-    yield
-    HydraConfig.instance().cfg = None
+pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def test_preset_has_enough_scenes_and_seeds():
@@ -55,7 +35,7 @@ def test_preset_has_enough_scenes_and_seeds():
 
 def test_the_default_run_fits_the_hour():
     cfg = compose(config_name="benchmark")
-    steps = benchmark_steps(cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
+    steps = benchmark_steps(cfg.ablation.name, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
     minutes = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
                                len(cfg.evaluation.views), len(cfg.benchmark.training_seeds), len(steps),
                                cfg.benchmark.held_out_clips_per_scene)
@@ -66,11 +46,11 @@ def test_the_default_run_fits_the_hour():
     assert demo == pytest.approx(6.7 + test_prepare + 3.1 + 7.2 + 2 * 8 * 2 * 7 * 0.5 / 60, abs=0.01)
 
 
-def test_every_step_composes_and_validates(tmp_path):
+def test_every_step_composes_and_validates(tmp_path, as_hydra_job):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
-    for step in benchmark_steps(0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
-        cfg = as_job(APP_CONFIG[step.app], list(step.overrides))
+    for step in benchmark_steps("F", 0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
+        cfg = as_hydra_job(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
         assert cfg.paths.root_dir == "/tmp/elsewhere"
         if step.app == "evaluate":
@@ -82,9 +62,9 @@ def _step(steps, label):
     return next(s for s in steps if s.label == label)
 
 
-def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path):
-    steps = benchmark_steps(0, [0, 1], tmp_path)
-    evaluations = [as_job("evaluate", list(_step(steps, f"seed {s}: evaluate {m}").overrides))
+def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_job):
+    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
+    evaluations = [as_hydra_job("evaluate", list(_step(steps, f"seed {s}: evaluate {m}").overrides))
                    for s, m in ((0, "[3dgs,baseline,tracegs]"), (1, "[baseline,tracegs]"))]
     first, second = evaluations
     # What plain 3DGS depends on is identical, so the first replicate's 3DGS serves every seed.
@@ -99,26 +79,27 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path):
     assert first.evaluation.out_dir != second.evaluation.out_dir
 
 
-def test_each_replicate_finds_its_own_upstream_products(tmp_path):
-    steps = benchmark_steps(0, [0, 1], tmp_path)
+def test_each_replicate_finds_its_own_upstream_products(tmp_path, as_hydra_job):
+    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
     for seed in (0, 1):
-        trained = {stage: str(as_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides)).run_dir)
+        trained = {stage: str(as_hydra_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
+                              .run_dir)
                    for stage, label in (("baseline", "A"), ("stage1", "Stage 1"), ("stage2", "Stage 2"))}
         methods = "[3dgs,baseline,tracegs]" if seed == 0 else "[baseline,tracegs]"
-        evaluation = as_job("evaluate", list(_step(steps, f"seed {seed}: evaluate {methods}").overrides))
+        evaluation = as_hydra_job("evaluate", list(_step(steps, f"seed {seed}: evaluate {methods}").overrides))
         for stage, folder in trained.items():
             assert str(upstream_config(evaluation, stage).run_dir) == folder, (seed, stage)
-        stage2 = as_job("train", list(_step(steps, f"seed {seed}: train Stage 2").overrides))
+        stage2 = as_hydra_job("train", list(_step(steps, f"seed {seed}: train Stage 2").overrides))
         assert str(upstream_config(stage2, "stage1").run_dir) == trained["stage1"]
-        gap = as_job("report", list(_step(steps, f"seed {seed}: privileged gap").overrides))
+        gap = as_hydra_job("report", list(_step(steps, f"seed {seed}: privileged gap").overrides))
         for stage in ("stage1", "stage2"):
             assert str(upstream_config(gap, stage).run_dir) == trained[stage], (seed, stage)
-    assert len({str(as_job("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
+    assert len({str(as_hydra_job("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
                 for s in (0, 1)}) == 2
 
 
 def test_seeds_must_be_listed_once(tmp_path):
     with pytest.raises(ValueError, match="repeats"):
-        benchmark_steps(0, [1, 1], tmp_path)
+        benchmark_steps("F", 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):
-        benchmark_steps(0, [], tmp_path)
+        benchmark_steps("F", 0, [], tmp_path)

@@ -8,12 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from tracegs.cli.app import CONF_DIR
-from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
 
 CONF = Path(CONF_DIR)
@@ -45,11 +44,7 @@ NEEDS_EXPERIMENT = {
 }
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        yield
+pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def group_options() -> list[tuple[str, str]]:
@@ -153,7 +148,8 @@ def test_ablation_variants_match_design(variant):
     assert cfg.loss.lambda_ret == pytest.approx(lambda_ret)
     assert cfg.ablation.train_stage2 == trains
     # A sweep scores each variant by the method standing for it (launch/sweep_ablation.sh).
-    swept = compose(config_name="evaluate", overrides=[f"ablation={variant}", "evaluation.methods=[${ablation.method}]"])
+    swept = compose(config_name="evaluate",
+                    overrides=[f"ablation={variant}", "evaluation.methods=[${ablation.method}]"])
     assert list(swept.evaluation.methods) == ["tracegs" if trains else "baseline"]
     # B..F share one Stage-1 checkpoint and the same Stage-2 budget.
     assert cfg.stage.init_adapter == compose(config_name="train").stage.init_adapter

@@ -7,38 +7,20 @@ import json
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
+from hydra import compose
 from omegaconf import OmegaConf
 
-from tracegs import tasks
 from tracegs.config.identity import derive_seed, scoped_values
-from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError
-
-CONF = Path(__file__).resolve().parents[2] / "conf"
+from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
+from tracegs.pipeline.upstream import locate_artifacts
 
 # Every part that draws random numbers, by its seed field.
 SEED_FIELDS = ("stage.seed", "data.prepare.seed", "data.prepare.fit.seed", "data.datamodule.seed", "deploy.seed",
                "backbone.sampler.seed")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        yield
-
-
-@pytest.fixture
-def as_hydra_job():
-    """Compose like a Hydra app does for a command line, so the job's overrides are known."""
-    def start(config_name: str, overrides: list[str]):
-        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        return cfg
-    yield start
-    HydraConfig.instance().cfg = None
+pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def run_dir(overrides: list[str], config_name: str = "train") -> str:
@@ -86,7 +68,7 @@ def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
 def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
     cfg = as_hydra_job("train", ["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
                                  "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
-    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
     # The earlier stages were run with the experiment's shared settings and their own stage defaults.
     stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
     baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
@@ -106,7 +88,7 @@ def test_a_stage2_only_setting_reuses_the_baseline_and_stage1_runs(as_hydra_job,
     # The Stage-2 sweep a researcher runs after `train stage=baseline` and `train stage=stage1` with no overrides:
     # it must find those runs, not ask for an A and a Stage 1 retrained under a setting they never read.
     cfg = as_hydra_job("train", ["stage=stage2", stage2_only])
-    tasks.locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
     assert cfg.artifacts.baseline_weights == str(Path(run_dir(["stage=baseline"])) / "baseline_transformer")
     assert cfg.artifacts.stage1_adapter == str(Path(run_dir(["stage=stage1"])) / "stage1_adapter")
     assert cfg.run_dir != run_dir(["stage=stage2"])
@@ -123,7 +105,7 @@ def test_settings_a_stage_reads_still_rename_it():
 
 def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     cfg = as_hydra_job("evaluate", ["ablation=E", "seed=1", "loss.lambda_ret=0.3"])
-    tasks.locate_artifacts(cfg, ["student_adapter"])
+    locate_artifacts(cfg, ["student_adapter"])
     student = run_dir(["stage=stage2", "ablation=E", "seed=1", "loss.lambda_ret=0.3"])
     assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
 
@@ -135,7 +117,8 @@ def test_training_reads_the_cache_that_prepare_writes():
     held_out = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4",
                                                          "data.prepare.split=test"])
     assert held_out.data.prepare.cache_dir != prepared.data.prepare.cache_dir
-    assert compose(config_name="train", overrides=["seed=5"]).data.datamodule.cache_dir != trained.data.datamodule.cache_dir
+    other_seed = compose(config_name="train", overrides=["seed=5"])
+    assert other_seed.data.datamodule.cache_dir != trained.data.datamodule.cache_dir
 
 
 @pytest.mark.parametrize("overrides", [
@@ -195,12 +178,12 @@ def test_a_capture_is_known_by_its_images_and_reconstruction(tmp_path):
 
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
     folder = tmp_path / "run"
-    tasks.write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
-    tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
+    write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)
+    check_run_record(compose(config_name="train", overrides=["stage=stage2", "trainer.log_every_n_steps=1"]),
                            "stage2", folder)
     assert OmegaConf.load(folder / "config.yaml").stage.name == "stage2"
     with pytest.raises(ConfigError, match=r"loss\.lambda_ret"):
-        tasks.check_run_record(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
+        check_run_record(compose(config_name="train", overrides=["stage=stage2", "loss.lambda_ret=0.5"]),
                                "stage2", folder)
 
 
@@ -246,12 +229,12 @@ def test_a_product_made_from_other_inputs_is_made_again(tmp_path):
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)
     (folder / "checkpoints" / "last.ckpt").write_bytes(b"a checkpoint")
-    assert not tasks.check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
-    tasks.write_run_record(cfg, "stage2", folder)
-    assert tasks.check_run_record(cfg, "stage2", folder)
+    assert not check_run_record(cfg, "stage2", folder)  # no record: not finished, whatever it holds
+    write_run_record(cfg, "stage2", folder)
+    assert check_run_record(cfg, "stage2", folder)
     (adapter / "adapter_model.safetensors").write_bytes(b"retrained")
-    assert not tasks.check_run_record(cfg, "stage2", folder)
-    assert not (folder / "checkpoints").exists() and not (folder / tasks.RUN_RECORD).exists()
+    assert not check_run_record(cfg, "stage2", folder)
+    assert not (folder / "checkpoints").exists() and not (folder / RUN_RECORD).exists()
 
 
 def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
@@ -261,9 +244,9 @@ def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
     cfg = compose(config_name="train", overrides=["stage=stage1", "paths.root_dir=.",
                                                   f"artifacts.baseline_weights={tmp_path}/outputs/baseline/a"])
     folder = tmp_path / "run"
-    tasks.write_run_record(cfg, "stage1", folder)
-    assert tasks.check_run_record(cfg, "stage1", folder)
-    record = folder / tasks.RUN_RECORD
+    write_run_record(cfg, "stage1", folder)
+    assert check_run_record(cfg, "stage1", folder)
+    record = folder / RUN_RECORD
     values = json.loads(record.read_text())
     record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
-    assert tasks.check_run_record(cfg, "stage1", folder)
+    assert check_run_record(cfg, "stage1", folder)

@@ -69,7 +69,8 @@ def test_a_failing_sweep_job_is_reported_and_the_others_run(tmp_path):
 def test_every_step_of_the_sweep_script_goes_through_the_launcher():
     """On SLURM nothing may run on the login node: each command is a multirun through `step`."""
     script = (REPO / "launch" / "sweep_ablation.sh").read_text()
-    commands = [line.strip() for line in script.splitlines() if "tracegs-" in line and not line.lstrip().startswith("#")]
+    commands = [line.strip() for line in script.splitlines()
+                if "tracegs-" in line and not line.lstrip().startswith("#")]
     assert len(commands) >= 7
     assert all(line.startswith("step tracegs-") for line in commands)
     assert 'step() { "$BIN/$1" -m "$launcher"' in script

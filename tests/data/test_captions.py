@@ -94,7 +94,8 @@ def test_prepare_and_deployment_caption_clips_by_one_rule(colmap_scene, backbone
         assert cached and cached != captions.fallback  # BLIP-2 described the frame
     # Deployment from the same snapshot and captured views: each clip caption follows the same rule.
     scene = load_scene(source, "ring")
-    captured = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in split_scene(scene, source, [3]).views(3)]
+    captured = [View(image=scene.load_image(i), camera=scene.cameras[i])
+                for i in split_scene(scene, source, [3]).views(3)]
     snapshot = next(Path(prepare.work_dir).glob("ring/fit_3_*/it000008.ply"))
     fitter = GaussianFitter(load_ply(snapshot), prepare.fit, 1.0)
     fitter.iteration = 8

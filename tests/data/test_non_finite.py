@@ -71,7 +71,8 @@ def test_nan_in_a_cached_latent_stops_training_at_its_batch(tmp_path, prepared, 
     result = entry_point("train", [
         "stage=baseline", f"data.datamodule.cache_dir={cache}", "data.datamodule.student_views=[3]",
         "data.datamodule.student_snapshots=[8]", "data.datamodule.seed=0", "data.prepare.student_views=[3]",
-        "data.prepare.student_snapshots=[8]", "data.prepare.fit.iterations=16", "data.prepare.fit.snapshot_iters=[8,16]", "stage.batch_size=1",
+        "data.prepare.student_snapshots=[8]", "data.prepare.fit.iterations=16",
+        "data.prepare.fit.snapshot_iters=[8,16]", "stage.batch_size=1",
         "stage.max_steps=4", "stage.checkpoint_every_n_steps=1", "trainer.loggers=[]", f"paths.root_dir={tmp_path}",
     ], tmp_path)
     lines = result.stderr_lines()

@@ -77,5 +77,6 @@ def write_nerfbusters(root: Path, scenes: list[Path], test_every: int = 8) -> Pa
     for scene in scenes:
         names = sorted(p.name for p in (scene / "images").iterdir())
         capture = {n: 2 if i % test_every == 0 else 1 for i, n in enumerate(names)}
-        copy_scene(scene, out / scene.name, DOWNSCALE["nerfbusters"], lambda n, capture=capture: f"frame_{capture[n]}_{n}")
+        copy_scene(scene, out / scene.name, DOWNSCALE["nerfbusters"],
+                   lambda n, capture=capture: f"frame_{capture[n]}_{n}")
     return out

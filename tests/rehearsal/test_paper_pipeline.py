@@ -7,8 +7,8 @@ pseudo-targets, evaluation's baseline), never trained.
 
 ``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
 only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
-it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs it on CUDA
-with gsplat.
+it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs
+it on CUDA with gsplat.
 """
 
 from __future__ import annotations
@@ -27,7 +27,10 @@ from paper_weights import write_vggt_double_package
 from safetensors import safe_open
 from test_size_keys import SIZE_KEYS
 
-from tracegs import tasks
+from tracegs.pipeline.evaluate import deploy, evaluate
+from tracegs.pipeline.prepare import prepare
+from tracegs.pipeline.reports import report
+from tracegs.pipeline.train import train
 
 # The default suite's overrides on top of experiment=rehearsal: each makes a count smaller, none touches a
 # mode, rate, weight, schedule or sampler (test_budget_overrides_are_sizes checks the keys).
@@ -44,13 +47,13 @@ GPU = ("trainer.accelerator=gpu", "data.prepare.fit.backend=gsplat")  # the pape
 
 def run_pipeline(root: Path, extra: tuple[str, ...]) -> dict:
     """Every entry point in order under ``experiment=rehearsal`` (+ ``extra``); returns results.json."""
-    run_rehearsal_task(tasks.prepare, root, "prepare", extra)
-    assert run_rehearsal_task(tasks.train, root, "train", ("stage=baseline", *extra)) is None
-    run_rehearsal_task(tasks.train, root, "train", ("stage=stage1", *extra))
-    run_rehearsal_task(tasks.train, root, "train", ("stage=stage2", "ablation=F", *extra))
-    run_rehearsal_task(tasks.deploy, root, "deploy", ("ablation=F", *extra))
-    run_rehearsal_task(tasks.evaluate, root, "evaluate", ("ablation=F", *extra))
-    results = run_rehearsal_task(tasks.report, root, "report", ("ablation=F", "report.kind=main", *extra))
+    run_rehearsal_task(prepare, root, "prepare", extra)
+    assert run_rehearsal_task(train, root, "train", ("stage=baseline", *extra)) is None
+    run_rehearsal_task(train, root, "train", ("stage=stage1", *extra))
+    run_rehearsal_task(train, root, "train", ("stage=stage2", "ablation=F", *extra))
+    run_rehearsal_task(deploy, root, "deploy", ("ablation=F", *extra))
+    run_rehearsal_task(evaluate, root, "evaluate", ("ablation=F", *extra))
+    results = run_rehearsal_task(report, root, "report", ("ablation=F", "report.kind=main", *extra))
     return json.loads(Path(results).read_text())
 
 
@@ -128,7 +131,7 @@ def test_paper_training_rehearsal_with_two_cpu_processes(tmp_path, paper_data, r
     processes: ``tracegs-train`` as a user runs it, Lightning re-launching the command for the second rank.
     The saved adapters are whole (not one rank's shard) and float32."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
-    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    run_rehearsal_task(prepare, root, "prepare", BUDGET)
     script = Path(sys.executable).with_name("tracegs-train")
     for stage in ("stage=stage1", "stage=stage2"):
         command = [str(script), "experiment=rehearsal", stage, *TWO_PROCESSES[trainer], f"paths.root_dir={root}",
@@ -158,7 +161,7 @@ def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data
     with every training job under the DDP / FSDP configs on two gloo CPU processes (each job of the Stage-2
     multirun launching its own second rank)."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
-    run_rehearsal_task(tasks.prepare, root, "prepare", BUDGET)
+    run_rehearsal_task(prepare, root, "prepare", BUDGET)
     overrides = (*TWO_PROCESSES.get(trainer, ()), *BUDGET)
     script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
     run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *overrides],
@@ -167,7 +170,8 @@ def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data
     if trainer in TWO_PROCESSES:
         assert (run.stdout + run.stderr).count("Starting with 2 processes") >= 1 + 6  # Stage 1, Stage 2 B..F
     table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *overrides), key="report.output_dir")
-    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:] if line.startswith("|")]
+    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:]
+            if line.startswith("|")]
     assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
 
 

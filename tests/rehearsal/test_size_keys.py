@@ -8,14 +8,10 @@ reason it is a size, and every iteration-based schedule must be the paper's divi
 from __future__ import annotations
 
 from fractions import Fraction
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose
 from omegaconf import OmegaConf
-
-from tracegs.cli.app import CONF_DIR
-from tracegs.config.schema import register_configs
 
 # Dotted key -> why it is a size (or the run's name) and not science.
 SIZE_KEYS = {
@@ -61,13 +57,6 @@ SIZE_KEYS = {
     "trainer.devices": "number of devices",
 }
 ITERATION_FACTOR = Fraction(1, 100)
-
-
-@pytest.fixture(scope="module")
-def hydra_context():
-    register_configs()
-    with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
-        yield
 
 
 def flatten(node, prefix: str = "") -> dict[str, object]:

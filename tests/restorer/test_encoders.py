@@ -115,7 +115,8 @@ def test_vggt_missing_gives_install_hint():
     try:
         import vggt  # noqa: F401
     except ImportError:
-        with pytest.raises(MissingPackageError, match="'vggt' package.*pip install git\\+https://github.com/facebookresearch/vggt"):
+        hint = "'vggt' package.*pip install git\\+https://github.com/facebookresearch/vggt"
+        with pytest.raises(MissingPackageError, match=hint):
             build_reference_encoder(cfg)
     else:
         with pytest.raises(FileNotFoundError, match="reference_encoder.vggt_path"):

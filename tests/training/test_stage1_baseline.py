@@ -17,7 +17,8 @@ def evaluate(transformer, batch, t=0.6):
     noisy = torch.randn(batch["target"].shape, generator=g)
     timestep = torch.full((noisy.shape[0],), t)
     with torch.no_grad():
-        return transformer(noisy, batch["student_cond"], timestep, batch["text"], batch["ref_2d"], batch["ref_3d"]).velocity
+        return transformer(noisy, batch["student_cond"], timestep, batch["text"], batch["ref_2d"],
+                           batch["ref_3d"]).velocity
 
 
 def test_baseline_trains_every_transformer_weight_and_fits_a_batch():

@@ -10,7 +10,6 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 from __future__ import annotations
 
 import functools
-import importlib.resources
 import logging
 import os
 import sys
@@ -18,48 +17,19 @@ from collections.abc import Callable
 from typing import Any
 
 import hydra
+import lightning
+from diffusers.utils import logging as diffusers_logging
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.cli.sweep import JobFailed, print_configs, sweeping
+from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
-from tracegs.console import to_log_files
-from tracegs.errors import ConfigError, TraceGSError, one_line, require_writable_dir, write_failure
-
-# The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
-# editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
-CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs.conf")))
-
-# Errors caused by the user's input (config values, files on disk): reported in one line, no traceback.
-USER_ERRORS = (TraceGSError, ValueError, FileNotFoundError, NotADirectoryError, KeyError)
-
-def user_error(error: BaseException, cfg: DictConfig) -> BaseException | None:
-    """``error`` as the user should see it: itself when the user's input caused it, the one-line
-    :func:`write_failure` when the machine refused a write that no writer of ours named, else None (a bug:
-    the traceback is the useful report)."""
-    if isinstance(error, OSError) and not isinstance(error, USER_ERRORS):
-        # Library writers (Lightning's checkpoints, Hydra's logs) may leave the file unnamed; the run folder is.
-        where = error.filename or f"a file in the run folder {OmegaConf.select(cfg, 'run_dir', default='.')}"
-        return write_failure(where, error)
-    return error
-
-
-def report_one_line(app: str, error: BaseException) -> str:
-    """Print ``error`` as one line on stderr (and into the run's log files); return its message."""
-    message = one_line(error.args[0] if isinstance(error, KeyError) and error.args else error, limit=2000)
-    line = f"tracegs-{app}: error: {message}"
-    to_log_files(line, logging.ERROR)  # not through the console handler: stderr gets the line exactly once
-    print(line, file=sys.stderr)
-    return message
-
-
-def exit_with_one_line(app: str, error: BaseException) -> None:
-    """The one line of :func:`report_one_line`, then exit code 2."""
-    report_one_line(app, error)
-    sys.exit(2)
+from tracegs.errors import ConfigError, TraceGSError, require_writable_dir
 
 
 def log_libraries_through_hydra() -> None:
@@ -68,8 +38,6 @@ def log_libraries_through_hydra() -> None:
     Lightning and diffusers give their loggers their own stderr handler: their notices would then mix with
     the one-line error on stderr and never reach the log file.
     """
-    from diffusers.utils import logging as diffusers_logging
-
     diffusers_logging.disable_default_handler()
     diffusers_logging.enable_propagation()
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
@@ -108,8 +76,6 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """What every entry point does with its composed config: validate the cross-field rules, route the
     libraries' messages through Hydra's logging, seed everything from ``cfg.seed``, run ``task``."""
     validate(cfg)
-    import lightning
-
     log_libraries_through_hydra()
     lightning.seed_everything(cfg.seed, workers=True, verbose=False)
     return task(cfg)

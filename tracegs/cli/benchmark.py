@@ -1,7 +1,7 @@
 """`tracegs-benchmark`: the embedded benchmark over training seeds, ending with one report (conf/benchmark.yaml)."""
 
-from tracegs.benchmark import benchmark
 from tracegs.cli.app import hydra_app
+from tracegs.pipeline.benchmark import benchmark
 
 main = hydra_app("benchmark")(benchmark)
 

@@ -1,9 +1,9 @@
-"""`tracegs-evaluate`: deploy 3DGS / baseline / TRACE-GS at 3, 6, 9 views and write results.json (conf/evaluate.yaml)."""
+"""`tracegs-evaluate`: deploy 3DGS / baseline / TRACE-GS at 3, 6, 9 views, write results.json (conf/evaluate.yaml)."""
 
-from tracegs import tasks
 from tracegs.cli.app import hydra_app
+from tracegs.pipeline.evaluate import evaluate
 
-main = hydra_app("evaluate")(tasks.evaluate)
+main = hydra_app("evaluate")(evaluate)
 
 if __name__ == "__main__":
     main()

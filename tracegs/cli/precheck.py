@@ -10,6 +10,15 @@ from __future__ import annotations
 
 import sys
 
+from hydra import compose, initialize_config_dir
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException, OverrideParseException
+from omegaconf.errors import OmegaConfBaseException
+
+from tracegs.cli.failures import USER_ERRORS
+from tracegs.config.validate import validate
+from tracegs.errors import one_line
+
 # Hydra's own flags that print or run something other than one job of the task.
 _NOT_ONE_JOB = {"-m", "--multirun", "--help", "-h", "--hydra-help", "--info", "-i", "--version", "--shell-completion",
                 "-sc", "--run", "-r"}
@@ -38,9 +47,6 @@ def overrides_of(argv: list[str]) -> list[str]:
 def parse_error(overrides: list[str], multirun: bool) -> str | None:
     """One line naming the first override Hydra's grammar refuses (or, outside ``-m``, reads as a sweep), with
     the hint to quote it; None if all parse."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import OverrideParseException
-
     parser = OverridesParser.create()
     for override in overrides:
         try:
@@ -65,14 +71,6 @@ def check_command_line(config_dir: str, config_name: str, argv: list[str]) -> st
         position = max(argv.index(flag) for flag in set(argv) & _CFG_FLAGS) + 1
         if position < len(argv) and argv[position] in ("hydra", "all"):
             return None
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    from tracegs.cli.app import USER_ERRORS
-    from tracegs.config.validate import validate
-    from tracegs.errors import one_line
-
     try:
         with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
             validate(compose(config_name=config_name, overrides=overrides))

@@ -1,9 +1,9 @@
 """`tracegs-prepare`: generate scenes and build the paired-clip cache (conf/prepare.yaml)."""
 
-from tracegs import tasks
 from tracegs.cli.app import hydra_app
+from tracegs.pipeline.prepare import prepare
 
-main = hydra_app("prepare")(tasks.prepare)
+main = hydra_app("prepare")(prepare)
 
 if __name__ == "__main__":
     main()

@@ -1,9 +1,9 @@
 """`tracegs-restore`: restore and refine a COLMAP capture of your own from K views (conf/restore.yaml)."""
 
-from tracegs import tasks
 from tracegs.cli.app import hydra_app
+from tracegs.pipeline.restore import restore
 
-main = hydra_app("restore")(tasks.restore)
+main = hydra_app("restore")(restore)
 
 if __name__ == "__main__":
     main()

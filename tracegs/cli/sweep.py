@@ -12,12 +12,18 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
+from hydra import compose, initialize_config_dir
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+
+from tracegs.cli.failures import USER_ERRORS, exit_with_one_line
+from tracegs.config.validate import validate
 
 
 @dataclass
@@ -62,7 +68,8 @@ class SweepSummary(Callback):
             return
         failed = [o for o in self.outcomes if o[1] != "ok"]
         app = config.hydra.help.app_name
-        print(f"{app}: {len(self.outcomes) - len(failed)} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
+        succeeded = len(self.outcomes) - len(failed)
+        print(f"{app}: {succeeded} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
         for number, (overrides, outcome) in enumerate(self.outcomes):
             print(f"  #{number} {overrides}: {outcome}", file=sys.stderr)
         if failed:
@@ -83,11 +90,6 @@ def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:
     multirun = bool({"-m", "--multirun"} & set(argv))
     if not multirun and not (resolve and which != "job"):
         return False
-    from hydra import compose, initialize_config_dir
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import OmegaConf
-
     overrides = [a for a in argv if "=" in a and not a.startswith("-")]
     jobs = [overrides]
     if multirun:
@@ -107,9 +109,6 @@ def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:
 
 def refuse_invalid(app: str, configs: list[DictConfig]) -> None:
     """One line on stderr and exit code 2 for the first config that fails validation."""
-    from tracegs.cli.app import USER_ERRORS, exit_with_one_line
-    from tracegs.config.validate import validate
-
     for cfg in configs:
         try:
             validate(cfg)

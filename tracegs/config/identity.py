@@ -5,7 +5,7 @@ part of the configuration, its *scope*. The folder a run writes to is ``<readabl
 readable part is the seed and the command-line overrides that fall in the scope, the digest is a hash
 of every scoped value after interpolation. So two runs share a folder only when they would produce the
 same thing, a changed hyperparameter never resumes or overwrites another run, and a later stage finds
-the product it needs by computing the earlier stage's folder with the same rule (``tracegs.tasks``).
+the product it needs by computing the earlier stage's folder with the same rule (``tracegs.pipeline.upstream``).
 
 Keys that change how a run executes but not what it produces (paths, logging, progress bars,
 parallelism, sharding, checkpoint cadence) are never part of an identity.

@@ -44,7 +44,7 @@ class Task(Mode):
 
 
 class ReportKind(Mode):
-    """What ``tracegs-report`` merges (tracegs.tasks.report)."""
+    """What ``tracegs-report`` merges (tracegs.pipeline.reports)."""
 
     main = "main"  # evaluation shards -> results.json (Tables 1/2)
     prepare = "prepare"  # prepare shards -> one cache manifest
@@ -92,7 +92,8 @@ class DataConfig:
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     prepare: PrepareConfig = field(default_factory=lambda: PrepareConfig(
         cache_dir=CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
-        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
+        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-"
+                 "${tracegs.cache:${data.prepare.split}}",
         seed=seeded("prepare"), fit=GaussianFitConfig(seed=seeded("fit"))))
     datamodule: DataModuleConfig = field(default_factory=lambda: DataModuleConfig(
         cache_dir=CACHE_ROOT + "-train-${tracegs.cache:train}", seed=seeded("datamodule")))
@@ -106,7 +107,7 @@ class ArtifactsConfig:
     """Products of earlier stages that later tasks load, at fixed places under the experiment folder."""
 
     # Each is "auto" (the product of the run that the run-identity rule finds for this configuration, see
-    # tracegs.tasks.locate_artifacts) or an explicit path.
+    # tracegs.pipeline.upstream.locate_artifacts) or an explicit path.
     # Variant A's transformer (a diffusers directory written by ``stage=baseline``). null = the backbone's
     # own ``transformer.pretrained_path`` (paper scale: GSFixer's pretrained restorer is variant A).
     baseline_weights: str | None = AUTO
@@ -147,6 +148,8 @@ class AblationConfig:
 
     name: str = MISSING
     description: str = MISSING
+    # Its row in Table 3: the sweep trains and the report lists the variants in this order.
+    row: int = MISSING
     # Variant A evaluates the frozen baseline restorer and trains nothing.
     train_stage2: bool = MISSING
     # The evaluation method that stands for this variant in Table 3 (variant A: the baseline restorer);
@@ -189,7 +192,8 @@ class TraceGSConfig:
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
-    backbone: BackboneConfig = field(default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
+    backbone: BackboneConfig = field(
+        default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
     data: DataConfig = field(default_factory=DataConfig)
     stage: StageConfig = field(default_factory=lambda: StageConfig(seed=seeded("training")))
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)

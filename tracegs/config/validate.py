@@ -101,7 +101,8 @@ def _validate_data(cfg: DictConfig) -> None:
         f"snapshots {snapshots} must lie inside the fit budget of {fit.iterations} iterations",
     )
     missing = sorted(set(prepare.student_snapshots) - set(snapshots))
-    _require(not missing, "data.prepare.student_snapshots", f"{missing} are not among data.prepare.fit.snapshot_iters {snapshots}")
+    _require(not missing, "data.prepare.student_snapshots",
+             f"{missing} are not among data.prepare.fit.snapshot_iters {snapshots}")
     # A student condition R_s is an intermediate snapshot: the final one is the dense fits' (and R_d's).
     final = [s for s in prepare.student_snapshots if not 0 < s < fit.iterations]
     _require(not final, "data.prepare.student_snapshots",

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tracegs.config.location import CONF_DIR
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.images import read_rgb, resize
 from tracegs.errors import InputFileError, plain_name_problem
@@ -99,8 +100,6 @@ def read_scene_list(path: str, field: str) -> list[str]:
     lists ship (``conf/data/scenes/``)."""
     file = Path(path)
     if not file.is_file() and not file.is_absolute():
-        from tracegs.cli.app import CONF_DIR
-
         file = Path(CONF_DIR) / path
     if not file.is_file():
         raise FileNotFoundError(f"{field}={path!r}: scene list not found")

@@ -267,7 +267,8 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     elif cfg.pseudo_target == "dense":
         target = conditions[dense_condition(cfg)]
     else:
-        target = pipeline.restore(conditions[dense_condition(cfg)][None], ref_images[None], [caption], seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
+        target = pipeline.restore(conditions[dense_condition(cfg)][None], ref_images[None], [caption],
+                                  seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
         target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():

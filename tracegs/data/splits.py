@@ -71,8 +71,8 @@ def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> l
     Distances are taken around the loop of ``candidates`` (capture order), because on a 360-degree capture
     the first and last images are neighbours. The first set (``keep`` empty) takes the centres of ``count``
     equal shares, ``(i + 1/2) n / count``; later, nested sets add one candidate at a time, the one farthest
-    (around the loop) from every chosen one, ties to the one nearest such a centre, then to the earliest. Written by hand because no library does
-    nested even spacing.
+    (around the loop) from every chosen one, ties to the one nearest such a centre, then to the earliest.
+    Written by hand because no library does nested even spacing.
     """
     n = len(candidates)
     if count > n:

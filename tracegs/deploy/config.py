@@ -1,8 +1,9 @@
 """Hyperparameters of deployment (supplement A.5) and evaluation (supplement B). Embedded-scale defaults.
 
 Paper scale: ``total_iters=30000``, ``repair_iters=[7000, 17000, 27000]``, ``lambda_reg=1``,
-``trajectory.frames_per_clip=49``, ``max_clips_per_round=None``, ``clip_batch=1``; the restorer runs its full M = 50-step schedule (``backbone.schedule.deploy_steps``)
-with the backbone's guidance scale, so neither is repeated here.
+``trajectory.frames_per_clip=49``, ``max_clips_per_round=None``, ``clip_batch=1``; the restorer runs its full
+M = 50-step schedule (``backbone.schedule.deploy_steps``) with the backbone's guidance scale, so neither is
+repeated here.
 """
 
 from __future__ import annotations

@@ -69,6 +69,20 @@ def load_clip(path: Path) -> tuple[dict[str, Tensor], dict[str, str]]:
     return tensors, metadata
 
 
+def restore_clip(pipeline: RestorationPipeline, tensors: dict[str, Tensor], keys: list[str], seed: int) -> Tensor:
+    """The restored trajectory frames (B, T-2, 3, H, W) of a cached clip from each condition in ``keys``, in one
+    batch with one noise seed: decoded to pixels, the two reference frames at the ends dropped."""
+    batch = len(keys)
+    latents = pipeline.restore_latents(
+        torch.stack([tensors[cache_keys.latent(key)].float() for key in keys]),
+        tensors[cache_keys.REF_2D].float().expand(batch, -1, -1),
+        tensors[cache_keys.REF_3D].float().expand(batch, -1, -1),
+        tensors[cache_keys.TEXT].float().expand(batch, -1, -1),
+        seed=seed,
+    )
+    return pipeline.backbone.codec.decode(latents).cpu()[:, 1:-1]
+
+
 @torch.no_grad()
 def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
                           seed: int = 0, progress: bool = True) -> dict:
@@ -85,18 +99,8 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
         for cond in conditions:
             scores[cond][INPUT][scene].append(mean_psnr(trajectory_frames(tensors, cond), truth))
         # One batch per clip: every condition of the clip restored together, same seed across restorers.
-        cond_latents = torch.stack([tensors[cache_keys.latent(c)].float() for c in conditions])
-        batch = len(conditions)
         for label, pipeline in pipelines.items():
-            latents = pipeline.restore_latents(
-                cond_latents,
-                tensors[cache_keys.REF_2D].float().expand(batch, -1, -1),
-                tensors[cache_keys.REF_3D].float().expand(batch, -1, -1),
-                tensors[cache_keys.TEXT].float().expand(batch, -1, -1),
-                seed=seed + index,
-            )
-            restored = pipeline.backbone.codec.decode(latents).cpu()[:, 1:-1]
-            for cond, frames in zip(conditions, restored):
+            for cond, frames in zip(conditions, restore_clip(pipeline, tensors, conditions, seed + index)):
                 scores[cond][label][scene].append(mean_psnr(frames, truth))
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}

@@ -40,6 +40,11 @@ class Ordering:
 MAIN_ORDERING = Ordering(("3dgs", "baseline", "tracegs"))
 GEOMETRY_ORDERING = Ordering(("B", "A", "C", "D"))
 POLICY_ORDERING = Ordering(("E", "F-", "F"))
+# Table 3 states each variant's difference to the frozen baseline restorer (A), the variant every claim starts from.
+REFERENCE_VARIANT = "A"
+# Fig. 6 claims (better, worse): on-policy F predicts the clean frame better along its own trajectory than
+# off-policy E and than the frozen baseline A.
+PER_STEP_PAIRS = (("F", "E"), ("F", "A"))
 
 
 MIN_SCENES = 6  # the fewest scenes whose unanimous sign is significant at 5% (2 * 2^-6 = 3.1%)

@@ -12,7 +12,13 @@ import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from tracegs.eval.conclusions import GEOMETRY_ORDERING, MAIN_ORDERING, POLICY_ORDERING, ordering_lines
+from tracegs.eval.conclusions import (
+    GEOMETRY_ORDERING,
+    MAIN_ORDERING,
+    POLICY_ORDERING,
+    REFERENCE_VARIANT,
+    ordering_lines,
+)
 from tracegs.eval.intervals import Interval, clustered, mean_interval, paired_interval
 from tracegs.eval.labels import HIGHER_IS_BETTER, METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
 from tracegs.eval.metrics import METRIC_NAMES
@@ -161,7 +167,7 @@ def ablation_intervals_markdown(variants: Mapping[str, tuple[Mapping, str]]) -> 
         cells = [name]
         for m in metrics:
             cells.append(mean_interval(clustered(scores[(name, m)], _scene)).format(METRIC_DECIMALS[m]))
-            to_a = difference(name, "A", m) if name != "A" else None
+            to_a = difference(name, REFERENCE_VARIANT, m) if name != REFERENCE_VARIANT else None
             cells.append(to_a.format(METRIC_DECIMALS[m], signed=True) if to_a else "")
         lines.append("| " + " | ".join(cells) + " |")
     conclusions = []
@@ -178,7 +184,8 @@ def ablation_intervals_markdown(variants: Mapping[str, tuple[Mapping, str]]) -> 
 # ------------------------------------------------------------------------------------------ Fig. 6
 
 
-def per_step_intervals(unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]]) -> dict[str, list[Interval]]:
+def per_step_intervals(
+        unit_curves: Mapping[tuple[str, str], Mapping[str, Sequence[float]]]) -> dict[str, list[Interval]]:
     """Per label and reverse step: the mean clean-frame PSNR with its interval over scenes. ``unit_curves`` maps
     (scene, views) to each label's curve; the view counts of a scene are averaged first (Fig. 6 averages
     across view settings)."""

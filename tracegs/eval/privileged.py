@@ -20,7 +20,7 @@ from rich.progress import track
 
 from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
-from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, trajectory_frames
+from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, restore_clip, trajectory_frames
 from tracegs.eval.intervals import mean_interval, paired_interval
 from tracegs.eval.labels import RESTORER_LABELS
 from tracegs.restorer.sampler import RestorationPipeline
@@ -53,7 +53,8 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
     # scores[row][reference][scene] -> one value per clip
     scores: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
 
-    def record(row: str, scene: str, frames: list[torch.Tensor], truth: torch.Tensor, dense: torch.Tensor | None) -> None:
+    def record(row: str, scene: str, frames: list[torch.Tensor], truth: torch.Tensor,
+               dense: torch.Tensor | None) -> None:
         """``dense=None``: score against ground truth only (R_d against itself is no measurement)."""
         for reference, target in zip(REFERENCES, (truth, dense)):
             if target is not None:
@@ -67,16 +68,8 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
         truth, dense = trajectory_frames(tensors, cache_keys.GROUND_TRUTH), trajectory_frames(tensors, teacher)
         record(f"input {TEACHER}", scene, [dense], truth, None)
         record(f"input {STUDENT}", scene, [trajectory_frames(tensors, c) for c in conditions], truth, dense)
-        latents = torch.stack([tensors[cache_keys.latent(k)].float() for k in keys])
-        batch = len(keys)
         for label, pipeline in pipelines.items():
-            restored = pipeline.backbone.codec.decode(pipeline.restore_latents(
-                latents,
-                tensors[cache_keys.REF_2D].float().expand(batch, -1, -1),
-                tensors[cache_keys.REF_3D].float().expand(batch, -1, -1),
-                tensors[cache_keys.TEXT].float().expand(batch, -1, -1),
-                seed=seed + index,
-            )).cpu()[:, 1:-1]
+            restored = restore_clip(pipeline, tensors, keys, seed + index)
             record(f"{label} | {TEACHER}", scene, [restored[0]], truth, dense)
             record(f"{label} | {STUDENT}", scene, list(restored[1:]), truth, dense)
     scenes = sorted({scene for scene, _ in shards})
@@ -104,8 +97,8 @@ def privileged_gap_markdown(gap: Mapping) -> str:
         return f"{RESTORER_LABELS.get(label, label)} from {condition}" if condition else row
 
     lines = [f"Held-out clips ({gap['clips']} clips of {len(per_scene)} scenes; R_d = teacher condition "
-             f"{gap['teacher']}, R_s = mean over the student conditions {', '.join(gap['conditions'])}). PSNR (dB), 95% bootstrap interval over "
-             "scenes:", "", "| | vs ground truth | vs R_d |", "|---|---|---|"]
+             f"{gap['teacher']}, R_s = mean over the student conditions {', '.join(gap['conditions'])}). PSNR (dB), "
+             "95% bootstrap interval over scenes:", "", "| | vs ground truth | vs R_d |", "|---|---|---|"]
     for row in gap["rows"]:
         lines.append(f"| {name(row)} | " + " | ".join(
             mean_interval(list(scores(row, ref).values())).format() if ref in per_scene[first][row] else "—"

@@ -157,9 +157,9 @@ def write_benchmark_report(out_dir: str | Path, seeds: Sequence[int], eval_dirs:
         sections += ["## The privileged gap", "", privileged_gap_markdown(mean_tree(gaps))]
     metrics = measured_metrics(averaged, methods_of(averaged))
     sections += ["## Conclusions", "", "The paper's orderings, each pair marked by the 95% interval of its paired "
-                 "difference over scenes, each scene's difference averaged over the training seeds first (holds: entirely "
-                 "above zero; reversed: entirely below; else not resolved); read each mark with the spread over "
-                 "seeds in the deployment section. Table 3's orderings (B < A < C < D, E < F- < F) are not "
+                 "difference over scenes, each scene's difference averaged over the training seeds first (holds: "
+                 "entirely above zero; reversed: entirely below; else not resolved); read each mark with the spread "
+                 "over seeds in the deployment section. Table 3's orderings (B < A < C < D, E < F- < F) are not "
                  "measured by this benchmark (variant F only; `tracegs-report report.kind=ablation` marks them "
                  "for a sweep).", "",
                  *main_conclusions(averaged, views, metrics), ""]

@@ -28,8 +28,7 @@ from peft import get_peft_model_state_dict, set_peft_model_state_dict
 
 from tracegs.errors import ConfigMismatchError, InputFileError
 from tracegs.io import atomic_directory, content_digest, read_safetensors, save_safetensors_atomic
-
-from .config import LoraConfig
+from tracegs.restorer.config import LoraConfig
 
 # diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
 METADATA_KEY = "lora_adapter_metadata"

@@ -8,13 +8,12 @@ import torch
 from safetensors import SafetensorError
 
 from tracegs.errors import InputFileError, one_line
-
-from .codec import Codec, build_codec
-from .config import BackboneConfig, TransformerConfig
-from .encoders import TextEncoder, build_reference_encoder, build_text_encoder
-from .loading import require_local_dir, torch_dtype
-from .schedules import NoiseSchedule, build_schedule
-from .transformer import ReferenceGuidedTransformer
+from tracegs.restorer.codec import Codec, build_codec
+from tracegs.restorer.config import BackboneConfig, TransformerConfig
+from tracegs.restorer.encoders import TextEncoder, build_reference_encoder, build_text_encoder
+from tracegs.restorer.loading import require_local_dir, torch_dtype
+from tracegs.restorer.schedules import NoiseSchedule, build_schedule
+from tracegs.restorer.transformer import ReferenceGuidedTransformer
 
 
 class CheckpointMismatchError(ValueError):
@@ -138,7 +137,8 @@ def _check_compatible(cfg: BackboneConfig, codec: Codec | None, reference_encode
         )
     if cfg.text_encoder.max_length != t.max_text_seq_length:
         problems.append(
-            f"text_encoder.max_length {cfg.text_encoder.max_length} != transformer.max_text_seq_length {t.max_text_seq_length}"
+            f"text_encoder.max_length {cfg.text_encoder.max_length} != "
+            f"transformer.max_text_seq_length {t.max_text_seq_length}"
         )
     for attr, field in (("dim_2d", "ref_2d_dim"), ("dim_3d", "ref_3d_dim")):
         have = getattr(reference_encoder, attr, None)

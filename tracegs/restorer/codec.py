@@ -11,8 +11,8 @@ from typing import Protocol
 
 import torch
 
-from .config import CodecConfig
-from .loading import require_local_dir
+from tracegs.restorer.config import CodecConfig
+from tracegs.restorer.loading import require_local_dir
 
 
 class Codec(Protocol):

@@ -154,7 +154,8 @@ class ScheduleConfig:
     # rectified_flow: the deployment grid (and so Stage 2's resampled grids, drawn from it) puts its M + 1 points
     # at equal steps of t^(q + 1), q >= 0; q = 0 is the uniform grid. With q = p every solver step spans an equal
     # share of the training times, so the solver stays where the training times are (with p = 12 and q = 0
-    # the last state before the clean end is t = 0.05, which t^12 draws with probability 0.05^13; with q = 12 it is 0.79).
+    # the last state before the clean end is t = 0.05, which t^12 draws with probability 0.05^13; with q = 12
+    # it is 0.79).
     deploy_time_power: float = 0.0
     # CogVideoX-5B scheduler values (used by vpred_ddim only).
     beta_start: float = 0.00085

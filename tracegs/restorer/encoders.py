@@ -18,8 +18,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from .config import ReferenceEncoderConfig, TextEncoderConfig
-from .loading import MissingPackageError, require_local_dir, torch_dtype
+from tracegs.restorer.config import ReferenceEncoderConfig, TextEncoderConfig
+from tracegs.restorer.loading import MissingPackageError, require_local_dir, torch_dtype
 
 VGGT_INSTALL_HINT = (
     "reference_encoder.kind=dinov2_vggt needs the 'vggt' package, which is not on PyPI: install it with "

@@ -18,10 +18,11 @@ from pathlib import Path
 
 import torch
 
-from .adapters import adapter_parameters, add_adapter, clone_adapter
-from .build import create_transformer
-from .config import BackboneConfig
-from .loading import MissingPackageError, require_local_dir, torch_dtype
+from tracegs.restorer.adapters import adapter_parameters, add_adapter, clone_adapter
+from tracegs.restorer.build import create_transformer
+from tracegs.restorer.config import BackboneConfig
+from tracegs.restorer.encoders import VGGT_INSTALL_HINT, encoder_placement
+from tracegs.restorer.loading import MissingPackageError, require_local_dir, torch_dtype
 
 GIB = 2**30
 
@@ -94,8 +95,6 @@ def _dinov2(path: Path) -> torch.nn.Module:
 
 def _vggt(path: Path) -> torch.nn.Module:
     """VGGT from its folder's ``config.json`` (the keyword arguments its hub mixin stores)."""
-    from .encoders import VGGT_INSTALL_HINT
-
     try:
         from vggt.models.vggt import VGGT
     except ImportError as err:
@@ -123,8 +122,6 @@ def deployment_holdings(cfg: BackboneConfig, adapters: Sequence[str], captioner:
     """What a deployment / evaluation run on ``accelerator`` holds: the shared base, each adapter loaded on it
     (``adapters``: their names), the VAE, the encoders and the captioner (``captioner``: its BLIP-2 folder and
     dtype, or None)."""
-    from .encoders import encoder_placement
-
     model = base_transformer(cfg)
     holdings = [Holding("transformer (shared base)", cfg.transformer.dtype, module_bytes(model), accelerator)]
     for name in adapters:

@@ -8,10 +8,10 @@ from collections.abc import Callable, Iterator
 import torch
 from rich.progress import track
 
-from . import adapters
-from .build import Backbone
-from .schedules import NoiseSchedule
-from .transformer import ReferenceGuidedTransformer, RestorerOutput
+from tracegs.restorer import adapters
+from tracegs.restorer.build import Backbone
+from tracegs.restorer.schedules import NoiseSchedule
+from tracegs.restorer.transformer import ReferenceGuidedTransformer, RestorerOutput
 
 
 def guided_prediction(
@@ -68,9 +68,9 @@ def solve(
 
     From ``z`` at grid[0], for each step i: ``velocity(i, z_i, t_i)`` (t_i expanded to the batch) gives the
     direction, and the detached solver transition T_i moves to grid[i + 1]. Returns the visited states
-    [z_{t_N}, ..., z_{t_0}] with ``keep_states``, else [z_{t_0}]. Deployment passes the guided velocity of one adapter; Stage 2 passes the
-    student's guided velocity and supervises it at each state on the way, so the rollout visits exactly the
-    states deployment visits for the same noise, grid, guidance and adapter.
+    [z_{t_N}, ..., z_{t_0}] with ``keep_states``, else [z_{t_0}]. Deployment passes the guided velocity of one
+    adapter; Stage 2 passes the student's guided velocity and supervises it at each state on the way, so the
+    rollout visits exactly the states deployment visits for the same noise, grid, guidance and adapter.
     """
     batch, device = z.shape[0], z.device
     states = [z]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from .config import ScheduleConfig
+from tracegs.restorer.config import ScheduleConfig
 
 
 def _expand(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:

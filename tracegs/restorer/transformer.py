@@ -35,7 +35,8 @@ PREDICTIONS = ("velocity", "clean", "residual")
 
 
 def velocity_from_clean(noisy: torch.Tensor, clean: torch.Tensor, t: torch.Tensor, min_time: float) -> torch.Tensor:
-    """Rectified-flow velocity of a clean-latent prediction: z_t = (1 - t) x0 + t eps gives v = eps - x0 = (z_t - x0) / t.
+    """Rectified-flow velocity of a clean-latent prediction: z_t = (1 - t) x0 + t eps gives
+    v = eps - x0 = (z_t - x0) / t.
 
     Why a small restorer predicts x0 (or x0 - cond) and not v: v = eps - x0 makes the head reproduce the noise
     it was given, about as many numbers per token as its width at the embedded scale, and it cannot do so

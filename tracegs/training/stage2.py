@@ -123,7 +123,8 @@ class Stage2DistillationModule(RestorerTrainingModule):
         """The student's on-policy rollout (Eq. 4) on ``grid`` from noise drawn from ``generator``: the
         deployment solver (``sampler.solve``) with the student's velocity under ``guidance_scale``, so the
         visited states are the deployment sampler's for the same noise, grid, guidance and adapter.
-        ``velocity(i, z, t)`` replaces the plain student velocity (training supervises each state there); returns every state."""
+        ``velocity(i, z, t)`` replaces the plain student velocity (training supervises each state there);
+        returns every state."""
         activate(self.transformer, STUDENT)
         student_cond = self.latent(batch, "student_cond")
         noise = initial_noise(student_cond.shape, generator, student_cond.device)

@@ -17,10 +17,8 @@ from __future__ import annotations
 import logging
 import shlex
 import subprocess
-import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -28,6 +26,11 @@ from omegaconf import DictConfig
 from tracegs.config.identity import command_line_overrides, derive_seed, override_key
 from tracegs.console import show
 from tracegs.errors import TraceGSError
+from tracegs.eval.replicates import write_benchmark_report
+from tracegs.io import write_json_atomic
+from tracegs.pipeline.steps import Step, data_steps, restorer_steps
+from tracegs.pipeline.upstream import quoted
+from tracegs.provenance import describe, peak_rss_gib
 
 log = logging.getLogger("tracegs")
 
@@ -53,27 +56,16 @@ STEP_OVERHEAD = 0.15  # starting a child process (torch, Hydra) per step
 STUDENT_CONDITIONS = 6  # 3/6/9 views x two snapshots in the held-out cache
 
 
-@dataclass(frozen=True)
-class Step:
-    """One child command: the console script's module under ``tracegs.cli`` and its overrides."""
-
-    app: str
-    overrides: tuple[str, ...]
-    label: str
-
-    def command(self) -> list[str]:
-        return [sys.executable, "-m", f"tracegs.cli.{self.app}", *self.overrides]
-
-
 def _merge(defaults: Sequence[str], user: Sequence[str]) -> list[str]:
     """``defaults`` with any key the user set on the command line replaced by the user's value."""
     given = {override_key(o) for o in user}
     return [o for o in defaults if override_key(o) not in given] + list(user)
 
 
-def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path, user: Sequence[str] = (),
-                    held_out_clips_per_scene: int = 2) -> list[Step]:
-    """The commands of one benchmark run, in order (see the module docstring for what is shared)."""
+def benchmark_steps(variant: str, root_seed: int, training_seeds: Sequence[int], out_dir: Path,
+                    user: Sequence[str] = (), held_out_clips_per_scene: int = 2) -> list[Step]:
+    """The pipeline's steps (tracegs.pipeline.steps) for one benchmark run, in order: the data once, the
+    restorer's steps per training seed (see the module docstring for what is shared)."""
     if not training_seeds:
         raise ValueError("benchmark.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
@@ -83,35 +75,21 @@ def benchmark_steps(root_seed: int, training_seeds: Sequence[int], out_dir: Path
               f"data.prepare.seed={derive_seed(root_seed, 'prepare')}",
               f"data.prepare.fit.seed={derive_seed(root_seed, 'fit')}",
               f"deploy.seed={derive_seed(root_seed, 'deploy')}"]
-    steps = [Step("prepare", tuple(_merge([*shared, f"seed={root_seed}", f"data.prepare.cache_dir={train_cache}"],
-                                          user)), "prepare (training scenes)"),
-             Step("prepare", tuple(_merge([*shared, f"seed={root_seed}", "data.prepare.split=test",
-                                           f"data.prepare.clips_per_scene={held_out_clips_per_scene}",
-                                           f"data.prepare.cache_dir={test_cache}"], user)),
-                  "prepare (held-out test scenes)")]
+    steps = [Step(step.app, tuple(_merge(step.overrides, user)), step.label) for step in data_steps(
+        common=[*shared, f"seed={root_seed}"], training=[f"data.prepare.cache_dir={train_cache}"],
+        held_out=[f"data.prepare.clips_per_scene={held_out_clips_per_scene}", f"data.prepare.cache_dir={test_cache}"])]
     for index, seed in enumerate(training_seeds):
-        common = [*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"]
         methods = "[3dgs,baseline,tracegs]" if index == 0 else "[baseline,tracegs]"
-        steps += [
-            Step("train", tuple(_merge([*common, "stage=baseline"], user)), f"seed {seed}: train A"),
-            Step("train", tuple(_merge([*common, "stage=stage1"], user)), f"seed {seed}: train Stage 1"),
-            Step("train", tuple(_merge([*common, "stage=stage2", "ablation=F"], user)), f"seed {seed}: train Stage 2"),
-            Step("evaluate", tuple(_merge([*common, "ablation=F", f"evaluation.methods={methods}",
-                                           f"evaluation.held_out_cache={test_cache}",
-                                           f"evaluation.out_dir={quoted(eval_dir(out_dir, seed))}"], user)),
-                 f"seed {seed}: evaluate {methods}"),
-            Step("report", tuple(_merge([*common, "ablation=F", "report.kind=privileged",
-                                         f"evaluation.held_out_cache={test_cache}",
-                                         f"report.output_dir={quoted(privileged_dir(out_dir, seed))}"], user)),
-                 f"seed {seed}: privileged gap"),
-        ]
+        replicate = restorer_steps(
+            variant, common=[*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"],
+            evaluation=[f"evaluation.methods={methods}", f"evaluation.held_out_cache={test_cache}",
+                        f"evaluation.out_dir={quoted(eval_dir(out_dir, seed))}"],
+            privileged=[f"evaluation.held_out_cache={test_cache}",
+                        f"report.output_dir={quoted(privileged_dir(out_dir, seed))}"])
+        steps += [Step(step.app, tuple(_merge(step.overrides, user)),
+                       f"seed {seed}: {step.label}" + (f" {methods}" if step.app == "evaluate" else ""))
+                  for step in replicate]
     return steps
-
-
-def quoted(path: Path) -> str:
-    """A path as a quoted Hydra override value: run folder names paste safely, but the root the user chose may
-    hold commas, brackets or '=', which would otherwise be parsed as override syntax."""
-    return "'" + str(path).replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
 def eval_dir(out_dir: Path, seed: int) -> Path:
@@ -137,17 +115,13 @@ def estimate_minutes(train_scenes: int, test_scenes: int, views: int, seeds: int
 
 def benchmark(cfg: DictConfig) -> Path:
     """Run every step (each resumes when rerun), then write ``benchmark.md`` into ``cfg.run_dir``."""
-    from tracegs.eval.replicates import write_benchmark_report
-    from tracegs.io import write_json_atomic
-    from tracegs.provenance import describe
-    from tracegs.tasks import peak_rss_gib
-
     out_dir = Path(cfg.run_dir).resolve()
     seeds = list(cfg.benchmark.training_seeds)
     user = [o for o in command_line_overrides() if override_key(o).split(".")[0] not in ("benchmark", "seed")]
-    steps = benchmark_steps(cfg.seed, seeds, out_dir, user, cfg.benchmark.held_out_clips_per_scene)
+    clips = cfg.benchmark.held_out_clips_per_scene
+    steps = benchmark_steps(cfg.ablation.name, cfg.seed, seeds, out_dir, user, clips)
     estimate = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
-                                len(cfg.evaluation.views), len(seeds), len(steps), cfg.benchmark.held_out_clips_per_scene)
+                                len(cfg.evaluation.views), len(seeds), len(steps), clips)
     show(f"tracegs-benchmark: {len(steps)} steps, about {estimate:.0f} min on two CPU cores; output in {out_dir}")
     start = time.perf_counter()
     timings: dict[str, float] = {}

@@ -1,0 +1,115 @@
+"""Table 3's variants are the files of the ablation group: a variant added as one YAML file in a config tree is
+composed, gets its own run folders, is listed for the sweep and lands in the Table 3 report."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from tracegs.config.location import CONF_DIR
+from tracegs.config.schema import register_configs
+from tracegs.config.validate import validate
+from tracegs.errors import ConfigError
+from tracegs.pipeline.reports import ablation_inputs, ablation_report
+from tracegs.pipeline.variants import per_step_variants, table3_variants
+
+# A variant Table 3 does not have: TRACE-GS with twice the retrieval-alignment weight.
+NEW_VARIANT = """# @package _global_
+# A variant beyond Table 3: TRACE-GS with lambda_ret 0.3
+defaults:
+  - override /teacher: all
+  - override /policy: "on"
+  - override /loss: default
+
+ablation:
+  name: "G"
+  description: "TRACE-GS with lambda_ret 0.3"
+  row: 8
+  train_stage2: true
+
+loss:
+  lambda_ret: 0.3
+"""
+
+
+@pytest.fixture
+def conf_with_new_variant(tmp_path) -> Path:
+    conf = tmp_path / "conf"
+    shutil.copytree(CONF_DIR, conf, ignore=shutil.ignore_patterns("__pycache__"))
+    (conf / "ablation" / "G.yaml").write_text(NEW_VARIANT)
+    return conf
+
+
+@pytest.fixture
+def hydra_in(request):
+    """Hydra initialised on a config folder; a composed command line stands for the running job's."""
+    register_configs()
+    contexts = []
+
+    def enter(conf: Path):
+        context = initialize_config_dir(config_dir=str(conf), version_base="1.3")
+        context.__enter__()
+        contexts.append(context)
+
+    yield enter
+    for context in contexts:
+        context.__exit__(None, None, None)
+
+
+def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
+    hydra_in(Path(CONF_DIR))
+    variants = table3_variants()
+    assert [v.row for v in variants] == list(range(1, len(variants) + 1))
+    assert [v.name for v in variants] == ["A", "B", "C", "D", "E", "F-", "F"]
+    assert [v.name for v in variants if not v.train_stage2] == ["A"]
+    assert per_step_variants() == ["A", "E", "F"]  # Fig. 6: A, off-policy E, on-policy F
+
+
+def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(conf_with_new_variant, hydra_in,
+                                                                               as_hydra_job, tmp_path):
+    hydra_in(conf_with_new_variant)
+    # composed
+    cfg = compose(config_name="train", overrides=["stage=stage2", "ablation=G"])
+    validate(cfg)
+    assert cfg.ablation.name == "G" and cfg.loss.lambda_ret == pytest.approx(0.3)
+    # identified: its own Stage-2 and evaluation folders, named by it
+    names = [v.name for v in table3_variants()]
+    assert names[-1] == "G" and len(names) == 8
+    stage2 = {v: str(compose(config_name="train", overrides=["stage=stage2", f"ablation={v}"]).run_dir)
+              for v in names}
+    assert len(set(stage2.values())) == len(names) and Path(stage2["G"]).parent.name == "G"
+    # swept: the sweep script's lists
+    env = {**os.environ, "TRACEGS_CONF": str(conf_with_new_variant)}
+    listed = [subprocess.run([sys.executable, "-m", "tracegs.pipeline.variants", *flag], env=env, check=True,
+                             capture_output=True, text=True).stdout.strip() for flag in ((), ("--trained",))]
+    assert listed == [",".join(names), ",".join(names[1:])]
+    # reported: Table 3 reads every variant's evaluation folder, the new one's last
+    report = as_hydra_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
+                               f"report.output_dir={tmp_path / 'report'}"])
+    inputs = ablation_inputs(report)
+    assert len(set(inputs)) == len(names) and inputs[-1].parent.name == "G"
+    for variant, folder in zip(names, inputs):
+        method = "baseline" if variant == "A" else "tracegs"
+        folder.mkdir(parents=True)
+        row = {"psnr": 20.0, "ssim": 0.5, "lpips": 0.2}
+        (folder / "results.json").write_text(json.dumps({method: {"3": row}, "meta": {"variant": variant}}))
+    table = ablation_report(report).read_text()
+    assert [line.split("|")[1].strip() for line in table.splitlines()[2:] if line.startswith("|")][-1] == "G"
+
+
+@pytest.mark.parametrize(("edit", "field"), [(("name: \"G\"", "name: \"F\""), "ablation.name"),
+                                             (("row: 8", "row: 7"), "ablation.row")])
+def test_a_variant_that_would_share_a_folder_or_a_row_is_refused(conf_with_new_variant, hydra_in, edit, field):
+    new = conf_with_new_variant / "ablation" / "G.yaml"
+    new.write_text(new.read_text().replace(*edit))
+    hydra_in(conf_with_new_variant)
+    with pytest.raises(ConfigError, match=r"ablation/G\.yaml") as error:
+        table3_variants()
+    assert error.value.field == field

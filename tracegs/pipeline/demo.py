@@ -1,0 +1,107 @@
+"""``tracegs-demo``: the whole pipeline (tracegs.pipeline.steps) in this process on the composed experiment,
+ending with the tables it produced."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning
+from omegaconf import DictConfig
+
+from tracegs.console import show
+from tracegs.eval.report import results_table_markdown
+from tracegs.eval.seeds import per_step_points
+from tracegs.io import atomic_write, write_json_atomic
+from tracegs.pipeline.evaluate import evaluate
+from tracegs.pipeline.prepare import prepare
+from tracegs.pipeline.steps import HELD_OUT_SPLIT, Step, data_steps, restorer_steps
+from tracegs.pipeline.train import train
+from tracegs.pipeline.upstream import compose_run, quoted
+from tracegs.provenance import describe, peak_rss_gib
+
+log = logging.getLogger("tracegs")
+
+TASKS = {"prepare": prepare, "train": train, "evaluate": evaluate}
+
+
+def demo_steps(variant: str, views: Sequence[int]) -> list[Step]:
+    """The demo's steps. The test scenes are prepared (held-out clips) and deployed at ``views`` input views
+    only (the demo's ``evaluation.views``); the training clips keep every student view count. The evaluation's
+    held-out cache is the test prepare's, filled in by ``demo``; it holds no teacher R_d (the held-out clips
+    score restorers from R_s only; ``report.kind=privileged`` needs a cache with one)."""
+    listed = "[" + ",".join(str(v) for v in views) + "]"
+    return [*data_steps(held_out=(f"data.prepare.student_views={listed}", "data.prepare.dense_views=[]")),
+            *restorer_steps(variant, evaluation=(HELD_OUT_SPLIT, f"evaluation.views={listed}",
+                                                 "evaluation.save_models=true"))]
+
+
+def demo(cfg: DictConfig) -> Path:
+    """The whole pipeline on the composed experiment: prepare -> A -> Stage 1 -> Stage 2 (the configured
+    variant) -> evaluation.
+
+    The evaluation writes straight into the demo's folder (tables, held-out clips, Fig. 6, grids, videos,
+    refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings) and ``tables.md``.
+    """
+    start = time.perf_counter()
+    out_dir = Path(cfg.run_dir)
+    timings: dict[str, float] = {}
+    steps = demo_steps(cfg.ablation.name, cfg.evaluation.views)
+    held_out_cache = None
+    for index, step in enumerate(steps, 1):
+        extra = step.overrides
+        if step.app == "evaluate":
+            # Quoted: the root the user chose may hold ',' or '=', which unquoted are override syntax.
+            extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
+                     f"evaluation.out_dir={quoted(out_dir)}")
+        step_cfg = compose_run(step.app, extra)
+        if HELD_OUT_SPLIT in extra and step.app == "prepare":
+            held_out_cache = Path(step_cfg.data.prepare.cache_dir)
+        lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
+        log.info("[demo %d/%d] %s %s", index, len(steps), step.app, " ".join(extra))
+        step_start = time.perf_counter()
+        TASKS[step.app](step_cfg)
+        label = " ".join([step.app, *(e for e in extra if not e.startswith("evaluation."))])
+        timings[label] = round(time.perf_counter() - step_start, 1)
+    run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
+           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings}
+    write_json_atomic(run, out_dir / "run.json")
+    with atomic_write(out_dir / "tables.md") as tmp:
+        tmp.write_text(demo_tables_markdown(out_dir, run))
+    show((out_dir / "tables.md").read_text())
+    show(f"tracegs-demo: finished in {run['wall_s']:.0f} s, peak RSS {run['peak_rss_gib']:.2f} GiB")
+    show(f"tracegs-demo: tables, grids, videos, refined PLYs and plots in {out_dir.resolve()}")
+    return out_dir
+
+
+def demo_tables_markdown(out_dir: Path, run: dict) -> str:
+    """The demo's tables, ready to paste, headed by the run that produced them."""
+    machine = run["machine"]
+    lines = [f"Commit {run['commit']}, seed {run['seed']}, {machine['cpu']} ({machine['cores']} cores, "
+             f"torch {machine['torch']}): {run['wall_s'] / 60:.1f} min, peak RSS {run['peak_rss_gib']:.2f} GiB.", "",
+             "Deployment on the test scenes:", "",
+             results_table_markdown(json.loads((out_dir / "results.json").read_text()))]
+    intervals = out_dir / "intervals.md"
+    if intervals.is_file():
+        scenes = len(json.loads((out_dir / "per_scene.json").read_text()))
+        lines += [f"The same with 95% intervals over its {scenes} test scenes (with this few scenes the intervals "
+                  "are wide; `make benchmark` runs enough scenes and seeds to resolve smaller gaps):", "",
+                  intervals.read_text()]
+    held_out = out_dir / "held_out_clips.md"
+    if held_out.is_file():
+        lines += ["Held-out clips (is the restorer's output closer to ground truth than its input R_s?):", "",
+                  held_out.read_text()]
+    per_step = out_dir / "per_step.json"
+    if per_step.is_file():
+        lines += ["Fig. 6, clean-frame prediction along the restorer's own trajectory (PSNR, dB):", "",
+                  "| method | first step | minimum | final |", "|---|---|---|---|"]
+        for method, curve in json.loads(per_step.read_text()).items():
+            points = per_step_points(curve)
+            lines.append(f"| {method} | " + " | ".join(f"{points[p]:.2f}" for p in ("first", "min", "final")) + " |")
+        lines.append("")
+        if (out_dir / "per_step_intervals.md").is_file():
+            lines += [(out_dir / "per_step_intervals.md").read_text()]
+    return "\n".join(lines)

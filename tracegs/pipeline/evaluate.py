@@ -1,0 +1,65 @@
+"""``tracegs-evaluate`` and ``tracegs-deploy``: restore-refine deployment of the test scenes."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from tracegs.deploy.scenes import deploy_scenes
+from tracegs.eval.clips import clip_restoration_psnr
+from tracegs.eval.evaluate import evaluate as run_evaluation
+from tracegs.eval.report import write_held_out_report
+from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
+from tracegs.pipeline.restorers import ground_truth_renderer, restorers_for_run, test_scenes
+from tracegs.pipeline.upstream import section
+from tracegs.splat.render import require_available
+
+log = logging.getLogger("tracegs")
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
+    require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
+    check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
+    shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
+    with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
+        results = run_evaluation(
+            section(cfg.evaluation),
+            section(cfg.data.source),
+            section(cfg.deploy),
+            section(cfg.data.prepare.fit),
+            restorers,
+            scenes=test_scenes(cfg),
+            gt_renderer=ground_truth_renderer(cfg),
+        )
+        if cfg.evaluation.held_out_cache is not None:
+            held_out_quality(cfg, restorers)
+        write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
+    log.info("evaluation written to %s", cfg.evaluation.out_dir)
+    return results
+
+
+def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
+    """Score each diffusion restorer against its input R_s on the held-out clips (eval/clips.py)."""
+    pipelines = {method: r.pipeline for method, r in restorers.items() if r is not None}
+    quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                    progress=cfg.evaluation.progress)
+    table = write_held_out_report(quality, cfg.evaluation.out_dir)
+    log.info("held-out clip quality: %s", table)
+    return table
+
+
+def deploy(cfg: DictConfig) -> list[Path]:
+    """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
+    require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
+    restorer = restorers_for_run(cfg, [method])[method]
+    check_run_record(cfg, "deploy", cfg.run_dir)
+    with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
+        written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
+                                section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+        write_run_record(cfg, "deploy", cfg.run_dir)
+    return written

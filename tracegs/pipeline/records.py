@@ -1,0 +1,104 @@
+"""Run records and product locks: a finished product is kept with the settings and input contents that made
+it, so an identical run reuses it, a changed input recomputes it and one folder never holds two runs."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+from filelock import FileLock
+from omegaconf import DictConfig, OmegaConf
+
+from tracegs.config.identity import differing_keys, scoped_values
+from tracegs.content import content_digest, root_relative
+from tracegs.errors import ConfigError, require_writable_dir
+from tracegs.io import atomic_write, write_json_atomic
+
+log = logging.getLogger("tracegs")
+
+RUN_RECORD = "run_identity.json"
+LOCK_FILE = ".tracegs.lock"
+# The products of earlier runs each kind loads: their content is part of the record (an edit recomputes).
+INPUT_ARTIFACTS = {"stage1": ("baseline_weights",), "stage2": ("baseline_weights", "stage1_adapter")}
+
+
+def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
+    """Content digests of the earlier products a ``kind`` run reads (tracegs.content)."""
+    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
+    return {f"content.{name}": content_digest(path) for name, path in paths.items()
+            if path is not None and Path(path).exists()}
+
+
+def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
+    """Whether ``folder`` holds a finished ``kind`` run of exactly ``cfg`` and of the same input contents.
+
+    A folder whose recorded settings differ (an explicit ``run_dir`` or an older version of the code) is
+    refused, naming the differing keys, instead of being resumed or overwritten. A folder whose inputs changed
+    since its product was made is cleared for recomputation (its checkpoints would resume the stale run).
+    """
+    record = Path(folder) / RUN_RECORD
+    if not record.is_file():
+        return False
+    recorded = json.loads(record.read_text())
+    inputs = input_digests(cfg, kind)
+    # Records made before paths were stored relative to the root name them absolutely.
+    root = OmegaConf.select(cfg, "paths.root_dir") or "."
+    settings = {k: root_relative(v, root) for k, v in recorded.items() if not k.startswith("content.")}
+    differing = differing_keys(settings, scoped_values(cfg, kind))
+    if differing:
+        raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
+                          f"({', '.join(differing[:6])} differ): choose another run_dir")
+    stale = differing_keys({k: v for k, v in recorded.items() if k.startswith("content.")}, inputs)
+    if stale:
+        changed = ", ".join(f"artifacts.{key.removeprefix('content.')}" for key in stale)
+        log.info("%s: the content of %s changed since this product was made: recomputing it", folder, changed)
+        record.unlink()
+        shutil.rmtree(Path(folder) / "checkpoints", ignore_errors=True)
+        return False
+    return True
+
+
+def reuse_finished(cfg: DictConfig, kind: str, folder: str | Path, product: str | Path) -> bool:
+    """Whether ``product`` is the finished product of this very run (same settings and input contents): then
+    nothing is done, and the log says so."""
+    if check_run_record(cfg, kind, folder) and Path(product).exists():
+        log.info("%s: %s already holds this run's product (same settings and inputs): nothing to do", kind, product)
+        return True
+    return False
+
+
+@contextlib.contextmanager
+def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)) -> Iterator[None]:
+    """One job per product folder: a second identical job (another shell, a parallel multirun launcher) waits
+    here, then finds the product finished and reuses it. ``shard`` (index, count): the shards of one product
+    write their own files and run in parallel, each under its own lock.
+
+    A job that fails leaves no lock file it made, nor the folder if it made it and nothing else is in it (an
+    identical job waiting on that lock would fail the same way)."""
+    folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / (LOCK_FILE if shard[1] == 1 else f"{LOCK_FILE}.shard{shard[0]}of{shard[1]}")
+    made_lock = not lock.exists()
+    try:
+        with FileLock(lock):
+            yield
+    except BaseException:
+        if made_lock:
+            lock.unlink(missing_ok=True)
+        if created and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
+
+
+def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
+    """Keep beside a finished product the settings that determine it (paths relative to the root), the contents
+    of the inputs it was made from, and the whole resolved config."""
+    folder = Path(folder)
+    write_json_atomic({**scoped_values(cfg, kind), **input_digests(cfg, kind)}, folder / RUN_RECORD)
+    with atomic_write(folder / "config.yaml") as tmp:
+        tmp.write_text(OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True))

@@ -1,0 +1,128 @@
+"""``tracegs-report``: one function per report kind (tracegs.config.schema.ReportKind)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from tracegs.console import show
+from tracegs.data.prepare import merge_manifests
+from tracegs.deploy.assembly import AdapterFile, shared_restorers
+from tracegs.eval.clips import clip_restoration_psnr, held_out_clip_curves
+from tracegs.eval.conclusions import PER_STEP_PAIRS
+from tracegs.eval.interval_tables import write_per_step_intervals
+from tracegs.eval.merge import merge_results
+from tracegs.eval.per_step import mean_curves
+from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
+from tracegs.eval.report import plot_per_step_quality, write_ablation_report, write_held_out_report
+from tracegs.eval.seeds import seed_spread_markdown
+from tracegs.io import atomic_write, write_json_atomic
+from tracegs.pipeline.restorers import restorers_for_run
+from tracegs.pipeline.upstream import compose_run, locate_artifacts, section, upstream_config
+from tracegs.pipeline.variants import per_step_variants, table3_variants
+
+
+def report(cfg: DictConfig) -> Path:
+    """Merge evaluation shards (main), prepare shards (prepare), an ablation sweep (ablation), or another kind."""
+    kind = cfg.report.kind
+    if kind == "prepare":
+        return merge_manifests(cfg.data.prepare.cache_dir)
+    if kind == "main":
+        out = Path(cfg.evaluation.out_dir)
+        merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods))
+        return out / "results.json"
+    # report.kind is checked at composition (tracegs.config.schema.ReportKind).
+    return {"per_step": per_step_report, "seeds": seed_report, "privileged": privileged_report,
+            "ablation": ablation_report}[kind](cfg)
+
+
+def ablation_inputs(cfg: DictConfig) -> list[Path]:
+    """The folders in ``report.inputs``, else the evaluation folder of every variant (conf/ablation/) that this
+    command line's settings give, in Table 3's row order."""
+    return [Path(p) for p in cfg.report.inputs] or [
+        Path(upstream_config(cfg, "evaluate", variant.name).evaluation.out_dir) for variant in table3_variants()]
+
+
+def ablation_report(cfg: DictConfig) -> Path:
+    """Table 3 from the evaluations of an ablation sweep (:func:`ablation_inputs`)."""
+    table = write_ablation_report(ablation_inputs(cfg), Path(cfg.report.output_dir))
+    show(table.read_text())
+    intervals = table.with_name("table3_intervals.md")
+    if intervals.is_file():
+        show(intervals.read_text())
+    return table
+
+
+def require_held_out_cache(cfg: DictConfig) -> None:
+    if cfg.evaluation.held_out_cache is None:
+        raise ValueError(f"evaluation.held_out_cache: report.kind={cfg.report.kind} needs a prepared held-out cache "
+                         "(tracegs-prepare data.prepare.split=test)")
+
+
+def privileged_report(cfg: DictConfig) -> Path:
+    """The privileged gap (eval/privileged.py): the Stage-1 adapter and the Stage-2 student (this config's
+    variant) restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
+    require_held_out_cache(cfg)
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter", "student_adapter"])
+    if not Path(cfg.artifacts.stage1_adapter).exists():
+        raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
+                                "(run tracegs-train stage=stage1 with the same settings)")
+    pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
+        section(cfg.backbone), cfg.artifacts.baseline_weights,
+        {"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1", "stage1"),
+         "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
+        batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
+    # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.
+    gap = privileged_gap(pipelines, cfg.evaluation.held_out_cache, teacher_views=cfg.teacher.views,
+                         student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,
+                         progress=cfg.evaluation.progress)
+    out = Path(cfg.report.output_dir)
+    write_json_atomic(gap, out / "privileged_gap.json")
+    with atomic_write(out / "privileged_gap.md") as tmp:
+        tmp.write_text(privileged_gap_markdown(gap))
+    show((out / "privileged_gap.md").read_text())
+    return out / "privileged_gap.md"
+
+
+def seed_report(cfg: DictConfig) -> Path:
+    """Each figure of several demo runs (one per seed) as mean, sd and range: ``report/seeds.md``."""
+    if len(cfg.report.inputs) < 2:
+        raise ValueError("report.inputs: report.kind=seeds needs the folders of two or more demo runs")
+    table = Path(cfg.report.output_dir) / "seeds.md"
+    with atomic_write(table) as tmp:
+        tmp.write_text(seed_spread_markdown(list(cfg.report.inputs)))
+    show(table.read_text())
+    return table
+
+
+def per_step_report(cfg: DictConfig) -> Path:
+    """Fig. 6 across variants (default: those of the paper's per-step claims, on-policy F vs off-policy E and
+    A) on the clips of a prepared cache, with each variant's final restoration scored against its input R_s
+    (``held_out_clips.md``).
+
+    Any split's cache works: the test split's held-out clips, or the validation split's
+    (``tracegs-prepare data.prepare.split=val``), on which the embedded default's settings are chosen.
+    """
+    require_held_out_cache(cfg)
+    pipelines = {}
+    for variant in list(cfg.report.inputs) or per_step_variants():
+        # Each variant's own config says which restorer stands for it and where its student adapter is.
+        variant_cfg = compose_run("report", [f"ablation={variant}"])
+        method = variant_cfg.ablation.method
+        pipelines[variant] = restorers_for_run(variant_cfg, [method])[method].pipeline
+    clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                       progress=cfg.evaluation.progress)
+    curves = mean_curves([c for _, c in clip_curves])
+    by_scene = {(scene, "all"): mean_curves([c for s, c in clip_curves if s == scene])
+                for scene in dict.fromkeys(s for s, _ in clip_curves)}
+    out = Path(cfg.report.output_dir)
+    write_json_atomic(curves, out / "per_step_variants.json")
+    bands = write_per_step_intervals(by_scene, out, "per_step_variants", pairs=list(PER_STEP_PAIRS))
+    figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
+    for variant, curve in curves.items():
+        show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+    quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                    progress=cfg.evaluation.progress)
+    show(write_held_out_report(quality, out).read_text())
+    return figure

@@ -1,0 +1,55 @@
+"""``tracegs-train``: one training stage (A, Stage 1 or Stage 2) into its run folder, reused when finished."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from tracegs.pipeline.records import product_lock, reuse_finished, write_run_record
+from tracegs.pipeline.upstream import locate_artifacts, section
+from tracegs.training.config import TrainConfig
+from tracegs.training.run import PRODUCTS, train_stage
+
+log = logging.getLogger("tracegs")
+
+# The earlier products each stage loads.
+STAGE_INPUTS = {"baseline": [], "stage1": ["baseline_weights"], "stage2": ["baseline_weights", "stage1_adapter"]}
+
+
+def train(cfg: DictConfig) -> Path | None:
+    """Train ``cfg.stage.name`` into ``cfg.run_dir``; a variant that trains no student (A) trains no Stage 2."""
+    if cfg.stage.name == "stage2" and not cfg.ablation.train_stage2:
+        log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
+        return None
+    if cfg.stage.name == "baseline" and cfg.experiment.baseline_steps == 0:
+        # Paper scale: variant A is GSFixer's pretrained restorer, loaded where it is used; the sweep's first
+        # command must pass on to Stage 1 rather than stop.
+        log.info("experiment %s: variant A is the pretrained restorer %s; nothing to train", cfg.experiment.name,
+                 cfg.backbone.transformer.pretrained_path)
+        return None
+    locate_artifacts(cfg, STAGE_INPUTS[cfg.stage.name])
+    with product_lock(cfg.run_dir, "run_dir"):
+        if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]):
+            return Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]
+        return train_locked(cfg)
+
+
+def train_locked(cfg: DictConfig) -> Path:
+    """Train (or resume) ``cfg.stage.name`` in its run folder, whose lock this process holds."""
+    train_cfg = TrainConfig(
+        stage=section(cfg.stage),
+        optimizer=section(cfg.optimizer),
+        loss=section(cfg.loss),
+        teacher=section(cfg.teacher),
+        policy=section(cfg.policy),
+        trainer=section(cfg.trainer),
+        backbone=section(cfg.backbone),
+        data=section(cfg.data.datamodule),
+        output_dir=cfg.run_dir,
+    )
+    product = train_stage(train_cfg)
+    write_run_record(cfg, cfg.stage.name, cfg.run_dir)
+    log.info("%s product: %s", cfg.stage.name, product)
+    return product

@@ -1,0 +1,87 @@
+"""Upstream lookup: the config of the earlier run whose product a run needs, and where that product lies.
+
+A later stage never asks where an earlier one wrote: it recomputes the earlier run's folder from its own
+command line with the run-identity rule (tracegs.config.identity), so products are found by content.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from hydra import compose
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from tracegs.config.identity import command_line_overrides, override_key
+from tracegs.config.schema import AUTO
+from tracegs.config.validate import validate
+from tracegs.training.run import PRODUCTS
+
+
+def section(node: DictConfig) -> Any:
+    """The dataclass instance behind a structured config node (interpolations resolved)."""
+    return OmegaConf.to_object(node)
+
+
+# Overrides of Stage 2's own settings and of the ablation axes: they describe the run being started, not
+# the earlier runs it builds on (every Table 3 variant clones the one Stage-1 adapter).
+_STAGE_OWN = ("stage", "optimizer")
+_ABLATION_AXES = ("ablation", "teacher", "policy")
+
+
+def _carried(override: str, upstream: str, from_training: bool) -> bool:
+    root = override_key(override).split(".")[0].split("/")[0]
+    if root == "hydra":
+        return False
+    if from_training and root in _STAGE_OWN:
+        return False
+    return not (upstream in ("baseline", "stage1") and root in (*_STAGE_OWN, *_ABLATION_AXES))
+
+
+def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> DictConfig:
+    """The config of the earlier run whose product ``cfg`` needs: the same command line, its own stage.
+
+    ``kind`` is "baseline", "stage1", "stage2" or "evaluate" (the last two for ``variant``, default the
+    variant of ``cfg.ablation``). The earlier run's folder follows from this config by the run-identity
+    rule (tracegs.config.identity).
+    """
+    from_training = cfg.task == "train"
+    variant = variant or cfg.ablation.name
+    extra = {"evaluate": [f"ablation={variant}"],
+             "stage2": ["stage=stage2", f"ablation={variant}"]}.get(kind, [f"stage={kind}"])
+    replaced = {override_key(o) for o in extra}
+    overrides = [o for o in command_line_overrides()
+                 if _carried(o, kind, from_training) and override_key(o) not in replaced]
+    return compose(config_name="evaluate" if kind == "evaluate" else "train", overrides=[*overrides, *extra])
+
+
+def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
+    """Replace each needed "auto" artifact by the product of the run the identity rule finds for ``cfg``.
+
+    The run's own folders are resolved first and kept, so they stay named by the configuration as given.
+    """
+    for key in ("run_dir", "evaluation.out_dir"):
+        OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
+    producers = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
+    for artifact in needed:
+        if cfg.artifacts[artifact] != AUTO:
+            continue
+        producer = producers[artifact]
+        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
+
+
+def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` with this run's command-line overrides and ``extra`` (which wins), validated."""
+    replaced = {override.split("=", 1)[0] for override in extra}
+    user = [o for o in HydraConfig.get().overrides.task if o.split("=", 1)[0] not in replaced]
+    cfg = compose(config_name=config_name, overrides=[*user, *extra])
+    validate(cfg)
+    return cfg
+
+
+def quoted(path: Path) -> str:
+    """A path as a quoted Hydra override value: run folder names paste safely, but the root the user chose may
+    hold commas, brackets or '=', which would otherwise be parsed as override syntax."""
+    return "'" + str(path).replace("\\", "\\\\").replace("'", "\\'") + "'"

@@ -1,0 +1,65 @@
+"""The Table 3 variants, read from the config tree: one YAML file per variant in its ``ablation`` group
+(conf/ablation/), ordered by the row each declares. Adding a variant is adding its file; the sweep trains and
+evaluates it and the Table 3 report lists it.
+
+``python -m tracegs.pipeline.variants [--trained]`` prints the names comma-separated (the sweep script's list;
+``--trained``: only the variants that train a Stage-2 student).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+from tracegs.config.location import CONF_DIR
+from tracegs.config.schema import AblationConfig, register_configs
+from tracegs.errors import ConfigError
+from tracegs.eval.conclusions import PER_STEP_PAIRS
+
+GROUP = "ablation"
+
+
+def table3_variants() -> list[AblationConfig]:
+    """Every variant of the ablation group on the active Hydra search path, in Table 3's row order.
+
+    A variant's name must be its file's: the run folders (``.../stage2/<name>/``) and the upstream lookup
+    (``ablation=<name>``) use it; two variants on one row would leave the table's order undefined."""
+    variants = []
+    rows: dict[int, str] = {}
+    for option in GlobalHydra.instance().config_loader().get_group_options(GROUP):
+        variant = OmegaConf.to_object(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
+        if variant.name != option:
+            raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "
+                                               f"name it {option!r}, as its file")
+        if variant.row in rows:
+            raise ConfigError(f"{GROUP}.row", f"{GROUP}/{option}.yaml and {GROUP}/{rows[variant.row]}.yaml both "
+                                              f"take Table 3 row {variant.row}")
+        rows[variant.row] = option
+        variants.append(variant)
+    return sorted(variants, key=lambda variant: variant.row)
+
+
+def in_table_order(names: Iterable[str]) -> list[str]:
+    """``names`` (variants) sorted by their Table 3 rows."""
+    wanted = set(names)
+    return [variant.name for variant in table3_variants() if variant.name in wanted]
+
+
+def per_step_variants() -> list[str]:
+    """The variants Fig. 6 compares (those of the paper's per-step claims), in Table 3's row order."""
+    return in_table_order(name for pair in PER_STEP_PAIRS for name in pair)
+
+
+def main(argv: list[str]) -> None:
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        variants = table3_variants()
+    print(",".join(v.name for v in variants if v.train_stage2 or "--trained" not in argv))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -15,6 +15,7 @@ from omegaconf.errors import ConfigKeyError
 from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
+from tracegs.eval.metrics import require_lpips
 
 __all__ = ["ConfigError", "validate", "validate_names"]
 
@@ -221,7 +222,13 @@ def _validate_deployment(cfg: DictConfig) -> None:
 MIN_CAPTURED_VIEWS = 2
 
 
+# Commands that score images (and so compute LPIPS when the experiment requires it).
+SCORING_TASKS = ("evaluate", "restore", "demo", "benchmark")
+
+
 def _validate_evaluation(cfg: DictConfig) -> None:
+    if cfg.task in SCORING_TASKS:  # before any work: the paper's tables are not made without LPIPS
+        require_lpips(cfg.evaluation.lpips, cfg.evaluation.require_lpips, cfg.evaluation.lpips_weights)
     unknown = [m for m in cfg.evaluation.methods if m not in METHODS]
     _require(not unknown, "evaluation.methods", f"unknown methods {unknown}; choose from {list(METHODS)}")
     # capture.views first: tracegs-restore's evaluation.views is made of it, and the user typed capture.views.

@@ -218,10 +218,18 @@ def command_line_overrides() -> list[str]:
 
 
 def register_resolvers() -> None:
-    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}`` and ``${tracegs.seed:<stream>}`` for the YAML."""
+    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}`` and
+    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` for the YAML."""
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind, command_line_overrides()), replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.cache", lambda split, _root_: cache_name(_root_, split, command_line_overrides()), replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
+    OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
+
+
+def gpus_per_node(ranks: int, trainer_gpus: int) -> int:
+    """GPUs one cluster job asks for on a node: one per rank where the trainer uses GPUs, none where it does not
+    (``trainer.cluster.gpus_per_node`` sizes a training job; a one-process command needs one GPU, not four)."""
+    return int(ranks) if int(trainer_gpus) > 0 else 0

@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
+from tracegs.data.colmap import require_training_source
 from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
@@ -94,6 +95,8 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.split",
         f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
     )
+    if cfg.task == "prepare" and cfg.data.source.preset != "synthetic":  # training data, never benchmark scenes
+        require_training_source(OmegaConf.to_object(cfg.data.source))
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
     snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
     _require(

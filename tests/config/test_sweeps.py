@@ -13,8 +13,6 @@ from unittest import mock
 import pytest
 import yaml
 
-from tracegs.cli.train import main as train_main
-
 REPO = Path(__file__).resolve().parents[2]
 
 

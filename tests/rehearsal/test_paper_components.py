@@ -78,8 +78,9 @@ def test_missing_vggt_names_the_package(rehearsal_root):
         build_backbone(backbone_config(rehearsal_root))
 
 
-def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root):
-    """A user without VGGT gets one line naming the package, not a traceback."""
+def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root, paper_data):
+    """A user without VGGT gets one line naming the package, not a traceback (the data is in place: its scene
+    lists are checked first)."""
     run = subprocess.run([sys.executable, "-m", "tracegs.cli.prepare", "experiment=rehearsal",
                           f"paths.root_dir={rehearsal_root}", "hydra.run.dir=" + str(rehearsal_root / "run")],
                          capture_output=True, text=True, timeout=300)

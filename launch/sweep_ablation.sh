@@ -6,9 +6,9 @@
 #          (one job each, all loading the same Stage-1 checkpoint) -> evaluation of A..F -> Table 3 ->
 #          Fig. 6 (A, off-policy E, on-policy F along their reverse trajectories on held-out clips;
 #          synthetic benchmark only).
-# SLURM:   hydra/launcher=slurm takes nodes / tasks_per_node and the trainer's cluster resources
-#          (GPUs, CPUs, memory, time) from the trainer group, so `trainer=ddp trainer.devices=4` sizes
-#          every job; every step, including the report, runs on compute nodes.
+# SLURM:   hydra/launcher=slurm sizes each job from the trainer group: `trainer=ddp trainer.devices=4` gives
+#          training jobs four ranks on four GPUs, and every other step one process on one GPU; CPUs,
+#          memory and time come from trainer.cluster. Every step, including the report, runs on compute nodes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 where="${1:-local}"; shift || true

@@ -103,7 +103,7 @@ def test_every_group_option_composes_alone_at_either_scale(group, option, scale)
         launcher = cfg.hydra.launcher
         if option == "slurm":
             assert launcher.nodes == cfg.trainer.num_nodes
-            assert str(launcher.tasks_per_node) == str(cfg.trainer.devices)
+            assert str(launcher.tasks_per_node) == str(cfg.trainer.devices)  # training: a rank per device
             assert launcher.max_num_timeout == 0  # Lightning, not submitit, owns requeueing
         return
     cfg = compose(config_name="train", overrides=[f"experiment={scale}", f"{group}={option}"])

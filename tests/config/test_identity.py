@@ -216,7 +216,24 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     assert cache("backbone.codec.latent_channels=16") != cache()
     assert cache("backbone.reference_encoder.patch_size=4") != cache()
     restorer = "data.prepare.pseudo_target=restorer"
-    assert cache(restorer, "backbone.schedule.train_time_power=0") != cache(restorer)
+    assert cache(restorer, "backbone.schedule.deploy_steps=7") != cache(restorer)
+    assert cache(restorer, "data.prepare.pseudo_target_guidance=2") != cache(restorer)
+    assert cache(restorer, "backbone.transformer.num_layers=3") != cache(restorer)
+
+
+@pytest.mark.parametrize("experiment", ["embedded", "rehearsal"])
+def test_settings_that_do_not_change_a_restoration_keep_a_restorer_made_cache(experiment):
+    """Pseudo-targets from the frozen restorer: its adapters, memory settings, where the encoders live, the
+    training-time density and the deployment guidance never touch the cached bytes, so they keep the cache."""
+    base = [f"experiment={experiment}", "data.prepare.pseudo_target=restorer"]
+
+    def cache(*overrides: str) -> str:
+        return str(compose(config_name="train", overrides=[*base, *overrides]).data.datamodule.cache_dir)
+
+    for setting in ("backbone.lora.rank=4", "backbone.transformer.gradient_checkpointing=true",
+                    "backbone.offload_encoders=true", "backbone.sampler.guidance_scale=3",
+                    "backbone.schedule.train_time_power=2", "backbone.sampler.seed=5"):
+        assert cache(setting) == cache(), setting
 
 
 def test_a_product_made_from_other_inputs_is_made_again(tmp_path):

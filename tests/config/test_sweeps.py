@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import subprocess
 import sys
@@ -12,16 +13,20 @@ from unittest import mock
 import pytest
 import yaml
 
-from tracegs.cli.train import main as train_main
-
 REPO = Path(__file__).resolve().parents[2]
 
 
-def train_stdout(*argv: str) -> str:
-    """`tracegs-train <argv>` run through its entry point in this process."""
-    with mock.patch.object(sys, "argv", ["tracegs-train", *argv]), contextlib.redirect_stdout(io.StringIO()) as out:
-        train_main()
+def command_stdout(command: str, *argv: str) -> str:
+    """`tracegs-<command> <argv>` run through its entry point in this process."""
+    main = importlib.import_module(f"tracegs.cli.{command}").main
+    with mock.patch.object(sys, "argv", [f"tracegs-{command}", *argv]), \
+            contextlib.redirect_stdout(io.StringIO()) as out:
+        main()
     return out.getvalue()
+
+
+def train_stdout(*argv: str) -> str:
+    return command_stdout("train", *argv)
 
 
 def test_multirun_cfg_prints_one_config_per_job():
@@ -51,6 +56,18 @@ def test_slurm_launcher_requests_what_the_trainer_uses(trainer, gpus, tasks):
     assert launcher["name"] == "tracegs-train-stage1-F"
     if gpus == 0:  # a CPU trainer asks for neither a GPU nor the paper-scale budget
         assert launcher["mem_gb"] < 200 and launcher["timeout_min"] < 2880
+
+
+@pytest.mark.parametrize("command", ["evaluate", "deploy", "report", "prepare"])
+def test_a_one_process_command_asks_slurm_for_one_task_and_one_gpu(command):
+    """Only training has ranks: an evaluation on the paper's 4-GPU DDP trainer is one process on one GPU (four
+    tasks would run four identical evaluations on the first GPU)."""
+    launcher = yaml.safe_load(command_stdout(command, "hydra/launcher=slurm", "experiment=paper", "trainer=ddp",
+                                             "--cfg", "hydra", "--resolve"))["launcher"]
+    assert (launcher["nodes"], launcher["tasks_per_node"], launcher["gpus_per_node"]) == (1, 1, 1)
+    training = yaml.safe_load(train_stdout("hydra/launcher=slurm", "experiment=paper", "trainer=ddp",
+                                           "trainer.num_nodes=2", "--cfg", "hydra", "--resolve"))["launcher"]
+    assert (training["nodes"], training["tasks_per_node"], training["gpus_per_node"]) == (2, 4, 4)
 
 
 def test_a_failing_sweep_job_is_reported_and_the_others_run(tmp_path):

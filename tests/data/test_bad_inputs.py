@@ -52,7 +52,7 @@ def scene_root(tmp: Path) -> Path:
     return tmp / "scenes"
 
 
-PREPARE = ["data=mipnerf360", "data.source.image_dir=images", "data.source.height=32", "data.source.width=48",
+PREPARE = ["data=custom", "data.source.height=32", "data.source.width=48",
            "data.prepare.pseudo_target=dense", "data.prepare.student_snapshots=[140,340]",
            "data.prepare.frames_per_clip=9", "data.datamodule.student_snapshots=[140,340]"]
 

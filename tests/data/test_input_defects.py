@@ -22,7 +22,7 @@ from tracegs.restorer import adapters
 from tracegs.restorer.build import create_transformer
 
 # A one-scene prepare at the smallest sizes (one student set, 16-iteration fits): seconds, not minutes.
-TINY_PREPARE = ["data=mipnerf360", "data.source.image_dir=images", "data.source.height=32", "data.source.width=48",
+TINY_PREPARE = ["data=custom", "data.source.height=32", "data.source.width=48",
                 "data.prepare.pseudo_target=dense", "data.prepare.student_views=[3]", "data.prepare.dense_views=[null]",
                 "data.prepare.student_snapshots=[8]", "data.prepare.fit.iterations=16",
                 "data.prepare.fit.snapshot_iters=[8,16]", "data.datamodule.student_views=[3]",

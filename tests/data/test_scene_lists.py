@@ -48,3 +48,30 @@ def test_evaluating_a_training_scene_is_refused_before_any_work(stage, tmp_path)
         else:
             deploy_scenes(cfg, source, refine_cfg, fit, None, ["ring"], out)
     assert not out.exists()
+
+
+TRAINING_ON_A_BENCHMARK = {
+    # Mip-NeRF 360 with no training list (the README's `tracegs-prepare data=mipnerf360`): every folder.
+    "mipnerf360_every_folder": ("mipnerf360", "garden", [], "null, so every scene under "),
+    "nerfbusters_named": ("nerfbusters", "pikachu", ["data.source.scenes=[pikachu]"],
+                          "scene 'pikachu' is a NeRFBusters benchmark scene"),
+    # DL3DV: the benchmark scenes are the user's benchmark_scenes.txt.
+    "dl3dv_without_a_training_list": ("dl3dv", "0a1b2c", ["data.source.train_list=null"], "null, so every scene"),
+    "dl3dv_benchmark_scene_listed": ("dl3dv", "0a1b2c", ["data.source.scenes=[0a1b2c]"],
+                                     "scene '0a1b2c' is on source.test_list="),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TRAINING_ON_A_BENCHMARK))
+def test_preparing_training_data_from_benchmark_scenes_is_refused_before_any_work(entry_point, tmp_path, case):
+    data, scene, extra, named = TRAINING_ON_A_BENCHMARK[case]
+    root = tmp_path / "data"
+    write_scene(root / scene)
+    (root / "benchmark_scenes.txt").write_text(f"{scene}\n")
+    out = tmp_path / "out"
+    result = entry_point("prepare", ["experiment=rehearsal", f"data={data}", f"data.source.root={root}",
+                                     f"paths.root_dir={out}", *extra], tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    (line,) = result.stderr_lines()
+    assert line.startswith(f"tracegs-prepare: error: config field 'data.source.train_list': {named}"), line
+    assert not out.exists()  # refused before Hydra's run folder, a model or a scene was touched

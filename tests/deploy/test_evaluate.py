@@ -19,6 +19,7 @@ import lightning as L
 import pytest
 import torch
 from torch import nn
+from vgg16_layout import write_vgg16_weights
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig
@@ -102,6 +103,21 @@ def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_pat
     evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None, **{k: restorers[k] for k in ("baseline", "tracegs")}},
              scenes=[scene.name])
     assert unit_file.stat().st_mtime_ns != stamp
+
+
+def test_a_unit_scored_without_lpips_is_scored_again_once_it_can_be(scene_root, tmp_path):
+    """LPIPS availability is part of a unit's identity: putting the VGG16 file in place later fills the column."""
+    source = SceneSourceConfig(root=str(scene_root))
+    fit_cfg, refine_cfg = _configs()
+    weights = tmp_path / "vgg16-397923af.pth"
+    cfg = EvaluationConfig(out_dir=str(tmp_path / "eval"), views=[3], methods=["3dgs"], lpips_weights=str(weights),
+                           save_media=False, per_step=False, progress=False, workers=1)
+    first = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
+    assert first["3dgs"]["3"]["lpips"] is None and "not found" in first["meta"]["lpips"]
+    write_vgg16_weights(weights)
+    again = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
+    assert isinstance(again["3dgs"]["3"]["lpips"], float) and again["meta"]["lpips"].startswith("LPIPS-VGG")
+    assert again["3dgs"]["3"]["psnr"] == first["3dgs"]["3"]["psnr"]  # the same fit, now with its LPIPS
 
 
 def test_sharded_and_parallel_evaluation_agree(scene_root, tmp_path):

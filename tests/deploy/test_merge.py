@@ -14,7 +14,8 @@ def _unit(scene, views, base):
     for i, m in enumerate(("3dgs", "baseline", "tracegs")):
         per_view = [{"psnr": base + i + d, "ssim": 0.5, "lpips": None} for d in (0.0, 2.0)]
         methods[m] = {"per_view": per_view, "mean": {"psnr": base + i + 1.0, "ssim": 0.5, "lpips": None}}
-    return {"scene": scene, "views": views, "lpips": "LPIPS n/a: torchvision is not installed",
+    return {"scene": scene, "views": views,
+            "lpips": "LPIPS n/a: VGG16 ImageNet weights not found at /hub/vgg16-397923af.pth",
             "methods": methods, "per_step": {"baseline": [1.0, 2.0], "tracegs": [1.0, 3.0]}}
 
 
@@ -43,7 +44,7 @@ def test_merge_averages_scene_means_and_writes_the_layout(tmp_path):
             assert cell["psnr"] == pytest.approx(15.0 + int(k) + i + 1.0)
             assert cell["lpips"] is None
     assert on_disk["meta"]["scenes"] == ["a", "b"]
-    assert "torchvision" in on_disk["meta"]["lpips"]
+    assert "VGG16 ImageNet weights not found" in on_disk["meta"]["lpips"]
     assert (tmp_path / "table.md").is_file() and (tmp_path / "table.csv").is_file()
     assert json.loads((tmp_path / "per_step.json").read_text())["tracegs"] == [1.0, 3.0]
     assert (tmp_path / "fig6_per_step.png").is_file()

@@ -24,7 +24,8 @@ def _results(offset: float = 0.0, lpips=None):
         method: {v: {"psnr": 10.0 + i + int(v) + offset, "ssim": 0.1 * (i + 1), "lpips": lpips}
                  for v in ("3", "6", "9")}
         for i, method in enumerate(("3dgs", "baseline", "tracegs"))
-    } | {"meta": {"lpips": "LPIPS n/a: torchvision is not installed", "scenes": ["s0", "s1"]}}
+    } | {"meta": {"lpips": "LPIPS n/a: VGG16 ImageNet weights not found at /hub/vgg16-397923af.pth",
+                  "scenes": ["s0", "s1"]}}
 
 
 def test_results_table_has_a_column_per_evaluated_view_count():
@@ -41,7 +42,7 @@ def test_results_table_layout_and_formats(tmp_path):
     assert lines[0].split("|")[2].strip() == "PSNR↑ 3" and "LPIPS↓ 9" in lines[0]
     assert [line.split("|")[1].strip() for line in lines[2:5]] == ["3DGS", "Baseline (A)", "TRACE-GS"]
     assert "| TRACE-GS | 15.00 | 18.00 | 21.00 | 0.300 | 0.300 | 0.300 | n/a | n/a | n/a |" in md
-    assert "LPIPS n/a: torchvision is not installed" in md and "2 scene(s)" in md
+    assert "LPIPS n/a: VGG16 ImageNet weights not found" in md and "2 scene(s)" in md
 
     paths = write_results_tables(results, tmp_path, stem="table1")
     rows = list(csv.DictReader(paths["csv"].open()))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 from gsfixer_layout import write_gsfixer_folder
+from vgg16_layout import write_vgg16_weights
 
 from tracegs.restorer.config import BackboneConfig
 
@@ -91,6 +92,7 @@ def write_weights(cfg: BackboneConfig, weights: Path) -> Path:
     write_t5(cfg, weights)
     write_dinov2(cfg, weights)
     write_vggt_config(cfg, weights)
+    write_vgg16_weights(weights / "vgg16-397923af.pth")  # LPIPS, which the paper's tables require
     return weights
 
 

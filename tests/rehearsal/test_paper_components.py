@@ -78,8 +78,9 @@ def test_missing_vggt_names_the_package(rehearsal_root):
         build_backbone(backbone_config(rehearsal_root))
 
 
-def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root):
-    """A user without VGGT gets one line naming the package, not a traceback."""
+def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root, paper_data):
+    """A user without VGGT gets one line naming the package, not a traceback (the data is in place: its scene
+    lists are checked first)."""
     run = subprocess.run([sys.executable, "-m", "tracegs.cli.prepare", "experiment=rehearsal",
                           f"paths.root_dir={rehearsal_root}", "hydra.run.dir=" + str(rehearsal_root / "run")],
                          capture_output=True, text=True, timeout=300)
@@ -92,9 +93,14 @@ def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root):
 def test_gsplat_without_cuda_is_refused_before_any_work(tmp_path, entry_point):
     """``experiment=paper`` rasterizes with gsplat; on a machine without CUDA every 3DGS entry point refuses
     at once, naming the field, instead of failing inside the first fit (after loading every model)."""
+    # No weights or data here: LPIPS (required by the rehearsal too) and prepare's training scene lists, both
+    # checked first, are taken out of the way.
+    no_lists = ["data.source.scenes=[scene_000]", "data.source.train_list=null", "data.source.test_list=null"]
     run = subprocess.run([sys.executable, "-m", f"tracegs.cli.{entry_point}", "experiment=rehearsal",
-                          "data.prepare.fit.backend=gsplat", f"paths.root_dir={tmp_path}",
-                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+                          "data.prepare.fit.backend=gsplat", "evaluation.require_lpips=false",
+                          *(no_lists if entry_point == "prepare" else []),
+                          f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"],
+                         capture_output=True, text=True, timeout=300)
     assert run.returncode == 2, run.stderr[-2000:]
     assert "data.prepare.fit.backend='gsplat' needs CUDA" in run.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no weights read, no data or outputs written

@@ -82,6 +82,8 @@ def check_products(root: Path, results: dict, views: list[int], extra: tuple[str
     for method in ("3dgs", "baseline", "tracegs"):
         for k in views:
             assert math.isfinite(results[method][str(k)]["psnr"])
+            assert results[method][str(k)]["lpips"] > 0  # required at paper scale, from weights/vgg16-397923af.pth
+    assert results["meta"]["lpips"].startswith("LPIPS-VGG")
 
 
 def fresh_root(tmp_path: Path, rehearsal_root: Path, paper_data: dict[str, Path]) -> Path:

@@ -26,7 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from tracegs.content import root_relative, scene_digest
-from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
+from tracegs.restorer.config import ENCODING_SECTIONS, NOT_IN_RESTORATIONS, RESTORATION_SECTIONS, cache_sections
 
 DIGEST_CHARS = 8
 READABLE_MAX_CHARS = 80
@@ -84,6 +84,8 @@ _STAGE2_ONLY = {"experiment.stage2_steps", "experiment.stage2_lr", "experiment.s
 _IGNORED_PER_KIND["stage1"] |= _STAGE2_ONLY
 # A trains the whole transformer: no adapter, no Stage-1 budget.
 _IGNORED_PER_KIND["baseline"] |= {*_STAGE2_ONLY, "experiment.stage1_steps", "experiment.stage1_lr", "backbone.lora"}
+# A cache holds what its restorations are made of, not how they are computed (restorer.config).
+_IGNORED_PER_KIND["prepare"] = {f"backbone.{key}" for key in NOT_IN_RESTORATIONS}
 _IGNORED_PER_KIND = {kind: frozenset(keys) for kind, keys in _IGNORED_PER_KIND.items()}
 
 # Hydra's own overrides and path-like keys never name a run.
@@ -119,8 +121,9 @@ def scope(cfg: DictConfig, kind: str) -> tuple[str, ...]:
     restorer makes depends on the whole backbone."""
     if kind not in SCOPES:
         raise ValueError(f"unknown run kind {kind!r} (one of {sorted(SCOPES)})")
-    if kind == "prepare" and cache_made_with_whole_backbone(OmegaConf.select(cfg, "data.prepare.pseudo_target")):
-        return (*SCOPES[kind], "backbone")
+    if kind == "prepare":
+        sections = cache_sections(OmegaConf.select(cfg, "data.prepare.pseudo_target"))
+        return (*SCOPES[kind], *(f"backbone.{section}" for section in sections if section in RESTORATION_SECTIONS))
     return SCOPES[kind]
 
 
@@ -218,10 +221,18 @@ def command_line_overrides() -> list[str]:
 
 
 def register_resolvers() -> None:
-    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}`` and ``${tracegs.seed:<stream>}`` for the YAML."""
+    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}`` and
+    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` for the YAML."""
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind, command_line_overrides()), replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.cache", lambda split, _root_: cache_name(_root_, split, command_line_overrides()), replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
+    OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
+
+
+def gpus_per_node(ranks: int, trainer_gpus: int) -> int:
+    """GPUs one cluster job asks for on a node: one per rank where the trainer uses GPUs, none where it does not
+    (``trainer.cluster.gpus_per_node`` sizes a training job; a one-process command needs one GPU, not four)."""
+    return int(ranks) if int(trainer_gpus) > 0 else 0

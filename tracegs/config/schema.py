@@ -178,6 +178,16 @@ class BenchmarkConfig:
 
 
 @dataclass
+class ProcessesConfig:
+    """The processes one job of a command runs (what a SLURM job asks for: nodes, tasks per node). Training runs a
+    rank per device (conf/train.yaml: trainer.num_nodes x trainer.devices); every other command is one process on
+    one device, with no rank logic, so its cluster job asks for one task."""
+
+    nodes: int = 1
+    per_node: int = 1
+
+
+@dataclass
 class TraceGSConfig:
     """Root of every composed config (prepare, train, deploy, evaluate, report, demo)."""
 
@@ -189,6 +199,7 @@ class TraceGSConfig:
     run_dir: str = "${paths.experiment_dir}/${task}"
     # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
     job_name: str = "${task}-${stage.name}-${ablation.name}"
+    processes: ProcessesConfig = field(default_factory=ProcessesConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
     artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)

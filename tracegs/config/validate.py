@@ -12,9 +12,11 @@ from collections.abc import Iterable
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
+from tracegs.data.colmap import require_training_source
 from tracegs.data.config import overlapping_seeds
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
+from tracegs.eval.metrics import require_lpips
 
 __all__ = ["ConfigError", "validate", "validate_names"]
 
@@ -93,6 +95,8 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.split",
         f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
     )
+    if cfg.task == "prepare" and cfg.data.source.preset != "synthetic":  # training data, never benchmark scenes
+        require_training_source(OmegaConf.to_object(cfg.data.source))
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
     snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
     _require(
@@ -222,7 +226,13 @@ def _validate_deployment(cfg: DictConfig) -> None:
 MIN_CAPTURED_VIEWS = 2
 
 
+# Commands that score images (and so compute LPIPS when the experiment requires it).
+SCORING_TASKS = ("evaluate", "restore", "demo", "benchmark")
+
+
 def _validate_evaluation(cfg: DictConfig) -> None:
+    if cfg.task in SCORING_TASKS:  # before any work: the paper's tables are not made without LPIPS
+        require_lpips(cfg.evaluation.lpips, cfg.evaluation.require_lpips, cfg.evaluation.lpips_weights)
     unknown = [m for m in cfg.evaluation.methods if m not in METHODS]
     _require(not unknown, "evaluation.methods", f"unknown methods {unknown}; choose from {list(METHODS)}")
     # capture.views first: tracegs-restore's evaluation.views is made of it, and the user typed capture.views.

@@ -14,9 +14,9 @@ import numpy as np
 import torch
 
 from tracegs.config.location import CONF_DIR
-from tracegs.data.config import SceneSourceConfig
+from tracegs.data.config import SceneSourceConfig, SourcePreset
 from tracegs.data.images import read_rgb, resize
-from tracegs.errors import InputFileError, plain_name_problem
+from tracegs.errors import ConfigError, InputFileError, plain_name_problem
 from tracegs.io import atomic_directory
 from tracegs.splat.cameras import Camera
 
@@ -120,6 +120,48 @@ def require_held_out(scenes: list[str], training: list[str], field: str) -> None
                                "needs held-out scenes")
 
 
+# Benchmarks of which every scene is a test scene (out of domain, Table 2): their published scene lists ship
+# with the configs. DL3DV's benchmark scenes are the user's source.test_list (README: the paper's 28 are not named).
+BENCHMARK_LISTS = {
+    SourcePreset.mipnerf360: ("Mip-NeRF 360", "data/scenes/mipnerf360_benchmark.txt"),
+    SourcePreset.nerfbusters: ("NeRFBusters", "data/scenes/nerfbusters_benchmark.txt"),
+}
+
+
+def require_not_benchmark(names: list[str], cfg: SceneSourceConfig) -> None:
+    """Refuse to train on a benchmark scene, before any work: a scene of this dataset's published benchmark, or
+    one on ``source.test_list`` (the DL3DV-Benchmark scenes)."""
+    benchmarks = []
+    if cfg.preset in BENCHMARK_LISTS:
+        label, path = BENCHMARK_LISTS[cfg.preset]
+        benchmarks.append((f"a {label} benchmark scene (conf/{path})", read_scene_list(path, "benchmark list")))
+    if cfg.test_list is not None:
+        benchmarks.append((f"on source.test_list={cfg.test_list!r}", read_scene_list(cfg.test_list,
+                                                                                     "source.test_list")))
+    for label, listed in benchmarks:
+        shared = [name for name in names if name in set(listed)]
+        if shared:
+            raise ConfigError("data.source.train_list", f"scene {shared[0]!r} is {label}: benchmark scenes are "
+                                                        "evaluated, never trained on; list the training scenes in "
+                                                        "data.source.train_list (or data.source.scenes)")
+
+
+def require_training_source(cfg: SceneSourceConfig) -> None:
+    """The training scenes a config names hold no benchmark scene, checked from the config and its lists before
+    any model is loaded or scene read. Without a training list every scene under the root would be trained on:
+    refused where the root holds benchmark scenes (a benchmark-only dataset, or a root with a test list)."""
+    if cfg.scenes is None and cfg.train_list is None:
+        if cfg.preset in BENCHMARK_LISTS or cfg.test_list is not None:
+            held = (f"{BENCHMARK_LISTS[cfg.preset][0]} benchmark scenes" if cfg.preset in BENCHMARK_LISTS
+                    else f"the benchmark scenes of source.test_list={cfg.test_list!r}")
+            raise ConfigError("data.source.train_list", f"null, so every scene under {cfg.root} would be trained "
+                                                        f"on, {held} included; list the training scenes in "
+                                                        "data.source.train_list (or data.source.scenes)")
+        return
+    names = list(cfg.scenes) if cfg.scenes is not None else read_scene_list(cfg.train_list, "source.train_list")
+    require_not_benchmark(names, cfg)
+
+
 def training_scenes(cfg: SceneSourceConfig) -> list[str]:
     """The scenes named by ``cfg.train_list`` (none when it is unset)."""
     return [] if cfg.train_list is None else read_scene_list(cfg.train_list, "source.train_list")
@@ -131,6 +173,13 @@ def list_scenes(cfg: SceneSourceConfig, split: str = "train") -> list[str]:
     a scene on both is refused, so evaluation never runs on a scene the restorer was trained on."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    names = _split_scenes(cfg, split)
+    if split == "train":
+        require_not_benchmark(names, cfg)
+    return names
+
+
+def _split_scenes(cfg: SceneSourceConfig, split: str) -> list[str]:
     if cfg.scenes is not None:
         return list(cfg.scenes)
     lists = {"train": cfg.train_list, "test": cfg.test_list}

@@ -135,6 +135,9 @@ class PrepareConfig:
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)
+    # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
+    # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
+    pseudo_target_guidance: float = 6.0
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = field(default_factory=CaptionConfig)
     shard_index: int = 0

@@ -59,7 +59,7 @@ from tracegs.io import (
 )
 from tracegs.processes import die_with_parent, run_units
 from tracegs.restorer.build import Backbone
-from tracegs.restorer.config import ENCODING_SECTIONS, cache_made_with_whole_backbone
+from tracegs.restorer.config import NOT_IN_RESTORATIONS, cache_sections
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import View, fit_gaussians
@@ -146,9 +146,11 @@ def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     # Where and how the work runs (folders, shards, worker processes) does not change a shard's bytes.
     ignored = ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet", "workers")
     relevant = {k: v for k, v in asdict(cfg).items() if k not in ignored}
-    made_with = asdict(backbone.cfg)
-    if not cache_made_with_whole_backbone(cfg.pseudo_target):
-        made_with = {section: made_with[section] for section in ENCODING_SECTIONS}
+    backbone_values = asdict(backbone.cfg)
+    made_with = {section: backbone_values[section] for section in cache_sections(cfg.pseudo_target)}
+    for key in NOT_IN_RESTORATIONS:
+        section, _, leaf = key.partition(".")
+        made_with.get(section, {}).pop(leaf, None)
     return settings_digest({"prepare": relevant, "backbone": made_with})
 
 
@@ -268,7 +270,8 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         target = conditions[dense_condition(cfg)]
     else:
         target = pipeline.restore(conditions[dense_condition(cfg)][None], ref_images[None], [caption],
-                                  seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"))[0]
+                                  seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"),
+                                  guidance_scale=cfg.pseudo_target_guidance)[0]
         target = target.clamp(0, 1).cpu()
     tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
     for key, frames in conditions.items():

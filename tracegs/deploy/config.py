@@ -68,6 +68,10 @@ class EvaluationConfig:
     workers: int = 2
     lpips: bool = True
     lpips_convention: str = "3dgs"  # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
+    # torchvision's VGG16 ImageNet weights (vgg16-397923af.pth) for LPIPS; None = the torch hub cache's copy.
+    lpips_weights: str | None = None
+    # Stop before any work when LPIPS cannot be computed (the paper's tables report it); else "n/a" in tables.
+    require_lpips: bool = False
     per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists
     save_media: bool = True  # qualitative grid PNG + comparison video per scene/view count
     save_models: bool = False  # each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)

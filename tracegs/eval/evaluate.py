@@ -35,7 +35,7 @@ from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.deploy.scenes import SceneUnit, evaluation_units, load_unit, save_model
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
-from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips_convention
+from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips, require_lpips_convention
 from tracegs.eval.per_step import per_step_psnr
 from tracegs.eval.report import METHOD_LABELS, save_comparison_video, save_frames, save_qualitative_grid
 from tracegs.io import write_json_atomic
@@ -298,6 +298,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     if unknown:
         raise ValueError(f"evaluation.methods has unknown methods {unknown}; choose from {list(METHODS)}")
     require_lpips_convention(cfg.lpips_convention, "evaluation.lpips_convention")
+    require_lpips(cfg.lpips, cfg.require_lpips, cfg.lpips_weights)
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
     require_available(fit_cfg.backend, "data.prepare.fit.backend")
@@ -309,10 +310,11 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir")
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
-    job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers,
-                   ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention), gt_renderer,
+    metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights)
+    # The LPIPS label says whether LPIPS was computed: a unit scored without it is scored again once it can be.
+    job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers, metrics, gt_renderer,
                    _fingerprint(refine_cfg, fit_cfg, dataclasses.replace(source, root=""), restorer_ids, cfg.methods,
-                                cfg.lpips_convention))
+                                metrics.lpips_label))
     done: dict[tuple[str, int], dict] = {}
     todo = []
     for key in evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards):

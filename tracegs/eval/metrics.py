@@ -1,9 +1,11 @@
 """Image-quality metrics of the evaluation protocol (supplement B, "Metric computation").
 
 PSNR and SSIM come from torchmetrics at data range 1 (images in [0, 1]); SSIM uses torchmetrics'
-default 11x11 Gaussian window with sigma 1.5. LPIPS uses torchmetrics' VGG variant, which needs
-torchvision and the ImageNet VGG16 weights in the torch hub cache; without them LPIPS is reported as
-unavailable with the reason, never as a made-up number.
+default 11x11 Gaussian window with sigma 1.5. LPIPS is LPIPS-VGG (``tracegs.eval.lpips_vgg``: torchmetrics'
+heads on a VGG16 trunk read from torchvision's ImageNet weights file, ``evaluation.lpips_weights``, by default
+where the torch hub cache keeps it); without that file LPIPS is reported as unavailable with the reason,
+never as a made-up number, unless the experiment requires it (``evaluation.require_lpips``), in which case
+the run stops before any work.
 
 Averaging follows the paper: each metric is averaged over a scene's test views first, then the
 unweighted mean is taken over scenes. Reference (captured) frames are not test views and must not be
@@ -12,7 +14,6 @@ passed in.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -22,6 +23,9 @@ import torch
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
+from tracegs.errors import ConfigError
+from tracegs.eval.lpips_vgg import LpipsVgg
+
 METRIC_NAMES = ("psnr", "ssim", "lpips")
 VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
 
@@ -30,8 +34,8 @@ VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
 # normalize=False with unscaled [0, 1] inputs. The LPIPS authors' convention maps [0, 1] to [-1, 1]
 # first (torchmetrics normalize=True). The two give different numbers, so every table names its own.
 LPIPS_CONVENTIONS = {
-    "3dgs": "LPIPS-VGG (torchmetrics, normalize=False on unscaled [0,1] images, as the official 3DGS metrics.py)",
-    "standard": "LPIPS-VGG (torchmetrics, normalize=True: [0,1] images mapped to [-1,1])",
+    "3dgs": "LPIPS-VGG (unscaled [0,1] images, as the official 3DGS metrics.py; torchmetrics normalize=False)",
+    "standard": "LPIPS-VGG ([0,1] images mapped to [-1,1]; torchmetrics normalize=True)",
 }
 
 
@@ -55,14 +59,30 @@ def vgg16_weights_path() -> Path:
     return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_WEIGHTS_FILE
 
 
-def lpips_availability() -> LpipsAvailability:
-    """Check the two prerequisites of LPIPS-VGG without downloading anything."""
-    if importlib.util.find_spec("torchvision") is None:
-        return LpipsAvailability(False, "torchvision is not installed (extra 'tracegs[lpips]')")
-    weights = vgg16_weights_path()
-    if not weights.is_file():
-        return LpipsAvailability(False, f"VGG16 ImageNet weights not found at {weights}")
+def lpips_weights_file(weights: str | None) -> Path:
+    """The VGG16 weights LPIPS reads: ``weights`` (evaluation.lpips_weights), else the torch hub cache's copy."""
+    return Path(weights) if weights is not None else vgg16_weights_path()
+
+
+def lpips_availability(weights: str | None = None) -> LpipsAvailability:
+    """Whether LPIPS-VGG can be computed, without downloading anything: its VGG16 weights file must exist."""
+    path = lpips_weights_file(weights)
+    if not path.is_file():
+        return LpipsAvailability(False, f"VGG16 ImageNet weights not found at {path}")
     return LpipsAvailability(True)
+
+
+def require_lpips(enabled: bool, required: bool, weights: str | None) -> None:
+    """Stop before any work when the experiment requires LPIPS (its tables report it) and it cannot be computed."""
+    if not required:
+        return
+    if not enabled:
+        raise ConfigError("evaluation.lpips", "false, but this experiment requires LPIPS (evaluation.require_lpips)")
+    status = lpips_availability(weights)
+    if not status.available:
+        raise ConfigError("evaluation.lpips_weights", f"{status.reason}; this experiment requires LPIPS "
+                                                      "(evaluation.require_lpips): put torchvision's VGG16 ImageNet "
+                                                      "weights (vgg16-397923af.pth) there")
 
 
 def _as_batch(image: Tensor, name: str) -> Tensor:
@@ -76,18 +96,15 @@ def _as_batch(image: Tensor, name: str) -> Tensor:
 class ImageMetrics:
     """Runtime evaluator of PSNR / SSIM / LPIPS between renders and ground truth, both in [0, 1]."""
 
-    def __init__(self, lpips: bool = True, lpips_convention: str = "3dgs", device: str | torch.device = "cpu"):
+    def __init__(self, lpips: bool = True, lpips_convention: str = "3dgs", device: str | torch.device = "cpu",
+                 lpips_weights: str | None = None):
         require_lpips_convention(lpips_convention, "lpips_convention")
         self.lpips_convention = lpips_convention
-        self.lpips_status = lpips_availability() if lpips else LpipsAvailability(False, "disabled by config")
+        self.lpips_status = (lpips_availability(lpips_weights) if lpips
+                             else LpipsAvailability(False, "disabled by config"))
         self._lpips = None
         if self.lpips_status.available:
-            from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-            self._lpips = LearnedPerceptualImagePatchSimilarity(
-                net_type="vgg", normalize=lpips_convention == "standard"
-            ).to(device)
-            self._lpips.eval()
+            self._lpips = LpipsVgg(lpips_weights_file(lpips_weights)).to(device)
 
     @property
     def lpips_label(self) -> str:
@@ -110,9 +127,8 @@ class ImageMetrics:
             ssim = structural_similarity_index_measure(p, t, data_range=1.0).item()
             lpips = None
             if self._lpips is not None:
-                p_dev, t_dev = p.to(self._lpips.device), t.to(self._lpips.device)
-                lpips = self._lpips(p_dev, t_dev).item()
-                self._lpips.reset()
+                device = self._lpips.scaling_layer.shift.device
+                lpips = self._lpips(p.to(device), t.to(device), normalize=self.lpips_convention == "standard").item()
             results.append({"psnr": psnr, "ssim": ssim, "lpips": lpips})
         return results
 

@@ -180,16 +180,22 @@ class SamplerConfig:
 
 
 # The parts of a backbone a paired-clip cache is made with (supplement A.4): the codec's latents and the frozen
-# reference and text encoders' outputs. The transformer, adapters, schedule and sampler enter a cache only when
-# its pseudo-targets are restorations (data.prepare.pseudo_target=restorer); otherwise a changed training
-# setting keeps the cache.
+# reference and text encoders' outputs. When its pseudo-targets are restorations (data.prepare.pseudo_target=
+# restorer), also what makes a restoration: the transformer, the deployment schedule and the sampler. Never the
+# adapters (the generator has none), nor where the encoders live (backbone.offload_encoders).
 ENCODING_SECTIONS = ("name", "codec", "reference_encoder", "text_encoder")
+RESTORATION_SECTIONS = ("transformer", "schedule", "sampler")
+# Keys of those sections that do not change a restoration's bytes: memory settings, the training-time density,
+# the deployment guidance and seed (pseudo-targets have their own, data.prepare.pseudo_target_guidance, and a
+# seed derived from each clip).
+NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "schedule.train_time_power", "sampler.guidance_scale",
+                       "sampler.seed")
 
 
-def cache_made_with_whole_backbone(pseudo_target) -> bool:
-    """Whether a cache with these pseudo-targets depends on every backbone section, not only the encoders':
-    restorations are made by the transformer, its adapter, schedule and sampler."""
-    return str(pseudo_target) == "restorer"
+def cache_sections(pseudo_target) -> tuple[str, ...]:
+    """The backbone sections a paired-clip cache with these pseudo-targets is made with (less
+    ``NOT_IN_RESTORATIONS``)."""
+    return ENCODING_SECTIONS + (RESTORATION_SECTIONS if str(pseudo_target) == "restorer" else ())
 
 
 @dataclass

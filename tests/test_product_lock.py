@@ -28,6 +28,18 @@ def test_a_job_holds_its_folder_and_each_shard_its_own_lock(tmp_path):
         assert not held(folder / LOCK_FILE)
 
 
+def test_the_other_ranks_of_a_job_do_not_wait_for_its_lock(tmp_path, monkeypatch):
+    """Rank 1 of a DDP job runs the same command as rank 0, which holds the lock: it must go on (rank 0 waits for
+    it to join the process group)."""
+    from lightning.fabric.utilities.rank_zero import rank_zero_only
+
+    folder = tmp_path / "run"
+    with product_lock(folder, "run_dir"):
+        monkeypatch.setattr(rank_zero_only, "rank", 1)
+        with product_lock(folder, "run_dir"):  # would wait forever on rank 0's lock
+            assert held(folder / LOCK_FILE)
+
+
 def test_a_failing_job_leaves_no_folder_or_lock_it_made(tmp_path):
     folder = tmp_path / "new" / "run"
     with pytest.raises(ValueError), product_lock(folder, "run_dir"):

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from filelock import FileLock
+from lightning.fabric.utilities.rank_zero import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import differing_keys, scoped_values
@@ -78,7 +79,14 @@ def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)
     write their own files and run in parallel, each under its own lock.
 
     A job that fails leaves no lock file it made, nor the folder if it made it and nothing else is in it (an
-    identical job waiting on that lock would fail the same way)."""
+    identical job waiting on that lock would fail the same way).
+
+    Only a job's first process (rank 0) takes the lock: the other ranks of a multi-process training job run the
+    same command, and one waiting here for rank 0 while rank 0 waits for it to join the process group would
+    deadlock."""
+    if rank_zero_only.rank != 0:
+        yield
+        return
     folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
     created = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)

@@ -3,8 +3,15 @@ import dataclasses
 import pytest
 import torch
 from tokenizers import Tokenizer, models, pre_tokenizers
-from transformers import (Dinov2Config, Dinov2Model, Dinov2WithRegistersConfig, Dinov2WithRegistersModel,
-                          PreTrainedTokenizerFast, T5Config, T5EncoderModel)
+from transformers import (
+    Dinov2Config,
+    Dinov2Model,
+    Dinov2WithRegistersConfig,
+    Dinov2WithRegistersModel,
+    PreTrainedTokenizerFast,
+    T5Config,
+    T5EncoderModel,
+)
 
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import QUALITY_SUFFIX, BackboneConfig, ReferenceEncoderConfig, TextEncoderConfig

@@ -22,7 +22,6 @@ from tracegs.restorer import adapters
 from tracegs.restorer.build import CheckpointMismatchError, create_transformer, load_transformer
 from tracegs.restorer.config import TransformerConfig
 
-
 TINY = TransformerConfig(
     num_layers=2, num_attention_heads=2, attention_head_dim=16, latent_channels=4, text_embed_dim=12,
     max_text_seq_length=5, time_embed_dim=16, sample_frames=9, sample_height=4, sample_width=6,

@@ -26,7 +26,12 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from tracegs.content import root_relative, scene_digest
-from tracegs.restorer.config import ENCODING_SECTIONS, NOT_IN_RESTORATIONS, RESTORATION_SECTIONS, cache_sections
+from tracegs.restorer.config import (
+    ENCODING_SECTIONS,
+    NOT_IN_RESTORATIONS,
+    RESTORATION_SECTIONS,
+    cache_sections,
+)
 
 DIGEST_CHARS = 8
 READABLE_MAX_CHARS = 80

@@ -20,7 +20,6 @@ from tracegs.content import content_digest
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
-from tracegs.io import content_digest as digest
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig

@@ -72,6 +72,7 @@ def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
     assert per_step_variants() == ["A", "E", "F"]  # Fig. 6: A, off-policy E, on-policy F
 
 
+@pytest.mark.slow  # runs the ablation report on a copied config tree (~18 s)
 def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(conf_with_new_variant, hydra_in,
                                                                                as_hydra_job, tmp_path):
     hydra_in(conf_with_new_variant)

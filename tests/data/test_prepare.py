@@ -225,6 +225,7 @@ def test_changed_settings_are_not_mistaken_for_finished_work(tmp_path, prepared,
     assert {p: p.stat().st_mtime_ns for p in Path(fitted.work_dir).rglob("*.ply")} == fits
 
 
+@pytest.mark.slow  # two worker processes import torch and fit (~12 s)
 def test_parallel_workers_give_the_same_products(tmp_path, prepared, backbone):
     """Fits and clip renders in two worker processes (one thread each) equal the in-process run byte for byte:
     the fitted PLYs and every cache file (shards with their header metadata, scene files, manifest, sheet)."""

@@ -79,6 +79,7 @@ def test_restore_writes_ply_video_grid_and_scores(capture, restored):
     assert not list(run.rglob("*.tmp"))
 
 
+@pytest.mark.slow  # restores a capture twice more (~17 s); the identity rules are unit-tested in tests/config
 def test_a_copied_capture_is_the_same_run_and_an_edited_one_recomputes(capture, restored, tmp_path):
     """The capture is known by its images and reconstruction: a copy elsewhere reuses the finished run; an image
     replaced in the copy makes a new run, which scores the edited capture."""

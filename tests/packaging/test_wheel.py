@@ -20,6 +20,7 @@ def _run(command: list, **kwargs) -> subprocess.CompletedProcess:
                           **kwargs)
 
 
+@pytest.mark.slow  # builds a wheel and a fresh venv (~14 s)
 def test_wheel_installs_in_a_fresh_venv_and_composes(tmp_path):
     # Build from a copy of the sources, so the wheel cannot lean on the checkout and no build/ folder
     # lands in it; --no-build-isolation uses this venv's setuptools (nothing is downloaded).

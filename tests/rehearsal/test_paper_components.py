@@ -78,6 +78,7 @@ def test_missing_vggt_names_the_package(rehearsal_root):
         build_backbone(backbone_config(rehearsal_root))
 
 
+@pytest.mark.slow  # a subprocess through the entry point; test_missing_vggt_names_the_package runs by default
 def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root, paper_data):
     """A user without VGGT gets one line naming the package, not a traceback (the data is in place: its scene
     lists are checked first)."""
@@ -89,7 +90,8 @@ def test_missing_vggt_is_one_line_and_exit_2(rehearsal_root, paper_data):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU-only refusal")
-@pytest.mark.parametrize("entry_point", ["prepare", "deploy", "evaluate"])
+@pytest.mark.parametrize("entry_point", [pytest.param("prepare", marks=pytest.mark.slow),
+                                         pytest.param("deploy", marks=pytest.mark.slow), "evaluate"])
 def test_gsplat_without_cuda_is_refused_before_any_work(tmp_path, entry_point):
     """``experiment=paper`` rasterizes with gsplat; on a machine without CUDA every 3DGS entry point refuses
     at once, naming the field, instead of failing inside the first fit (after loading every model)."""

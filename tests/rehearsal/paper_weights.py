@@ -151,6 +151,7 @@ def write_vggt_double_package(folder: Path) -> Path:
     (folder / "vggt" / "__init__.py").write_text("")
     (module / "__init__.py").write_text("")
     (module / "vggt.py").write_text(
-        f"import sys\nsys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        # paper_weights imports the layout tables of tests/ (gsfixer_layout, vgg16_layout): both folders on the path
+        f"import sys\nsys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]\n"
         "from paper_weights import VggtDouble as VGGT  # noqa: E402,F401\n")
     return folder

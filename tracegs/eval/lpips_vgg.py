@@ -41,8 +41,9 @@ def vgg16_features() -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def read_vgg16_features(path: str | Path, field: str) -> dict[str, Tensor]:
-    """The ``features.*`` tensors of a torchvision VGG16 state-dict file (the classifier's are not used)."""
+def read_vgg16_features(path: str | Path, field: str, expected: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The ``features.*`` tensors of a torchvision VGG16 state-dict file (the classifier's are not used), checked
+    key for key and shape for shape against ``expected`` (the trunk's state dict)."""
     path = Path(path)
     fix = f"point {field} at torchvision's VGG16 ImageNet weights (vgg16-397923af.pth)"
     try:
@@ -54,9 +55,9 @@ def read_vgg16_features(path: str | Path, field: str) -> dict[str, Tensor]:
     if not isinstance(state, dict):
         raise InputFileError(path, f"holds a {type(state).__name__}, not a state dict", fix)
     features = {key.removeprefix("features."): value for key, value in state.items() if key.startswith("features.")}
-    expected = vgg16_features().state_dict()
-    for key in sorted(set(features) - set(expected)):
-        raise InputFileError(path, f"not VGG16's features: 'features.{key}' is not in VGG16's trunk", fix)
+    extra = sorted(set(features) - set(expected))
+    if extra:
+        raise InputFileError(path, f"not VGG16's features: 'features.{extra[0]}' is not in VGG16's trunk", fix)
     for key, value in expected.items():
         if key not in features or features[key].shape != value.shape:
             found = tuple(features[key].shape) if key in features else "missing"
@@ -72,7 +73,7 @@ class LpipsVgg(nn.Module):
         super().__init__()
         self.scaling_layer = torchmetrics_lpips.ScalingLayer()
         self.features = vgg16_features()
-        self.features.load_state_dict(read_vgg16_features(vgg16_weights, field))
+        self.features.load_state_dict(read_vgg16_features(vgg16_weights, field, self.features.state_dict()))
         self.heads = nn.ModuleList(torchmetrics_lpips.NetLinLayer(c, use_dropout=True) for c in TAP_CHANNELS)
         heads = torch.load(HEADS_FILE, map_location="cpu", weights_only=True)
         for index, head in enumerate(self.heads):

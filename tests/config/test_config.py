@@ -184,6 +184,9 @@ def test_wrong_type_names_the_field():
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",
           "backbone.schedule.deploy_time_power=0"], "backbone.transformer.prediction"),
+        # training deploys on validation scenes, never on a training (scene_000) or test scene (scene_100)
+        (["stage.deployment_eval.scenes=[scene_050,scene_000]"], "stage.deployment_eval.scenes"),
+        (["stage.deployment_eval.scenes=[scene_100]"], "stage.deployment_eval.scenes"),
     ],
 )
 def test_invalid_combination_names_the_field(overrides, field):
@@ -192,6 +195,14 @@ def test_invalid_combination_names_the_field(overrides, field):
         validate(cfg)
     assert error.value.field == field
     assert f"'{field}'" in str(error.value)
+
+
+def test_deployment_eval_is_off_by_default_and_takes_validation_scenes():
+    assert list(compose(config_name="train").stage.deployment_eval.scenes) == []
+    cfg = compose(config_name="train", overrides=["stage.deployment_eval.scenes=[scene_050,scene_051]",
+                                                  "stage.deployment_eval.every_n_steps=25"])
+    validate(cfg)
+    assert cfg.stage.deployment_eval.every_n_steps == 25 and list(cfg.stage.deployment_eval.views) == [3]
 
 
 def test_cli_prints_resolved_paper_config():

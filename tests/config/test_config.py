@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ from omegaconf import OmegaConf
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.validate import ConfigError, validate
+from tracegs.pipeline.steps import SWEEP_TEACHERS
 
 CONF = Path(CONF_DIR)
 REPO = Path(__file__).resolve().parents[2]
@@ -127,18 +127,12 @@ def test_dataset_options_are_sized_by_the_experiment(data):
         assert list(cfg.data.prepare.student_snapshots) == list(cfg.data.prepare.fit.snapshot_iters)[:2]
 
 
-def sweep_teacher_views() -> list[str]:
-    """The teacher conditions launch/sweep_ablation.sh prepares at the embedded scale, as its overrides."""
-    script = (REPO / "launch" / "sweep_ablation.sh").read_text()
-    overrides = re.findall(r"'(data\.prepare\.(?:dense_views|student_final_fits)=[^']*)'", script)
-    assert len(overrides) == 2, overrides
-    return overrides
 
 
 @pytest.mark.parametrize("variant", sorted(ABLATION_GRID))
 def test_ablation_variants_match_design(variant):
     views, privileged, on_policy, lambda_ret, trains = ABLATION_GRID[variant]
-    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *sweep_teacher_views()])
+    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *SWEEP_TEACHERS])
     validate(cfg)
     assert cfg.ablation.name == variant
     assert cfg.teacher.views == views

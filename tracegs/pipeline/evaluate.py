@@ -22,6 +22,7 @@ log = logging.getLogger("tracegs")
 def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    scenes = test_scenes(cfg)  # worked out (and checked held out) once, before any restorer is loaded
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
@@ -32,7 +33,7 @@ def evaluate(cfg: DictConfig) -> dict:
             section(cfg.deploy),
             section(cfg.data.prepare.fit),
             restorers,
-            scenes=test_scenes(cfg),
+            scenes=scenes,
             gt_renderer=ground_truth_renderer(cfg),
         )
         if cfg.evaluation.held_out_cache is not None:
@@ -55,11 +56,12 @@ def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
 def deploy(cfg: DictConfig) -> list[Path]:
     """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    scenes = test_scenes(cfg)
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
     check_run_record(cfg, "deploy", cfg.run_dir)
     with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
         written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                                section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+                                section(cfg.data.prepare.fit), restorer, scenes, cfg.run_dir)
         write_run_record(cfg, "deploy", cfg.run_dir)
     return written

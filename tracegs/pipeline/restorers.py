@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from omegaconf import DictConfig
 
 from tracegs.console import show
-from tracegs.data.colmap import list_scenes, require_held_out
+from tracegs.data.colmap import list_scenes, require_held_out, training_scenes
 from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark, render_ground_truth
 from tracegs.deploy.assembly import RestorerArtifacts, restorer_holdings
 from tracegs.deploy.assembly import build_restorers as assemble
@@ -27,11 +27,12 @@ def restorers_for_run(cfg: DictConfig, methods: Sequence[str]) -> dict:
 
 
 def test_scenes(cfg: DictConfig) -> list[str]:
-    """The evaluation scenes: the synthetic benchmark's test seeds (generated if missing) or the dataset's."""
+    """The evaluation scenes, worked out once per run: ``evaluation.scenes`` (refused if the restorer trains on
+    one), else the synthetic benchmark's test seeds (generated if missing) or the dataset's test list."""
     if cfg.evaluation.scenes is not None:
-        if cfg.data.source.preset == "synthetic":
-            require_held_out(list(cfg.evaluation.scenes), benchmark_scene_names(section(cfg.data.synthetic), "train"),
-                             "evaluation.scenes")
+        training = (benchmark_scene_names(section(cfg.data.synthetic), "train") if cfg.data.source.preset == "synthetic"
+                    else training_scenes(section(cfg.data.source)))
+        require_held_out(list(cfg.evaluation.scenes), training, "evaluation.scenes")
         return list(cfg.evaluation.scenes)
     if cfg.data.source.preset == "synthetic":
         synthetic = section(cfg.data.synthetic)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ from omegaconf import OmegaConf
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.validate import ConfigError, validate
+from tracegs.pipeline.steps import SWEEP_TEACHERS
 
 CONF = Path(CONF_DIR)
 REPO = Path(__file__).resolve().parents[2]
@@ -127,18 +127,12 @@ def test_dataset_options_are_sized_by_the_experiment(data):
         assert list(cfg.data.prepare.student_snapshots) == list(cfg.data.prepare.fit.snapshot_iters)[:2]
 
 
-def sweep_teacher_views() -> list[str]:
-    """The teacher conditions launch/sweep_ablation.sh prepares at the embedded scale, as its overrides."""
-    script = (REPO / "launch" / "sweep_ablation.sh").read_text()
-    overrides = re.findall(r"'(data\.prepare\.(?:dense_views|student_final_fits)=[^']*)'", script)
-    assert len(overrides) == 2, overrides
-    return overrides
 
 
 @pytest.mark.parametrize("variant", sorted(ABLATION_GRID))
 def test_ablation_variants_match_design(variant):
     views, privileged, on_policy, lambda_ret, trains = ABLATION_GRID[variant]
-    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *sweep_teacher_views()])
+    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *SWEEP_TEACHERS])
     validate(cfg)
     assert cfg.ablation.name == variant
     assert cfg.teacher.views == views
@@ -184,6 +178,9 @@ def test_wrong_type_names_the_field():
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",
           "backbone.schedule.deploy_time_power=0"], "backbone.transformer.prediction"),
+        # training deploys on validation scenes, never on a training (scene_000) or test scene (scene_100)
+        (["stage.deployment_eval.scenes=[scene_050,scene_000]"], "stage.deployment_eval.scenes"),
+        (["stage.deployment_eval.scenes=[scene_100]"], "stage.deployment_eval.scenes"),
     ],
 )
 def test_invalid_combination_names_the_field(overrides, field):
@@ -192,6 +189,14 @@ def test_invalid_combination_names_the_field(overrides, field):
         validate(cfg)
     assert error.value.field == field
     assert f"'{field}'" in str(error.value)
+
+
+def test_deployment_eval_is_off_by_default_and_takes_validation_scenes():
+    assert list(compose(config_name="train").stage.deployment_eval.scenes) == []
+    cfg = compose(config_name="train", overrides=["stage.deployment_eval.scenes=[scene_050,scene_051]",
+                                                  "stage.deployment_eval.every_n_steps=25"])
+    validate(cfg)
+    assert cfg.stage.deployment_eval.every_n_steps == 25 and list(cfg.stage.deployment_eval.views) == [3]
 
 
 def test_cli_prints_resolved_paper_config():

@@ -13,6 +13,8 @@ from unittest import mock
 import pytest
 import yaml
 
+from tracegs.pipeline.steps import SWEEP_TEACHERS, sweep_steps
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -83,11 +85,34 @@ def test_a_failing_sweep_job_is_reported_and_the_others_run(tmp_path):
     assert "Traceback" not in result.stderr
 
 
-def test_every_step_of_the_sweep_script_goes_through_the_launcher():
-    """On SLURM nothing may run on the login node: each command is a multirun through `step`."""
+@pytest.mark.parametrize("launcher", ["local", "slurm"])
+def test_every_step_of_the_sweep_is_a_multirun_through_the_launcher(launcher):
+    """On SLURM nothing may run on the login node: each step of the sweep is one multirun through the launcher."""
+    variants, trained = ["A", "B", "F"], ["B", "F"]
+    embedded = sweep_steps(variants, trained)
+    assert [step.app for step in embedded] == ["prepare", "train", "train", "train", "evaluate", "report", "prepare",
+                                               "report"]
+    for step in embedded:
+        command = step.multirun(launcher)
+        assert command[-len(step.overrides) - 2:-len(step.overrides)] == ["-m", f"hydra/launcher={launcher}"]
+        assert Path(command[0]).name == f"tracegs-{step.app}" or command[1:3] == ["-m", f"tracegs.cli.{step.app}"]
+        assert set(SWEEP_TEACHERS) <= set(step.overrides)  # the embedded sweep's own cache, every teacher
+    stage2, evaluate = embedded[3].overrides, embedded[4].overrides
+    assert "ablation=B,F" in stage2 and "ablation=A,B,F" in evaluate
+    assert "evaluation.methods=[${ablation.method}]" in evaluate
+    # another scale or dataset: no embedded cache, no held-out clips (Fig. 6 needs the synthetic ground truth)
+    paper = sweep_steps(variants, trained, ["experiment=paper"])
+    assert [step.app for step in paper] == ["train", "train", "train", "evaluate", "report"]
+    assert all(not set(SWEEP_TEACHERS) & set(step.overrides) for step in paper)
+
+
+def test_the_sweep_script_launches_the_declared_steps_over_the_config_variants():
+    """launch/sweep_ablation.sh is a launcher of tracegs.pipeline.steps: its dry run lists the declared steps with
+    the variants of conf/ablation/."""
     script = (REPO / "launch" / "sweep_ablation.sh").read_text()
-    commands = [line.strip() for line in script.splitlines()
-                if "tracegs-" in line and not line.lstrip().startswith("#")]
-    assert len(commands) >= 7
-    assert all(line.startswith("step tracegs-") for line in commands)
-    assert 'step() { "$BIN/$1" -m "$launcher"' in script
+    assert [line for line in script.splitlines() if "tracegs-" in line and not line.lstrip().startswith("#")] == []
+    run = subprocess.run(["bash", str(REPO / "launch" / "sweep_ablation.sh"), "slurm", "--dry-run", "experiment=paper"],
+                         capture_output=True, text=True, timeout=300, check=True)
+    lines = run.stdout.splitlines()
+    assert len(lines) == 5 and all("-m hydra/launcher=slurm experiment=paper" in line for line in lines)
+    assert "ablation=B,C,D,E,F-,F" in lines[2] and "ablation=A,B,C,D,E,F-,F" in lines[3]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -114,3 +115,45 @@ def test_a_variant_that_would_share_a_folder_or_a_row_is_refused(conf_with_new_v
     with pytest.raises(ConfigError, match=r"ablation/G\.yaml") as error:
         table3_variants()
     assert error.value.field == field
+
+
+# Where a variant may be named: its own file, the paper's orderings between variants, and the tests.
+NAMING_PLACES = ("conf/ablation/", "tracegs/eval/conclusions.py")
+
+
+def shipped_variant_names() -> list[str]:
+    """The variants as the config tree ships them (its ablation files, the default choice aside)."""
+    return [path.stem for path in sorted((Path(CONF_DIR) / "ablation").glob("*.yaml")) if path.stem != "default"]
+
+
+def variant_naming_pattern(names: list[str]) -> re.Pattern:
+    """A variant chosen by name: an ``ablation=X`` / ``ablation: X`` choice, or a field of that name given X."""
+    alternatives = "|".join(re.escape(name) for name in sorted(names, key=len, reverse=True))
+    return re.compile(rf"\bablation\s*[=:]\s*[\"']?({alternatives})(?![\w-])"
+                      rf"|\b(ablation|variant)\w*\s*(:[^=\n]*)?=\s*[\"']({alternatives})[\"']")
+
+
+def test_the_variant_naming_check_finds_a_chosen_variant():
+    pattern = variant_naming_pattern(["A", "F-", "F"])
+    chosen = ["  - ablation: F", "tracegs-deploy ablation=A", "ablation=F-,F", '    ablation: str = "F-"',
+              'variant = "A"']
+    assert all(pattern.search(line) for line in chosen)
+    described = ["variant A's weights", "ablation=<variant>", "ablation: default", "the group (conf/ablation/)",
+                 "ablation=${ablation.name}", 'ablation: str = "<variant>"']
+    assert not any(pattern.search(line) for line in described)
+
+
+def test_variants_are_chosen_by_name_only_in_their_files_and_the_paper_orderings():
+    """Adding, removing or renaming a variant touches conf/ablation/ (and the orderings): no config default, help
+    example, launcher or code elsewhere chooses one by name."""
+    pattern = variant_naming_pattern(shipped_variant_names())
+    repo = Path(CONF_DIR).parent
+    files = [*(repo / "tracegs").rglob("*.py"), *Path(CONF_DIR).rglob("*.yaml"), *(repo / "launch").iterdir(),
+             repo / "Makefile"]
+    offending = []
+    for path in sorted(files):
+        place = path.relative_to(repo).as_posix()
+        if path.is_file() and not place.startswith(NAMING_PLACES):
+            lines = enumerate(path.read_text().splitlines(), 1)
+            offending += [f"{place}:{number}: {line.strip()}" for number, line in lines if pattern.search(line)]
+    assert offending == []

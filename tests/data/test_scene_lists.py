@@ -10,10 +10,7 @@ from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import SceneFormatError, list_scenes, read_scene_list
 from tracegs.data.config import SceneSourceConfig
-from tracegs.deploy.config import EvaluationConfig, RefinementConfig
-from tracegs.deploy.scenes import deploy_scenes
-from tracegs.eval.evaluate import evaluate
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.pipeline.evaluate import deploy, evaluate
 
 PUBLISHED = {
     "mipnerf360": ["bicycle", "bonsai", "counter", "flowers", "garden", "kitchen", "room", "stump", "treehill"],
@@ -38,15 +35,14 @@ def test_published_benchmark_lists_are_found_from_the_config(data, tmp_path):
 def test_evaluating_a_training_scene_is_refused_before_any_work(stage, tmp_path):
     write_scene(tmp_path / "scenes" / "ring")
     (tmp_path / "train.txt").write_text("ring\n")
-    source = SceneSourceConfig(root=str(tmp_path / "scenes"), preset="custom", train_list=str(tmp_path / "train.txt"))
     out = tmp_path / "out"
-    cfg = EvaluationConfig(out_dir=str(out), methods=["3dgs"], views=[3], progress=False)
-    fit, refine_cfg = GaussianFitConfig(iterations=20), RefinementConfig(total_iters=20, repair_iters=[5, 10])
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name=stage, overrides=[
+            "data=custom", f"data.source.root={tmp_path / 'scenes'}", f"data.source.train_list={tmp_path}/train.txt",
+            "evaluation.scenes=[ring]", "evaluation.methods=[3dgs]", f"evaluation.out_dir={out}", f"run_dir={out}"])
     with pytest.raises(SceneFormatError, match=r"training scenes \['ring'\]"):
-        if stage == "evaluate":
-            evaluate(cfg, source, refine_cfg, fit, {"3dgs": None}, scenes=["ring"])
-        else:
-            deploy_scenes(cfg, source, refine_cfg, fit, None, ["ring"], out)
+        (evaluate if stage == "evaluate" else deploy)(cfg)
     assert not out.exists()
 
 

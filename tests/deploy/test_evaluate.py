@@ -1,18 +1,14 @@
 """End-to-end evaluation on a tiny synthetic scene written to disk in COLMAP format: results.json layout,
 media, per-step curves, resumable and sharded units, a rerun after SIGKILL, plain progress lines; and the
-Lightning callback logging deployment metrics.
+Lightning callback logging deployment metrics during training.
 
 Restorers: ``tracegs`` is the ground-truth oracle (``GroundTruthRestorer`` on the scene's true Gaussians),
 ``baseline`` the real diffusion pipeline of a randomly initialised tiny backbone (2 reverse steps), so
 every code path runs without trained weights.
 """
 
+import csv
 import json
-import logging
-import os
-import random
-import signal
-import time
 from pathlib import Path
 
 import lightning as L
@@ -26,15 +22,13 @@ from tracegs.data.config import SceneSourceConfig, SyntheticConfig
 from tracegs.data.synthetic import generate_scene, ground_truth_model, render_ground_truth, scene_name
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
 from tracegs.deploy.restorers import DiffusionRestorer, GroundTruthRestorer
-from tracegs.deploy.scenes import deploy_scenes
-from tracegs.eval.callback import DeploymentRefinement, module_restorer_factory
+from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.evaluate import evaluate
 from tracegs.eval.merge import merge_results, unit_path
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig, TrajectoryConfig
-from tracegs.splat.ply import load_ply
 
 SEED = 100
 
@@ -173,111 +167,48 @@ class _TinyRestorerModule(L.LightningModule):
     def training_step(self, batch, batch_idx):
         return (self.scale * batch[0]).square().mean()
 
-    def validation_step(self, batch, batch_idx):
-        self.log("val_loss", (self.scale * batch[0]).square().mean())
-
     def configure_optimizers(self):
         return torch.optim.SGD([self.scale], lr=0.1)
 
 
-def test_callback_deploys_the_module_restorer_and_logs(scene_root, backbone, tmp_path):
+def test_callback_deploys_the_module_restorer_every_k_steps_and_at_the_end(scene_root, backbone, tmp_path):
     source = SceneSourceConfig(root=str(scene_root))
     fit_cfg, refine_cfg = _configs()
-    callback = DeploymentRefinement([scene_name(SEED)], source, module_restorer_factory(backbone, None, steps=1),
-                                    refine_cfg, fit_cfg, views=[3], every_n_epochs=1)
-    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(2, 1)), batch_size=2)
-    trainer = L.Trainer(max_epochs=1, callbacks=[callback], logger=L.pytorch.loggers.CSVLogger(tmp_path),
-                        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
-                        enable_checkpointing=False, accelerator="cpu")
+    callback = DeploymentRefinement([scene_name(SEED)], source, ModuleRestorerFactory(backbone, None, steps=1),
+                                    refine_cfg, fit_cfg, views=[3], every_n_steps=2)
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(2, 1)), batch_size=1)
+    trainer = L.Trainer(max_steps=3, callbacks=[callback], logger=L.pytorch.loggers.CSVLogger(tmp_path),
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                        accelerator="cpu")
     module = _TinyRestorerModule(backbone.transformer)
-    trainer.fit(module, data, data)
-    assert len(callback.history) == 1
-    assert "deploy/psnr_k3" in trainer.callback_metrics and "deploy/ssim_k3" in trainer.callback_metrics
-    assert 5.0 < float(trainer.callback_metrics["deploy/psnr_k3"]) < 60.0
-    assert ("deploy/lpips_k3" in trainer.callback_metrics) == callback.metrics.lpips_status.available
-    # the logger received the deployment metrics too
-    logged = (Path(trainer.logger.log_dir) / "metrics.csv").read_text().splitlines()[0]
-    assert "deploy/psnr_k3" in logged
+    trainer.fit(module, data)
+    # at step 2 (every 2 steps) and at the end (step 3)
+    assert [entry["step"] for entry in callback.history] == [2, 3]
+    for entry in callback.history:
+        assert 5.0 < entry["deploy/psnr_k3"] < 60.0 and 0.0 < entry["deploy/ssim_k3"] <= 1.0
+        assert "deploy/lpips_k3" not in entry  # LPIPS is off unless asked for
+    # the logger received the deployment metrics at their steps
+    with open(Path(trainer.logger.log_dir) / "metrics.csv") as handle:
+        rows = [row for row in csv.DictReader(handle) if row.get("deploy/psnr_k3")]
+    assert [int(row["step"]) for row in rows] == [2, 3]
+    assert [float(row["deploy/psnr_k3"]) for row in rows] == pytest.approx(
+        [entry["deploy/psnr_k3"] for entry in callback.history])
 
 
-def test_deploy_scenes_writes_refined_ply_once(scene_root, tmp_path):
+@pytest.mark.slow
+def test_callback_under_ddp_deploys_on_rank_zero_and_training_continues(scene_root, backbone, tmp_path):
+    """Two gloo ranks: rank 0 deploys and logs while rank 1 waits at the barrier, at every step and at the end,
+    and both finish (no rank is left waiting)."""
     source = SceneSourceConfig(root=str(scene_root))
     fit_cfg, refine_cfg = _configs()
-    cfg = EvaluationConfig(views=[3], progress=False)
-    oracle = GroundTruthRestorer(ground_truth_model(load_scene(source, scene_name(SEED))))
-    (path,) = deploy_scenes(cfg, source, refine_cfg, fit_cfg, oracle, [scene_name(SEED)], tmp_path)
-    assert path == tmp_path / scene_name(SEED) / "views_3.ply"
-    assert len(load_ply(path)) > 0
-    stamp = path.stat().st_mtime_ns
-    deploy_scenes(cfg, source, refine_cfg, fit_cfg, oracle, [scene_name(SEED)], tmp_path)
-    assert path.stat().st_mtime_ns == stamp  # finished scenes are kept
-
-
-def _plain_3dgs_runs(source: SceneSourceConfig, views: tuple[int, ...] = (3, 4)):
-    """Evaluation and deployment of plain 3DGS (no restorer) on ``views``, ``out -> None`` each."""
-    fit_cfg, refine_cfg = _configs()
-    names = [scene_name(SEED)]
-
-    def cfg(out: Path) -> EvaluationConfig:
-        return EvaluationConfig(out_dir=str(out), methods=["3dgs"], views=list(views), workers=1,
-                                save_media=False, per_step=False, progress=False)
-
-    return {
-        "evaluate": lambda out: evaluate(cfg(out), source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=names),
-        "deploy": lambda out: deploy_scenes(cfg(out), source, refine_cfg, fit_cfg, None, names, out),
-    }
-
-
-def _products(stage: str, out: Path) -> dict[str, bytes]:
-    """What a finished stage leaves: evaluation's results and unit files, deployment's PLYs."""
-    pattern = "units/*/views_*.json" if stage == "evaluate" else "*/views_*.ply"
-    found = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.glob(pattern))}
-    if (out / "results.json").is_file():
-        found["results.json"] = (out / "results.json").read_bytes()
-    return found
-
-
-@pytest.fixture(scope="module")
-def uninterrupted(scene_root, tmp_path_factory):
-    """Each stage's products of an uninterrupted run."""
-    tmp = tmp_path_factory.mktemp("uninterrupted")
-    runs = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)))
-    for stage, run in runs.items():
-        run(tmp / stage)
-    return {stage: _products(stage, tmp / stage) for stage in runs}
-
-
-@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
-@pytest.mark.parametrize("stage", ["evaluate", "deploy"])
-def test_killed_run_reruns_to_the_same_products(scene_root, uninterrupted, forked, tmp_path, stage, seed):
-    """SIGKILL after a random number of finished units plus a random delay (seeded), then the same call: the
-    results / PLYs equal the uninterrupted run's byte for byte, and finished units are not redone."""
-    run = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)))[stage]
-    out = tmp_path / stage
-    rng = random.Random(seed)
-    kill_after, delay = rng.randrange(2), rng.uniform(0.0, 0.3)
-    pid = forked(lambda: run(out), tmp_path / "stdout", tmp_path / "stderr")
-    deadline = time.monotonic() + 300
-    while len(_products(stage, out)) < kill_after and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(delay)
-    exited, _ = os.waitpid(pid, os.WNOHANG)
-    assert not exited, f"{stage} ended before it could be killed: {(tmp_path / 'stderr').read_text()[-2000:]}"
-    os.kill(pid, signal.SIGKILL)
-    os.waitpid(pid, 0)
-    finished = {p: p.stat().st_mtime_ns for p in out.rglob("views_*") if not p.name.startswith(".")}
-    run(out)
-    assert _products(stage, out) == uninterrupted[stage]
-    assert all(p.stat().st_mtime_ns == t for p, t in finished.items()), "a finished unit was redone"
-
-
-def test_evaluation_and_deployment_log_plain_progress(scene_root, tmp_path, caplog, monkeypatch):
-    """With stdout not a terminal (a log file, SLURM output) each loop logs a plain line at its end."""
-    monkeypatch.setattr("sys.stdout.isatty", lambda: False)
-    runs = _plain_3dgs_runs(SceneSourceConfig(root=str(scene_root)), views=(3,))
-    with caplog.at_level(logging.INFO, logger="tracegs"):
-        for stage, run in runs.items():
-            run(tmp_path / stage)
-    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith(("evaluation parts:", "deploy:"))]
-    # Evaluation counts the unit's cold start and its one part (plain 3DGS), which run in parallel across units.
-    assert [line.split(",")[0] for line in lines] == ["evaluation parts: 2/2", "deploy: 1/1"]
+    callback = DeploymentRefinement([scene_name(SEED)], source, ModuleRestorerFactory(backbone, None, steps=1),
+                                    refine_cfg, fit_cfg, views=[3], every_n_steps=1)
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 1)), batch_size=1)
+    trainer = L.Trainer(max_steps=2, devices=2, strategy="ddp_spawn", callbacks=[callback],
+                        logger=L.pytorch.loggers.CSVLogger(tmp_path), enable_progress_bar=False,
+                        enable_model_summary=False, enable_checkpointing=False, accelerator="cpu")
+    trainer.fit(_TinyRestorerModule(backbone.transformer), data)
+    (metrics,) = tmp_path.rglob("metrics.csv")  # written by rank 0 only
+    with open(metrics) as handle:
+        rows = [row for row in csv.DictReader(handle) if row.get("deploy/psnr_k3")]
+    assert [int(row["step"]) for row in rows] == [1, 2]

@@ -281,3 +281,34 @@ def test_only_the_baseline_averages_its_weights():
         StageConfig(name="stage2", ema_decay=0.99)
     with pytest.raises(ValueError, match="stage.ema_decay"):
         StageConfig(name="baseline", ema_decay=1.0)
+
+
+def test_a_stage_with_deployment_eval_logs_its_scores_and_trains_the_same_weights(stages):
+    """``stage.deployment_eval``: the stage deploys its own restorer (Stage 1: base + aligned adapter) on a
+    validation scene every step and at its end, the scores land in the CSV log at their steps, and the trained
+    adapter is bitwise the one trained without it (deployment runs on its own random streams)."""
+    from tracegs.data.config import SceneSourceConfig, SyntheticConfig
+    from tracegs.data.synthetic import generate_scene, scene_name
+    from tracegs.deploy.config import RefinementConfig
+    from tracegs.splat.config import DensificationConfig, GaussianFitConfig, TrajectoryConfig
+    from tracegs.training.config import DeploymentEvalConfig
+
+    tmp, cache, baseline, stage1 = stages
+    scenes = tmp / "scenes"
+    generate_scene(50, SyntheticConfig(root=str(scenes), num_views=16, height=24, width=32, num_objects=1,
+                                       gaussians_per_unit_area=150, init_points=400), scenes)
+    cfg = config(tmp, cache, "stage1", 2, "deploying", base_weights=str(baseline),
+                 deployment_eval=DeploymentEvalConfig(scenes=[scene_name(50)], views=[3], every_n_steps=1))
+    cfg.source = SceneSourceConfig(root=str(scenes))
+    cfg.fit = GaussianFitConfig(iterations=30, snapshot_iters=[], densification=DensificationConfig(enabled=False))
+    cfg.deploy = RefinementConfig(total_iters=30, repair_iters=[10, 20], max_clips_per_round=1, steps=2,
+                                  trajectory=TrajectoryConfig(frames_per_clip=9, ellipse_frames=24))
+    product = train_stage(cfg)
+
+    (metrics,) = (tmp / "deploying" / "csv").glob("version_*/metrics.csv")
+    with open(metrics) as handle:
+        rows = [row for row in csv.DictReader(handle) if row.get("deploy/psnr_k3")]
+    assert [int(row["step"]) for row in rows] == [1, 2]
+    assert all(5.0 < float(row["deploy/psnr_k3"]) < 60.0 and 0.0 < float(row["deploy/ssim_k3"]) <= 1.0
+               for row in rows)
+    assert (product / "adapter_model.safetensors").read_bytes() == (stage1 / "adapter_model.safetensors").read_bytes()

@@ -14,6 +14,7 @@ from omegaconf.errors import ConfigKeyError
 
 from tracegs.data.colmap import require_training_source
 from tracegs.data.config import overlapping_seeds
+from tracegs.data.synthetic import benchmark_scene_names
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
@@ -69,7 +70,7 @@ def _validate_known_keys(cfg: DictConfig) -> None:
 
 # Config values that become one folder name under a configured root (lists: every item).
 NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "data.source.scenes", "data.datamodule.val_scenes",
-               "evaluation.scenes")
+               "evaluation.scenes", "stage.deployment_eval.scenes")
 
 
 def validate_names(cfg: DictConfig) -> None:
@@ -165,6 +166,18 @@ def _validate_training(cfg: DictConfig) -> None:
     _require(cfg.loss.lambda_ret >= 0, "loss.lambda_ret", f"must be >= 0, got {cfg.loss.lambda_ret}")
     _require(cfg.loss.lambda_align >= 0, "loss.lambda_align", f"must be >= 0, got {cfg.loss.lambda_align}")
     _require(cfg.optimizer.lr > 0, "optimizer.lr", f"must be > 0, got {cfg.optimizer.lr}")
+    _validate_deployment_eval(cfg)
+
+
+def _validate_deployment_eval(cfg: DictConfig) -> None:
+    """Training deploys on validation scenes only: on the synthetic benchmark, its val split (never a scene it
+    trains on or is tested on)."""
+    scenes = list(cfg.stage.deployment_eval.scenes)
+    if scenes and cfg.data.source.preset == "synthetic":
+        validation = benchmark_scene_names(OmegaConf.to_object(cfg.data.synthetic), "val")
+        others = sorted(set(scenes) - set(validation))
+        _require(not others, "stage.deployment_eval.scenes",
+                 f"{others[:5]} are not validation scenes of the synthetic benchmark ({validation})")
 
 
 def _validate_backbone(cfg: DictConfig) -> None:

@@ -47,7 +47,7 @@ class RestorerArtifacts:
 
     baseline_weights: str | None = None
     student_adapter: str | None = None
-    ablation: str = "C"
+    ablation: str = "<variant>"
 
 
 def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_files: dict[str, AdapterFile | None],

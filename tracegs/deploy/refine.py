@@ -96,8 +96,8 @@ def cold_start(captured: Sequence[View], init: GaussianModel, cfg: RefinementCon
     """The sparse-only cold start G <- 3DGS(V_s), trained up to the first repair iteration.
 
     Identical for every method, so evaluation fits it once per (scene, K) and branches it (``refine``
-    deep-copies it) for 3DGS, the baseline restorer and TRACE-GS."""
-    cfg.validate()
+    deep-copies it) for 3DGS, the baseline restorer and TRACE-GS. ``cfg`` is validated once by the caller (an
+    entry point: ``restore_refine``, evaluation, deployment, the training callback), not per unit."""
     fit_cfg = copy.deepcopy(fit_cfg)
     fit_cfg.iterations = cfg.total_iters  # schedules (lr decay, densification) span the whole J
     # Scene extent from V_s alone, as the sparse fits of the training data were made (``fit_gaussians``).
@@ -121,9 +121,9 @@ def refine(cold: GaussianFitter, captured: Sequence[View], restorer: ClipRestore
            on_round: Callable[[RepairRound], None] | None = None, progress: bool = False) -> GaussianModel:
     """Continue a cold start to J. ``restorer=None`` is plain 3DGS (L_sparse only, no repair rounds).
 
-    ``cold`` is left untouched (deep-copied), so several methods can branch from one cold start.
+    ``cold`` is left untouched (deep-copied), so several methods can branch from one cold start. ``cfg`` is
+    validated once by the caller, not per method.
     """
-    cfg.validate()
     if cold.iteration != cfg.repair_iters[0]:
         raise ValueError(f"cold start is at iteration {cold.iteration}, expected the first repair "
                          f"iteration {cfg.repair_iters[0]}")
@@ -160,5 +160,6 @@ def restore_refine(captured: Sequence[View], restorer: ClipRestorer | None, cfg:
                    seed: int | None = None, on_round: Callable[[RepairRound], None] | None = None,
                    progress: bool = False) -> GaussianModel:
     """Algorithm 1 (bottom) end to end: cold start from V_s, then N_r repair rounds up to J."""
+    cfg.validate()
     cold = cold_start(captured, init, cfg, fit_cfg, progress=progress)
     return refine(cold, captured, restorer, cfg, fit_cfg, caption, seed, on_round, progress)

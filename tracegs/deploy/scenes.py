@@ -18,7 +18,7 @@ from torch import Tensor
 
 from tracegs.console import PlainProgress
 from tracegs.data.captions import require_captioner
-from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
+from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
 from tracegs.data.splits import split_scene
@@ -96,11 +96,11 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
                   fit_cfg: GaussianFitConfig, restorer: ClipRestorer | None, scenes: Sequence[str],
                   out_dir: str | Path) -> list[Path]:
     """Restore-refine this shard's (scene, K) units with one restorer and save each refined 3DGS as
-    ``<out_dir>/<scene>/views_<K>.ply`` (standard 3DGS layout). Existing PLYs are kept unless ``cfg.force``."""
+    ``<out_dir>/<scene>/views_<K>.ply`` (standard 3DGS layout). Existing PLYs are kept unless ``cfg.force``.
+    ``scenes`` are the test scenes as the run worked them out, once, held out from training
+    (tracegs.pipeline.restorers.test_scenes)."""
     refine_cfg.validate()
     require_available(fit_cfg.backend, "data.prepare.fit.backend")
-    scenes = list(cfg.scenes if cfg.scenes is not None else scenes)
-    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
     require_captioner(refine_cfg.captions, "deploy.captions")
     written = []
     with Progress(disable=not cfg.progress) as progress:

@@ -1,11 +1,14 @@
 """``DeploymentRefinement``: run the restore-refine loop with the restorer being trained, during training.
 
-At chosen epochs (``every_n_epochs``) or after chosen global steps (``at_steps``), at the end of a
-validation epoch, the callback builds a restorer from the LightningModule's current weights, deploys it on
-the validation scenes' sparse views (Algorithm 1 bottom) and logs PSNR/SSIM/LPIPS on their test views,
-so one sees whether restorer training improves the downstream 3DGS and not only its own loss.
+Every ``every_n_steps`` optimizer steps and at the end of training, the callback builds a restorer from the
+LightningModule's current weights, deploys it on the validation scenes' sparse views (Algorithm 1 bottom) and
+logs PSNR/SSIM(/LPIPS) on their test views to the trainer's loggers, so one sees whether restorer training
+improves the downstream 3DGS and not only its own loss.
 
-The sparse-only cold starts do not depend on the restorer, so they are fitted once and reused.
+The sparse-only cold starts do not depend on the restorer, so they are fitted once and reused. Deployment runs
+on its own random streams (the caller's are restored afterwards), so a run trains the same weights with the
+callback as without it. Under DDP only rank 0 deploys (the weights are the same on every rank) while the
+others wait at a barrier; the wait must fit in the process group's timeout.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from tracegs.deploy.refine import refine
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.deploy.scenes import SceneUnit, load_unit
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
+from tracegs.restorer.build import with_encoders
+from tracegs.restorer.sampler import RestorationPipeline
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
 from tracegs.splat.render import render_views
@@ -30,18 +35,19 @@ from tracegs.splat.render import render_views
 RestorerFactory = Callable[[L.LightningModule], ClipRestorer]
 
 
-def module_restorer_factory(backbone, adapter: str | None, clip_batch: int = 4,
-                            steps: int | None = None) -> RestorerFactory:
-    """A factory restoring with the module's *own* transformer (``pl_module.transformer``, shared, not
-    copied) and the frozen codec / encoders / schedule of ``backbone`` (``restorer.build.Backbone``).
-    ``adapter`` names the LoRA adapter to deploy (``"student"`` in Stage 2; None = the bare base)."""
-    from tracegs.restorer.sampler import RestorationPipeline
+class ModuleRestorerFactory:
+    """Restores with the module's *own* transformer (``pl_module.transformer``, shared, not copied) and the frozen
+    codec / encoders / schedule of ``backbone`` (``restorer.build.Backbone``; one built for training, without
+    encoders, gets them on first use, on the module's device). ``adapter`` names the LoRA adapter to deploy
+    (``"student"`` in Stage 2; None = the bare base). A class, not a closure: spawned ranks receive it pickled."""
 
-    def factory(pl_module: L.LightningModule) -> ClipRestorer:
-        live = dataclasses.replace(backbone, transformer=pl_module.transformer)
-        return DiffusionRestorer(RestorationPipeline(live, adapter=adapter), clip_batch, steps=steps)
+    def __init__(self, backbone, adapter: str | None, clip_batch: int = 4, steps: int | None = None):
+        self.backbone, self.adapter, self.clip_batch, self.steps = backbone, adapter, clip_batch, steps
 
-    return factory
+    def __call__(self, pl_module: L.LightningModule) -> ClipRestorer:
+        self.backbone = with_encoders(self.backbone, pl_module.device)
+        live = dataclasses.replace(self.backbone, transformer=pl_module.transformer)
+        return DiffusionRestorer(RestorationPipeline(live, adapter=self.adapter), self.clip_batch, steps=self.steps)
 
 
 class DeploymentRefinement(L.Callback):
@@ -53,31 +59,23 @@ class DeploymentRefinement(L.Callback):
 
     def __init__(self, scenes: Sequence[str], source: SceneSourceConfig, restorer_factory: RestorerFactory,
                  refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig, views: Sequence[int] = (3,),
-                 every_n_epochs: int | None = 1, at_steps: Sequence[int] = (), lpips: bool = False,
-                 prefix: str = "deploy"):
+                 every_n_steps: int | None = None, lpips: bool = False, prefix: str = "deploy"):
         super().__init__()
         if not scenes:
             raise ValueError("DeploymentRefinement needs at least one validation scene")
-        if every_n_epochs is not None and every_n_epochs < 1:
-            raise ValueError(f"every_n_epochs must be >= 1 or None, got {every_n_epochs}")
+        if every_n_steps is not None and every_n_steps < 1:
+            raise ValueError(f"every_n_steps must be >= 1 or None, got {every_n_steps}")
         refine_cfg.validate()
         self.scenes, self.source, self.views = list(scenes), source, [int(v) for v in views]
         self.restorer_factory = restorer_factory
         self.refine_cfg, self.fit_cfg = refine_cfg, fit_cfg
-        self.every_n_epochs, self.pending_steps = every_n_epochs, sorted(at_steps)
-        self.metrics = ImageMetrics(lpips=lpips)
+        self.every_n_steps = every_n_steps
+        self.lpips = lpips
         self.prefix = prefix
         self.history: list[dict] = []
+        self._metrics: ImageMetrics | None = None
         self._units: list[tuple[SceneUnit, GaussianFitter]] | None = None
-
-    def _due(self, trainer: L.Trainer) -> bool:
-        due = False
-        while self.pending_steps and trainer.global_step >= self.pending_steps[0]:
-            self.pending_steps.pop(0)
-            due = True
-        if self.every_n_epochs is not None and (trainer.current_epoch + 1) % self.every_n_epochs == 0:
-            due = True
-        return due
+        self._deployed_step: int | None = None
 
     def _prepared_units(self) -> list[tuple[SceneUnit, GaussianFitter]]:
         if self._units is None:
@@ -90,13 +88,14 @@ class DeploymentRefinement(L.Callback):
         return self._units
 
     def run(self, pl_module: L.LightningModule) -> dict[str, float]:
-        """Deploy once with the module's current weights; returns the logged values."""
+        """Deploy once with the module's current weights; returns the metric values."""
         was_training = pl_module.training
         pl_module.eval()
-        # Lightning validates under inference mode, but 3DGS optimisation needs autograd, and tensors made
-        # in inference mode cannot be saved for backward: leave it for the whole deployment.
+        # Deployment seeds torch's global generator (refine.py): fork it so training continues on its own stream.
+        # Lightning may call in inference mode, but 3DGS optimisation needs autograd: leave it for the deployment.
+        devices = [pl_module.device] if pl_module.device.type == "cuda" else []
         try:
-            with torch.inference_mode(False), torch.enable_grad():
+            with torch.random.fork_rng(devices=devices), torch.inference_mode(False), torch.enable_grad():
                 per_k = self._deploy(self.restorer_factory(pl_module))
         finally:
             pl_module.train(was_training)
@@ -109,18 +108,39 @@ class DeploymentRefinement(L.Callback):
         return logged
 
     def _deploy(self, restorer: ClipRestorer) -> dict[int, list[dict]]:
+        if self._metrics is None:
+            self._metrics = ImageMetrics(lpips=self.lpips)
         background = torch.tensor(self.fit_cfg.background, dtype=torch.float32)
         per_k: dict[int, list[dict]] = {k: [] for k in self.views}
         for unit, cold in self._prepared_units():
             model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
                            caption=unit.scene.caption or "")
             renders = render_views(model, unit.test_cameras, background, None).cpu()
-            per_k[unit.views].append(mean_metrics(self.metrics.per_view(renders, unit.test_images)))
+            per_k[unit.views].append(mean_metrics(self._metrics.per_view(renders, unit.test_images)))
         return per_k
 
-    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.sanity_checking or not self._due(trainer):
+    def deploy_and_log(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Rank 0 deploys and writes the scores to every logger at the current step; the other ranks wait.
+
+        Every rank calls this at the same step (the schedule depends on the global step only), so each reaches
+        the barrier once; a rank-0 failure ends the job through Lightning's launcher rather than leaving the
+        others waiting."""
+        step = trainer.global_step
+        if step == self._deployed_step:
             return
-        logged = self.run(pl_module)
-        self.history.append({"epoch": trainer.current_epoch, "step": trainer.global_step, **logged})
-        pl_module.log_dict(logged, on_step=False, on_epoch=True, sync_dist=True)
+        self._deployed_step = step
+        if trainer.is_global_zero:
+            logged = self.run(pl_module)
+            self.history.append({"step": step, **logged})
+            for logger in trainer.loggers:
+                logger.log_metrics(logged, step=step)
+                logger.save()
+        trainer.strategy.barrier("deployment_eval")
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        if self.every_n_steps is not None and trainer.global_step % self.every_n_steps == 0:
+            self.deploy_and_log(trainer, pl_module)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.deploy_and_log(trainer, pl_module)

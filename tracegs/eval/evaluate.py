@@ -27,7 +27,7 @@ from torch import Tensor
 from tracegs.console import PlainProgress
 from tracegs.content import content_digest
 from tracegs.data.captions import require_captioner
-from tracegs.data.colmap import Scene, load_scene, require_held_out, training_scenes
+from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import refine, render_round_clips
@@ -288,11 +288,12 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int, progres
 
 def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
              fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],
-             scenes: Sequence[str] | None = None, gt_renderer: GroundTruthRenderer | None = None) -> dict:
+             scenes: Sequence[str], gt_renderer: GroundTruthRenderer | None = None) -> dict:
     """Evaluate this shard's units (skipping finished ones) and, for an unsharded run, merge them.
 
-    ``restorers`` maps each method to its restorer (``None`` = plain 3DGS). ``scenes`` defaults to
-    ``cfg.scenes``. Returns the merged results dict when ``num_shards == 1``, else this shard's units.
+    ``restorers`` maps each method to its restorer (``None`` = plain 3DGS). ``scenes`` are the test scenes as the
+    run worked them out, once, held out from training (tracegs.pipeline.restorers.test_scenes). Returns the
+    merged results dict when ``num_shards == 1``, else this shard's units.
     """
     unknown = [m for m in cfg.methods if m not in METHODS]
     if unknown:
@@ -302,10 +303,9 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
     require_available(fit_cfg.backend, "data.prepare.fit.backend")
-    scenes = list(cfg.scenes if cfg.scenes is not None else (scenes or []))
+    scenes = list(scenes)
     if not scenes:
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
-    require_held_out(scenes, training_scenes(source), "evaluation.scenes")
     require_captioner(refine_cfg.captions, "deploy.captions")
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir")

@@ -61,7 +61,7 @@ def seed_spread_markdown(folders: Sequence[str | Path]) -> str:
     seeds = [str(r.get("seed", "?")) for r in runs]
     lines = [f"Over {len(folders)} seeds ({', '.join(seeds)}); commits "
              f"{', '.join(sorted({r.get('commit', 'unknown') for r in runs}))}; "
-             f"machine: {_machine_line(runs)}.", ""]
+             f"machine: {machine_line(runs)}.", ""]
     for table in summaries[0]:
         lines += [f"### {table}", "",
                   "| row | mean | sd | min | max | " + " | ".join(f"seed {s}" for s in seeds) + " |",
@@ -70,19 +70,19 @@ def seed_spread_markdown(folders: Sequence[str | Path]) -> str:
             values = [s.get(table, {}).get(label) for s in summaries]
             present = [v for v in values if v is not None]
             sd = statistics.stdev(present) if len(present) > 1 else float("nan")
-            cells = [label, _num(statistics.fmean(present)), _num(sd), _num(min(present)), _num(max(present))]
-            lines.append("| " + " | ".join(cells + [_num(v) for v in values]) + " |")
+            cells = [label, figure(statistics.fmean(present)), figure(sd), figure(min(present)), figure(max(present))]
+            lines.append("| " + " | ".join(cells + [figure(v) for v in values]) + " |")
         lines.append("")
     return "\n".join(lines)
 
 
-def _num(value: float | None) -> str:
+def figure(value: float | None) -> str:
     if value is None or value != value:
         return "n/a"
     return f"{value:.3f}" if abs(value) < 2 else f"{value:.2f}"
 
 
-def _machine_line(runs: Sequence[Mapping]) -> str:
+def machine_line(runs: Sequence[Mapping]) -> str:
     machines = {json.dumps(r.get("machine", {}), sort_keys=True) for r in runs}
     described = [json.loads(m) for m in machines]
     return "; ".join(f"{m.get('cpu', '?')} ({m.get('cores', '?')} cores, torch {m.get('torch', '?')})"

@@ -12,7 +12,12 @@ from tracegs.eval.clips import clip_restoration_psnr
 from tracegs.eval.evaluate import evaluate as run_evaluation
 from tracegs.eval.report import write_held_out_report
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
-from tracegs.pipeline.restorers import ground_truth_renderer, restorers_for_run, test_scenes
+from tracegs.pipeline.restorers import (
+    generate_test_scenes,
+    ground_truth_renderer,
+    restorers_for_run,
+    test_scenes,
+)
 from tracegs.pipeline.upstream import section
 from tracegs.splat.render import require_available
 
@@ -22,7 +27,9 @@ log = logging.getLogger("tracegs")
 def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    scenes = test_scenes(cfg)  # worked out (and checked held out) once, before any restorer is loaded
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
+    generate_test_scenes(cfg)
     check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
     with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
@@ -32,7 +39,7 @@ def evaluate(cfg: DictConfig) -> dict:
             section(cfg.deploy),
             section(cfg.data.prepare.fit),
             restorers,
-            scenes=test_scenes(cfg),
+            scenes=scenes,
             gt_renderer=ground_truth_renderer(cfg),
         )
         if cfg.evaluation.held_out_cache is not None:
@@ -55,11 +62,13 @@ def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
 def deploy(cfg: DictConfig) -> list[Path]:
     """Restore-refine each test scene at each view count with the selected restorer; save refined PLYs."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
+    scenes = test_scenes(cfg)
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
     restorer = restorers_for_run(cfg, [method])[method]
+    generate_test_scenes(cfg)
     check_run_record(cfg, "deploy", cfg.run_dir)
     with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
         written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
-                                section(cfg.data.prepare.fit), restorer, test_scenes(cfg), cfg.run_dir)
+                                section(cfg.data.prepare.fit), restorer, scenes, cfg.run_dir)
         write_run_record(cfg, "deploy", cfg.run_dir)
     return written

@@ -1,13 +1,25 @@
 """The pipeline's steps, declared once: prepare (training and held-out clips) -> A -> Stage 1 -> Stage 2 ->
 evaluate -> report. ``tracegs-demo`` runs them in its own process; ``tracegs-benchmark`` runs them as child
-commands, the restorer's steps once per training seed. Each caller adds only the overrides of its own setting.
+commands, the restorer's steps once per training seed; the Table 3 sweep runs each as one multirun over the
+variants (``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which
+``launch/sweep_ablation.sh`` calls). Each caller adds only the overrides of its own setting.
 """
 
 from __future__ import annotations
 
+import argparse
+import shlex
+import subprocess
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
+
+from hydra import initialize_config_dir
+
+from tracegs.config.location import CONF_DIR
+from tracegs.config.schema import register_configs
+from tracegs.pipeline.variants import table3_variants
 
 # The held-out cache: the test scenes prepared like the training clips, read only by evaluation.
 HELD_OUT_SPLIT = "data.prepare.split=test"
@@ -26,6 +38,13 @@ class Step:
         """The step as a child process of this Python."""
         return [sys.executable, "-m", f"tracegs.cli.{self.app}", *self.overrides]
 
+    def multirun(self, launcher: str) -> list[str]:
+        """The step as one Hydra multirun through ``hydra/launcher=<launcher>``, by its console script (beside
+        this Python) as a user would type it."""
+        script = Path(sys.executable).with_name(f"tracegs-{self.app}")
+        program = [str(script)] if script.is_file() else [sys.executable, "-m", f"tracegs.cli.{self.app}"]
+        return [*program, "-m", f"hydra/launcher={launcher}", *self.overrides]
+
 
 def data_steps(common: Sequence[str] = (), training: Sequence[str] = (), held_out: Sequence[str] = ()) -> list[Step]:
     """Prepare the training clips, then the test scenes' held-out clips."""
@@ -34,14 +53,77 @@ def data_steps(common: Sequence[str] = (), training: Sequence[str] = (), held_ou
 
 
 def restorer_steps(variant: str, common: Sequence[str] = (), evaluation: Sequence[str] = (),
-                   privileged: Sequence[str] | None = None) -> list[Step]:
+                   privileged: Sequence[str] | None = None, evaluated: str | None = None,
+                   stage2: Sequence[str] = ()) -> list[Step]:
     """Train A, the Stage-1 adapter and ``variant``'s Stage-2 student, then deploy and evaluate them; with
-    ``privileged`` (the report's overrides), measure the student's privileged gap as well."""
+    ``privileged`` (the report's overrides), measure the student's privileged gap as well. A sweep names several
+    variants comma-separated, evaluates ``evaluated`` (default: ``variant``) and adds ``stage2`` to its Stage-2
+    step."""
     chosen = f"ablation={variant}"
     steps = [Step("train", (*common, "stage=baseline"), "train A"),
              Step("train", (*common, "stage=stage1"), "train Stage 1"),
-             Step("train", (*common, "stage=stage2", chosen), "train Stage 2"),
-             Step("evaluate", (*common, chosen, *evaluation), "evaluate")]
+             Step("train", (*common, "stage=stage2", chosen, *stage2), "train Stage 2"),
+             Step("evaluate", (*common, f"ablation={evaluated or variant}", *evaluation), "evaluate")]
     if privileged is not None:
         steps.append(Step("report", (*common, chosen, "report.kind=privileged", *privileged), "privileged gap"))
     return steps
+
+
+# The embedded benchmark's cache holds only the all-view teacher (F); Table 3's C and D need 12 and 18 views and
+# B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there).
+SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student_final_fits=true")
+# Overrides that leave the embedded synthetic benchmark, the only one with held-out clips and ground truth.
+NOT_EMBEDDED = ("experiment", "data")
+
+
+def sweep_steps(variants: Sequence[str], trained: Sequence[str], overrides: Sequence[str] = ()) -> list[Step]:
+    """Table 3 as multiruns: (embedded scale: prepare) -> A -> one shared Stage-1 adapter -> Stage 2 for the
+    ``trained`` variants (each cloning the same Stage-1 checkpoint) -> evaluation of every variant by the method
+    standing for it -> Table 3 -> (embedded: Fig. 6 of the per-step variants on held-out clips).
+
+    A SLURM array carries one name: the swept steps name themselves after their first and last variants."""
+    embedded = not any(o.split("=", 1)[0].lstrip("+~") in NOT_EMBEDDED for o in overrides)
+    common = (*SWEEP_TEACHERS, *overrides) if embedded else tuple(overrides)
+    steps = [Step("prepare", common, "prepare (training scenes, every teacher)")] if embedded else []
+    steps += restorer_steps(",".join(trained), common, evaluated=",".join(variants),
+                            stage2=(f"job_name=train-stage2-{trained[0]}-{trained[-1]}",),
+                            evaluation=("evaluation.methods=[${ablation.method}]",
+                                        f"job_name=evaluate-{variants[0]}-{variants[-1]}"))
+    steps.append(Step("report", (*common, "report.kind=ablation"), "Table 3"))
+    if embedded:
+        steps += [Step("prepare", (*common, HELD_OUT_SPLIT), "prepare (held-out test scenes)"),
+                  Step("report", (*common, "report.kind=per_step", HELD_OUT_SPLIT,
+                                  "evaluation.held_out_cache=${data.prepare.cache_dir}"), "Fig. 6")]
+    return steps
+
+
+def run_sweep(launcher: str, overrides: Sequence[str], dry_run: bool = False) -> int:
+    """Run the sweep's steps one after the other, each a multirun through ``launcher`` (on SLURM the submitit
+    launcher waits for a step's jobs, so each step runs on compute nodes and sees the one before finished).
+    Stops at the first failed step with its exit status."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        variants = table3_variants()
+    steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], overrides)
+    for index, step in enumerate(steps, 1):
+        command = step.multirun(launcher)
+        print(f"[sweep {index}/{len(steps)}] {step.label}: {shlex.join(command)}", flush=True)
+        if not dry_run:
+            status = subprocess.run(command).returncode
+            if status != 0:
+                return status
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tracegs.pipeline.steps",
+                                     description="Run the Table 3 ablation sweep, one multirun per step.")
+    parser.add_argument("--sweep", choices=("local", "slurm"), required=True, help="the hydra/launcher to run on")
+    parser.add_argument("--dry-run", action="store_true", help="print the commands without running them")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every step, e.g. experiment=paper")
+    args = parser.parse_args(argv)
+    return run_sweep(args.sweep, args.overrides, args.dry_run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

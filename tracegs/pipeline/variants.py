@@ -21,6 +21,8 @@ from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 
 GROUP = "ablation"
+# conf/ablation/default.yaml: which variant a command runs unless given ``ablation=<name>``, not a variant itself.
+DEFAULT_CHOICE = "default"
 
 
 def table3_variants() -> list[AblationConfig]:
@@ -31,6 +33,8 @@ def table3_variants() -> list[AblationConfig]:
     variants = []
     rows: dict[int, str] = {}
     for option in GlobalHydra.instance().config_loader().get_group_options(GROUP):
+        if option == DEFAULT_CHOICE:
+            continue
         variant = OmegaConf.to_object(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
         if variant.name != option:
             raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from safetensors import SafetensorError
@@ -148,6 +148,19 @@ def _check_compatible(cfg: BackboneConfig, codec: Codec | None, reference_encode
             )
     if problems:
         raise ValueError(f"backbone '{cfg.name}' is inconsistent: " + "; ".join(problems))
+
+
+def with_encoders(backbone: Backbone, device: torch.device | str = "cpu") -> Backbone:
+    """``backbone`` (built for training, ``encoders=False``) completed with its frozen codec and encoders, sharing
+    its transformer: what deploying the restorer being trained needs."""
+    if backbone.codec is not None:
+        return backbone
+    cfg, offload = backbone.cfg, backbone.cfg.offload_encoders
+    codec = build_codec(cfg.codec, device)
+    reference_encoder = build_reference_encoder(cfg.reference_encoder, device, offload)
+    _check_compatible(cfg, codec, reference_encoder)
+    return replace(backbone, codec=codec, reference_encoder=reference_encoder,
+                   text_encoder=build_text_encoder(cfg.text_encoder, device, offload))
 
 
 def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu", encoders: bool = True) -> Backbone:

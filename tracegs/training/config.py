@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tracegs.data.config import DataModuleConfig
+from tracegs.data.config import DataModuleConfig, SceneSourceConfig
+from tracegs.deploy.config import RefinementConfig
 from tracegs.modes import Mode
 from tracegs.restorer.config import BackboneConfig
+from tracegs.splat.config import GaussianFitConfig
 
 
 class StageName(Mode):
@@ -62,6 +64,25 @@ class OptimizerConfig:
 
 
 @dataclass
+class DeploymentEvalConfig:
+    """Restore-refine deployment (Algorithm 1, bottom) of validation scenes with the restorer being trained, its
+    PSNR/SSIM(/LPIPS) logged to the stage's loggers at the stage's end and every ``every_n_steps`` steps, so a
+    sweep's variants can be compared while they train (tracegs/eval/callback.py). Off by default: no scene."""
+
+    # Validation scenes to deploy on (synthetic benchmark: its val split's scene names); empty = off.
+    scenes: list[str] = field(default_factory=list)
+    views: list[int] = field(default_factory=lambda: [3])  # sparse view counts K deployed from
+    every_n_steps: int | None = None  # also deploy every n optimizer steps (None: only at the end)
+    lpips: bool = False  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
+
+    def __post_init__(self) -> None:
+        if self.every_n_steps is not None and self.every_n_steps < 1:
+            raise ValueError(f"stage.deployment_eval.every_n_steps must be >= 1 or null, got {self.every_n_steps}")
+        if self.scenes and not self.views:
+            raise ValueError("stage.deployment_eval.views is empty: name the view counts K to deploy from")
+
+
+@dataclass
 class StageConfig:
     """Which stage runs and its loop-level settings.
 
@@ -100,6 +121,8 @@ class StageConfig:
     # Baseline only: export the exponential moving average of the weights with this decay, updated after every
     # step (None = the last step's weights). Checkpoints carry the average and the current weights.
     ema_decay: float | None = None
+    # Deploy the in-training restorer on validation scenes and log its scores (off unless scenes are named).
+    deployment_eval: DeploymentEvalConfig = field(default_factory=DeploymentEvalConfig)
 
     def __post_init__(self) -> None:
         self.name = StageName.parse(self.name, "stage.name")
@@ -209,3 +232,7 @@ class TrainConfig:
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     data: DataModuleConfig = field(default_factory=DataModuleConfig)
     output_dir: str = "outputs/train"
+    # What ``stage.deployment_eval`` deploys with: where its scenes are, the restore-refine loop and the 3DGS fit.
+    source: SceneSourceConfig = field(default_factory=SceneSourceConfig)
+    deploy: RefinementConfig = field(default_factory=RefinementConfig)
+    fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)

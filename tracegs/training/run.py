@@ -6,6 +6,8 @@ only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard
   ``backbone.transformer.pretrained_path`` for Stage 1, Stage 2 and deployment (variant A);
 - stage1: ``stage1_adapter/`` (the aligned adapter phi, a peft adapter folder);
 - stage2: ``student_adapter/`` (phi_S, the only thing deployment loads; ``PeftModel.from_pretrained`` reads it).
+With ``stage.deployment_eval`` naming validation scenes, the loggers also hold the deployed restorer's scores
+(``deploy/psnr_k3`` ..., tracegs/eval/callback.py).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from tracegs.console import interactive
 from tracegs.data.datamodule import PairedClipDataModule
 from tracegs.errors import require_writable_dir
+from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
@@ -40,7 +43,7 @@ from tracegs.training.config import StageConfig, TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
-from tracegs.training.stage2 import Stage2DistillationModule
+from tracegs.training.stage2 import STUDENT, Stage2DistillationModule
 from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
 
 # Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
@@ -120,7 +123,23 @@ def weight_average(stage: StageConfig) -> list[Callback]:
     return [EMAWeightAveraging(decay=stage.ema_decay)]
 
 
-def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingModule) -> L.Trainer:
+def deployed_adapter(stage: StageConfig) -> str | None:
+    """The adapter a stage's restorer deploys with: none for A, the aligned adapter, the Stage-2 student."""
+    return {"baseline": None, "stage1": stage.adapter_name, "stage2": STUDENT}[stage.name]
+
+
+def deployment_eval(cfg: TrainConfig, backbone) -> list[Callback]:
+    """The deployment-refinement callback when ``stage.deployment_eval`` names validation scenes."""
+    settings = cfg.stage.deployment_eval
+    if not settings.scenes:
+        return []
+    factory = ModuleRestorerFactory(backbone, deployed_adapter(cfg.stage), cfg.deploy.clip_batch, cfg.deploy.steps)
+    return [DeploymentRefinement(settings.scenes, cfg.source, factory, cfg.deploy, cfg.fit, views=settings.views,
+                                 every_n_steps=settings.every_n_steps, lpips=settings.lpips)]
+
+
+def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingModule,
+                  extra_callbacks: list[Callback] = ()) -> L.Trainer:
     checkpoints = ConfirmedCheckpoint(
         dirpath=output_dir / "checkpoints",
         filename="step{step:06d}",
@@ -143,7 +162,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
         callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress(),
-                   *weight_average(cfg.stage)],
+                   *weight_average(cfg.stage), *extra_callbacks],
         enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
@@ -207,6 +226,9 @@ def train_stage(cfg) -> Path:
     if cfg.trainer.strategy == "fsdp" and cfg.stage.name == "baseline":
         raise ValueError("trainer.strategy: fsdp shards adapter training (stage1, stage2); train stage=baseline "
                          "with trainer=ddp")
+    if cfg.trainer.strategy == "fsdp" and cfg.stage.deployment_eval.scenes:
+        raise ValueError("stage.deployment_eval: rank 0 deploys alone, which a sharded transformer cannot do "
+                         "(train with trainer=ddp, or set stage.deployment_eval.scenes to [])")
     L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
     if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
@@ -225,7 +247,7 @@ def train_stage(cfg) -> Path:
     with one_job_of_processes():
         if cfg.trainer.cpu_threads is not None:
             torch.set_num_threads(cfg.trainer.cpu_threads)
-        trainer = build_trainer(cfg, output_dir, module)
+        trainer = build_trainer(cfg, output_dir, module, deployment_eval(cfg, backbone))
         finished = finished_checkpoint_state(resume, cfg.stage.max_steps) if resume else None
         if finished is not None:
             # Killed after its last checkpoint and before its export: export what that checkpoint holds.

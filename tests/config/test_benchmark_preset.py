@@ -11,7 +11,12 @@ from omegaconf import OmegaConf
 
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
-from tracegs.pipeline.benchmark import benchmark_steps, benchmark_variants, estimate_minutes, teacher_overrides
+from tracegs.pipeline.benchmark import (
+    benchmark_steps,
+    benchmark_variants,
+    estimate_minutes,
+    teacher_overrides,
+)
 from tracegs.pipeline.steps import Step
 from tracegs.pipeline.upstream import upstream_config
 from tracegs.pipeline.variants import table3_variants
@@ -57,7 +62,8 @@ def test_every_variant_is_run_and_the_caches_hold_every_teacher():
                                                 "data.prepare.student_final_fits=true"]
     chosen = benchmark_variants(["F", "A"])
     assert [v.name for v in chosen] == ["A", "F"] and not chosen[0].trained
-    assert teacher_overrides(chosen, [3]) == ["data.prepare.dense_views=[null]", "data.prepare.student_final_fits=false"]
+    assert teacher_overrides(chosen, [3]) == ["data.prepare.dense_views=[null]",
+                                              "data.prepare.student_final_fits=false"]
     for names, problem in ((["A", "G"], r"\['G'\] are not variants"), (["A", "A"], "repeats"), ([], "at least one")):
         with pytest.raises(ConfigError, match=f"benchmark.variants.*{problem}"):
             benchmark_variants(names)

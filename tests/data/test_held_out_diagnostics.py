@@ -26,6 +26,9 @@ def test_each_variant_gets_both_diagnostics_on_the_clips_it_restores(prepared, b
     table = clip_restoration_psnr({"A": RestorationPipeline(backbone)}, cache, seed=4, progress=False)
     assert row["A"]["input"] == pytest.approx(table["mean"]["input"], abs=1e-5)
     assert row["A"]["final"] == pytest.approx(table["mean"]["A"], abs=1e-3)
+    # Spread over two forked workers (one clip each, one thread as here), the same result bit for bit.
+    forked = held_out_diagnostics(backbone, variants, cache, student_views=[3], seed=4, progress=False, workers=2)
+    assert forked == result
     with pytest.raises(ValueError, match=r"no student condition at \[9\] views"):
         held_out_diagnostics(backbone, variants, cache, student_views=[9], progress=False)
     with pytest.raises(KeyError, match="no teacher condition d12 for variant C"):

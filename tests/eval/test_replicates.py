@@ -50,7 +50,8 @@ def write_run(root: Path, seeds: list[int]) -> BenchmarkInputs:
                           root / "diagnostics" / f"seed{seed}" / "diagnostics.json")
     return BenchmarkInputs(seeds=seeds, variants=VARIANTS, descriptions={v: f"variant {v}" for v in VARIANTS},
                            methods={v: "baseline" if v == "A" else "tracegs" for v in VARIANTS},
-                           eval_dirs={s: root / "eval" / f"seed{s}" for s in seeds}, three_dgs_dir=root / "eval" / "3dgs",
+                           eval_dirs={s: root / "eval" / f"seed{s}" for s in seeds},
+                           three_dgs_dir=root / "eval" / "3dgs",
                            diagnostics_dirs={s: root / "diagnostics" / f"seed{s}" for s in seeds})
 
 
@@ -95,7 +96,8 @@ def test_report_assembles_table3_from_three_seeds(tmp_path):
     assert _cells(held_out, "| (F) | ")[2:] == ["+0.90 [+0.90, +0.90]", "+0.40 [+0.40, +0.40]"]
     assert _cells(held_out, "| (F) | ")[1].startswith("17.55 [")
     assert (tmp_path / "report" / "fig6_per_step.png").is_file()
-    assert "| step | (A) | (E) | (F) | (F) − (E) | (F) − (A) |" in (tmp_path / "report" / "per_step_intervals.md").read_text()
+    fig6 = (tmp_path / "report" / "per_step_intervals.md").read_text()
+    assert "| step | (A) | (E) | (F) | (F) − (E) | (F) − (A) |" in fig6
     assert "(A) variant A; (B) variant B;" in text
     gap = text[text.index("## Exposure gap"):text.index("## Teacher advantage")]
     assert _cells(gap, "| step |") == ["step", "(A)", "(B)", "(E)", "(F⁻)", "(F)"]

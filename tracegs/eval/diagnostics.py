@@ -19,8 +19,11 @@ The visited-state curve itself is Fig. 6 (``tracegs.eval.per_step``); the trajec
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +35,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
 from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, trajectory_frames
 from tracegs.eval.trajectory import ClipEncodings, Role, trajectory_diagnostics
+from tracegs.processes import die_with_parent, run_units
 from tracegs.restorer.build import Backbone
 
 
@@ -50,36 +54,30 @@ def _clip_batch(tensors: Mapping[str, Tensor], keys: Sequence[str]) -> Tensor:
     return torch.stack([tensors[cache_keys.latent(key)].float() for key in keys])
 
 
-@torch.no_grad()
-def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles], cache_dir: str | Path,
-                         student_views: Sequence[int], seed: int = 0, steps: int | None = None,
-                         progress: bool = True) -> dict:
-    """Both diagnostics, the per-step curve, the final sample and the input R_s for every variant on every
-    held-out clip of a prepared cache (``tracegs-prepare data.prepare.split=test``), at the student conditions
-    of ``student_views`` (batched per clip, one noise seed per clip shared by every variant).
+@dataclass
+class _ClipJob:
+    """Every variant diagnosed on one held-out clip; handed to forked workers by inheritance, never pickled."""
 
-    Returns ``{"per_scene": {scene: {variant: {"visited": [..], "noised": [..], "teacher": [..] | None,
-    "final": psnr, "input": psnr}}}, "conditions": [...], "clips": n, "steps": M}``: each scene's mean over its
-    clips (and conditions), the unit of the report's intervals over scenes.
-    """
-    conditions, shards = held_out_clips(cache_dir)
-    prefixes = tuple(cache_keys.student_prefix(k) for k in student_views)
-    conditions = [c for c in conditions if c.startswith(prefixes)]
-    if not conditions:
-        raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
-    sums: dict = defaultdict(lambda: defaultdict(list))  # scene -> variant -> one record per clip
-    for index, (scene, path) in enumerate(track(shards, description="trajectory diagnostics", disable=not progress)):
+    backbone: Backbone
+    variants: Mapping[str, VariantRoles]
+    conditions: list[str]
+    seed: int
+    steps: int | None
+
+    @torch.no_grad()
+    def __call__(self, index: int, path: Path) -> dict[str, dict]:
         tensors, _ = load_clip(path)
-        batch = len(conditions)
+        batch = len(self.conditions)
         truth = trajectory_frames(tensors, cache_keys.GROUND_TRUTH)
         shared = ClipEncodings(
             *(tensors[key].float().expand(batch, -1, -1) for key in (cache_keys.REF_2D, cache_keys.REF_3D,
                                                                       cache_keys.TEXT)),
             truth=truth.unsqueeze(0).expand(batch, -1, -1, -1, -1))
         clean = tensors[cache_keys.latent(cache_keys.TARGET)].float().unsqueeze(0)
-        student_cond = _clip_batch(tensors, conditions)
-        input_psnr = sum(mean_psnr(trajectory_frames(tensors, c), truth) for c in conditions) / batch
-        for name, roles in variants.items():
+        student_cond = _clip_batch(tensors, self.conditions)
+        input_psnr = sum(mean_psnr(trajectory_frames(tensors, c), truth) for c in self.conditions) / batch
+        records = {}
+        for name, roles in self.variants.items():
             teacher = None
             if roles.distilled:
                 key = condition_key(roles.teacher_views)
@@ -87,10 +85,65 @@ def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles
                     raise KeyError(f"{path}: no teacher condition {key} for variant {name} (prepare the held-out "
                                    "cache with data.prepare.dense_views and student_final_fits covering it)")
                 teacher = Role(roles.teacher, _clip_batch(tensors, [key] * batch))
-            result = trajectory_diagnostics(backbone, Role(roles.student, student_cond), shared, seed + index,
-                                            steps, clean=clean, teacher=teacher)
-            sums[scene][name].append({"visited": result.visited, "noised": result.noised,
-                                      "teacher": result.teacher, "final": result.final, "input": input_psnr})
+            result = trajectory_diagnostics(self.backbone, Role(roles.student, student_cond), shared,
+                                            self.seed + index, self.steps, clean=clean, teacher=teacher)
+            records[name] = {"visited": result.visited, "noised": result.noised, "teacher": result.teacher,
+                             "final": result.final, "input": input_psnr}
+        return records
+
+
+_FORKED_JOB: _ClipJob | None = None  # set in the parent just before forking the workers
+
+
+def _start_worker(parent_pid: int) -> None:
+    die_with_parent(parent_pid)
+    # Tiny tensors: one intra-op thread per worker, the workers themselves use the cores (on a loaded machine
+    # two spinning intra-op threads made one process ten times slower).
+    torch.set_num_threads(1)
+
+
+def _forked_clip(index: int, path: Path) -> dict[str, dict]:
+    return _FORKED_JOB(index, path)
+
+
+def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles], cache_dir: str | Path,
+                         student_views: Sequence[int], seed: int = 0, steps: int | None = None,
+                         progress: bool = True, workers: int = 1) -> dict:
+    """Both diagnostics, the per-step curve, the final sample and the input R_s for every variant on every
+    held-out clip of a prepared cache (``tracegs-prepare data.prepare.split=test``), at the student conditions
+    of ``student_views`` (batched per clip, one noise seed per clip shared by every variant). With ``workers``
+    > 1 (CPU only) the clips are spread over that many forked processes; the result is the same.
+
+    Returns ``{"per_scene": {scene: {variant: {"visited": [..], "noised": [..], "teacher": [..] | None,
+    "final": psnr, "input": psnr}}}, "conditions": [...], "clips": n, "steps": M}``: each scene's mean over its
+    clips (and conditions), the unit of the report's intervals over scenes.
+    """
+    global _FORKED_JOB
+    conditions, shards = held_out_clips(cache_dir)
+    prefixes = tuple(cache_keys.student_prefix(k) for k in student_views)
+    conditions = [c for c in conditions if c.startswith(prefixes)]
+    if not conditions:
+        raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
+    job = _ClipJob(backbone, variants, conditions, seed, steps)
+    # Forked workers must not inherit a CUDA context; GPU runs go one clip at a time.
+    workers = 1 if next(backbone.transformer.parameters()).is_cuda else min(workers, len(shards))
+    pool = None
+    if workers > 1:
+        _FORKED_JOB = job
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                   initializer=_start_worker, initargs=(os.getpid(),))
+    sums: dict = defaultdict(lambda: defaultdict(list))  # scene -> variant -> one record per clip
+    try:
+        results = run_units(pool, job if pool is None else _forked_clip,
+                            [(index, path) for index, (_, path) in enumerate(shards)])
+        for (scene, _), records in zip(shards, track(results, total=len(shards), description="trajectory "
+                                                     "diagnostics", disable=not progress)):
+            for name, record in records.items():
+                sums[scene][name].append(record)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+        _FORKED_JOB = None
     return {
         "per_scene": {scene: {name: _mean_records(records) for name, records in by_variant.items()}
                       for scene, by_variant in sorted(sums.items())},

@@ -46,7 +46,6 @@ log = logging.getLogger("tracegs")
 FIT_ITERATION_S = 0.0055  # one 3DGS iteration at 48x72, one core
 REFINE_ITERATION_S = 0.010  # one deployment iteration with restored pseudo views (a second render), one core
 RESTORER_FORWARD_S = 0.026  # one tiny-restorer forward of one 9-frame 48x72 clip, one core
-TWO_THREAD_SPEEDUP = 1.7  # the same forwards with both cores as intra-op threads (the report's diagnostics)
 PREPARED_CONDITION_S = 0.023  # rendering and encoding one condition of one prepared clip
 # Training wall time per sample (both cores) of the demo's batch of 4 at 48x72: A's step, Stage 1's step,
 # and one state of Stage 2's rollout (student forward and backward, teacher forward).
@@ -140,7 +139,7 @@ def benchmark_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
     for seed in training_seeds:
         common = [*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"]
 
-        def multirun(kind: str) -> list[str]:
+        def multirun(kind: str, seed: int = seed) -> list[str]:
             return ["--multirun", "hydra/launcher=local",
                     f"hydra.sweep.dir={quoted(out_dir / 'multirun' / f'seed{seed}' / kind)}"]
 
@@ -212,8 +211,7 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     # teacher's for a distilled variant), each over the clip's student conditions at the deployed view counts.
     clip_conditions = len(views) * snapshots
     forwards = reverse_steps * clip_conditions * (2 * len(variants) + trained)
-    diagnostics = (seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S
-                   / TWO_THREAD_SPEEDUP)
+    diagnostics = seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
     multirun_jobs = seeds * (trained + len(variants))
     starts = len(steps) * PROCESS_START_S + multirun_jobs * JOB_START_S
     return (data + training + deployment + diagnostics + starts) / 60

@@ -56,7 +56,8 @@ def diagnostics_report(cfg: DictConfig) -> Path:
                                  batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
     result = held_out_diagnostics(restorers[TEACHER].pipeline.backbone, roles, cfg.evaluation.held_out_cache,
                                   student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,
-                                  steps=cfg.deploy.steps, progress=cfg.evaluation.progress)
+                                  steps=cfg.deploy.steps, progress=cfg.evaluation.progress,
+                                  workers=cfg.evaluation.workers)
     path = Path(cfg.report.output_dir) / "diagnostics.json"
     write_json_atomic(result, path)
     return path

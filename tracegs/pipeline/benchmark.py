@@ -174,9 +174,10 @@ def diagnostics_dir(out_dir: Path, seed: int) -> Path:
     return out_dir / "diagnostics" / f"seed{seed}"
 
 
-def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequence[Step]) -> float:
-    """Wall time on an idle 2-core machine: the module's rates times this config's sizes (fits and their
-    iterations, clips and their conditions, training steps and batch, deployment rounds and reverse steps)."""
+def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequence[Step]) -> dict[str, float]:
+    """Wall time on an idle 2-core machine, in minutes per part of the run: the module's rates times this
+    config's sizes (fits and their iterations, clips and their conditions, training steps and batch, deployment
+    rounds and reverse steps)."""
     prepare, fit, deploy, exp = cfg.data.prepare, cfg.data.prepare.fit, cfg.deploy, cfg.experiment
     views, seeds = list(cfg.evaluation.views), len(cfg.benchmark.training_seeds)
     train_scenes, test_scenes = len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds)
@@ -214,7 +215,9 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     diagnostics = seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
     multirun_jobs = seeds * (trained + len(variants))
     starts = len(steps) * PROCESS_START_S + multirun_jobs * JOB_START_S
-    return (data + training + deployment + diagnostics + starts) / 60
+    parts = {"data": data, "training": training, "deployment": deployment, "diagnostics": diagnostics,
+             "process starts": starts}
+    return {part: seconds / 60 for part, seconds in parts.items()}
 
 
 def benchmark(cfg: DictConfig) -> Path:
@@ -227,11 +230,13 @@ def benchmark(cfg: DictConfig) -> Path:
             if override_key(o).split(".")[0] not in ("benchmark", "seed", "ablation")]
     clips = cfg.benchmark.held_out_clips_per_scene
     steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views))
-    estimate = estimate_minutes(cfg, variants, steps)
+    parts = estimate_minutes(cfg, variants, steps)
+    estimate = sum(parts.values())
     show(f"tracegs-benchmark: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
          f"{len(cfg.data.synthetic.test_seeds)} test scenes at {list(cfg.evaluation.views)} views: {len(steps)} "
-         f"steps, about {estimate:.0f} min on an idle 2-core machine (up to twice that on a slow one); output in "
-         f"{out_dir}")
+         f"steps, about {estimate:.0f} min on an idle 2-core machine ("
+         + ", ".join(f"{part} {minutes:.1f}" for part, minutes in parts.items())
+         + f"; up to twice that on a slow one); output in {out_dir}")
     start = time.perf_counter()
     timings: dict[str, float] = {}
     for index, step in enumerate(steps, 1):
@@ -244,7 +249,8 @@ def benchmark(cfg: DictConfig) -> Path:
     wall_s = time.perf_counter() - start
     run = {**describe(cfg.seed), "training_seeds": seeds, "variants": [v.name for v in variants],
            "wall_s": round(wall_s, 1), "table3_minutes": round(wall_s / 60, 1),
-           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1)}
+           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1),
+           "estimate_parts_min": {part: round(minutes, 1) for part, minutes in parts.items()}}
     machine = run["machine"]
     header = (f"# Embedded benchmark: Table 3\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "
               f"cores, torch {machine['torch']}): wall time {run['table3_minutes']:.1f} min (estimated "

@@ -17,6 +17,7 @@ from tracegs.pipeline.benchmark import (
     estimate_minutes,
     teacher_overrides,
 )
+from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.steps import Step
 from tracegs.pipeline.upstream import upstream_config
 from tracegs.pipeline.variants import table3_variants
@@ -152,3 +153,14 @@ def test_seeds_must_be_listed_once(tmp_path):
         benchmark_steps(variants, 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):
         benchmark_steps(variants, 0, [], tmp_path)
+
+
+def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, as_hydra_job):
+    cfg = as_hydra_job("report", ["report.kind=diagnostics", f"paths.root_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="evaluation.held_out_cache.*prepared held-out cache"):
+        diagnostics_report(cfg)
+    cfg = as_hydra_job("report", ["report.kind=diagnostics", "report.inputs=[A,G]", f"paths.root_dir={tmp_path}",
+                                  f"evaluation.held_out_cache={tmp_path}"])
+    with pytest.raises(ConfigError, match=r"report.inputs.*\['G'\] are not variants"):
+        diagnostics_report(cfg)
+    assert not any(tmp_path.iterdir())  # refused before any work

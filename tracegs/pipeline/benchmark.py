@@ -53,7 +53,7 @@ BASELINE_SAMPLE_S = 0.056
 STAGE1_SAMPLE_S = 0.082
 STAGE2_SAMPLE_STATE_S = 0.056
 PROCESS_START_S = 7.0  # a child command: interpreter, torch, Hydra, the restorer
-JOB_START_S = 3.0  # one more job of a multirun in a running process (composition, restorer weights)
+JOB_START_S = 3.0  # one more job of a multirun in a running process (composition, restorer weights, lookups)
 CORES = 2
 
 
@@ -213,8 +213,9 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     clip_conditions = len(views) * snapshots
     forwards = reverse_steps * clip_conditions * (2 * len(variants) + trained)
     diagnostics = seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
-    multirun_jobs = seeds * (trained + len(variants))
-    starts = len(steps) * PROCESS_START_S + multirun_jobs * JOB_START_S
+    # The multiruns' further jobs, and the diagnostics' composition of each variant's config and its upstream.
+    jobs = seeds * (trained + 2 * len(variants))
+    starts = len(steps) * PROCESS_START_S + jobs * JOB_START_S
     parts = {"data": data, "training": training, "deployment": deployment, "diagnostics": diagnostics,
              "process starts": starts}
     return {part: seconds / 60 for part, seconds in parts.items()}

@@ -6,6 +6,11 @@ student conditions of ``evaluation.views``: its per-step clean prediction (Fig. 
 the distilled variants, the advantage of their teacher (the Stage-1 adapter on the variant's R_d, Eq. 5) at the
 student's states (tracegs.eval.diagnostics). All restorers share one backbone: A's weights, the Stage-1 adapter
 and each student adapter loaded once.
+
+Any split's prepared cache works: the test split's held-out clips (the benchmark's), or the validation split's
+(``tracegs-prepare data.prepare.split=val``), on which a schedule or Stage-2 budget that makes the trajectory
+matter would be chosen. Its teacher conditions must cover the variants' (``data.prepare.dense_views``,
+``data.prepare.student_final_fits``).
 """
 
 from __future__ import annotations

@@ -128,17 +128,27 @@ def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):
     assert "|" in (tmp_path / "seeds.md").read_text()
 
 
-def test_benchmark_trains_each_seed_and_writes_one_report(run, tmp_path_factory):
-    """``tracegs-benchmark`` (make benchmark) at the smallest size with two training seeds: every step runs as a
-    child command, and the report holds the deployment table, both seeds and the instrument line."""
+def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
+    """``tracegs-benchmark`` (make benchmark) at its smallest size, two variants on two test scenes with one
+    training seed: every step runs as a child command, and the report holds Table 3, the orderings, both
+    diagnostics and Fig. 6, its JSON record the wall time and the F - A interval."""
     root = tmp_path_factory.mktemp("benchmark")
-    result = run("benchmark", root, "benchmark.training_seeds=[0,1]", "benchmark.held_out_clips_per_scene=1",
-                 "data.synthetic.test_seeds=[100,101]")
+    result = run("benchmark", root, "benchmark.training_seeds=[0]", "benchmark.held_out_clips_per_scene=1",
+                 "benchmark.variants=[A,F]", "data.synthetic.test_seeds=[100,101]")
     (report,) = root.rglob("benchmark.md")
     text = report.read_text()
-    assert "## Deployment (Tables 1/2)" in text and "training seeds [0, 1]" in text and "## Held-out clips" in text
-    assert {p.name for p in report.parent.glob("per_scene_seed*.csv")} == {
-        "per_scene_seed0.csv", "per_scene_seed1.csv", "per_scene_seed_mean.csv"}
-    run_record = json.loads((report.parent / "run.json").read_text())
-    assert run_record["training_seeds"] == [0, 1] and len(run_record["step_s"]) == 2 + 2 * 5
+    assert "## Table 3 (deployment)" in text and "training seeds [0]" in text and "## Exposure gap" in text
+    assert "## Teacher advantage at the student's states" in text and "## Fig. 6" in text
+    assert "| (A) |" in text and "| (F) |" in text and "| 3DGS |" in text
+    assert "| (B) < (A) | PSNR↑ | 3 |  | **not measured** |" in text  # B was not run
+    assert "(A) < (F)" in text and "**not resolved**" in text  # two scenes resolve nothing
+    assert re.search(r"wall time \d+\.\d min", text)
+    assert {p.name for p in report.parent.glob("per_scene_seed*.csv")} == {"per_scene_seed0.csv",
+                                                                            "per_scene_seed_mean.csv"}
+    assert (report.parent / "fig6_per_step.png").is_file()
+    record = json.loads((report.parent / "run.json").read_text())
+    assert record["training_seeds"] == [0] and record["variants"] == ["A", "F"]
+    assert record["table3_minutes"] > 0 and record["f_minus_a_3views_half_width_db"] >= 0
+    # Data twice, plain 3DGS once; A, Stage 1, the students' multirun, the evaluations' and the diagnostics.
+    assert len(record["step_s"]) == 3 + 5
     assert text.strip() in result.stdout

@@ -1,5 +1,5 @@
 """`make benchmark`: the preset composes, every step's command validates, the replicates share what does not
-depend on the training seed and each finds its own upstream products."""
+depend on the training seed, and each variant and seed finds its own upstream products."""
 
 from __future__ import annotations
 
@@ -10,8 +10,17 @@ from hydra import compose
 from omegaconf import OmegaConf
 
 from tracegs.config.validate import validate
-from tracegs.pipeline.benchmark import benchmark_steps, estimate_minutes
+from tracegs.errors import ConfigError
+from tracegs.pipeline.benchmark import (
+    benchmark_steps,
+    benchmark_variants,
+    estimate_minutes,
+    teacher_overrides,
+)
+from tracegs.pipeline.diagnostics import diagnostics_report
+from tracegs.pipeline.steps import Step
 from tracegs.pipeline.upstream import upstream_config
+from tracegs.pipeline.variants import table3_variants
 
 APP_CONFIG = {"prepare": "prepare", "train": "train", "evaluate": "evaluate", "report": "report"}
 
@@ -35,26 +44,65 @@ def test_preset_has_enough_scenes_and_seeds():
 
 def test_the_default_run_fits_the_hour():
     cfg = compose(config_name="benchmark")
-    steps = benchmark_steps(cfg.ablation.name, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
-    minutes = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
-                               len(cfg.evaluation.views), len(cfg.benchmark.training_seeds), len(steps),
-                               cfg.benchmark.held_out_clips_per_scene)
-    assert minutes < 52  # leaves a margin under 60 min for the estimate's error
-    # At the demo's scale with every view count: the measured stages plus the privileged gap it does not run.
-    demo = estimate_minutes(12, 2, 3, 1, 0, 8)
-    test_prepare = 2 * 1.0 * (3 * 340 + 600) / (4 * 600)
-    assert demo == pytest.approx(6.7 + test_prepare + 3.1 + 7.2 + 2 * 8 * 2 * 7 * 0.5 / 60, abs=0.01)
+    variants = benchmark_variants()
+    steps = benchmark_steps(variants, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
+    parts = estimate_minutes(cfg, variants, steps)
+    assert sum(parts.values()) < 45  # leaves a margin under 60 min for the estimate's error
+    # The estimate follows the config's sizes: each further training seed costs a seed's training,
+    # deployment and diagnostics, and nothing more of the data; three view counts deploy three times as much.
+    more_seeds = estimate_minutes(compose(config_name="benchmark", overrides=["benchmark.training_seeds=[0,1,2,3]"]),
+                                  variants, steps)
+    for part in ("training", "diagnostics"):
+        assert more_seeds[part] == pytest.approx(parts[part] * 4 / 3)
+    assert more_seeds["data"] == parts["data"]
+    every_view = estimate_minutes(compose(config_name="benchmark", overrides=["evaluation.views=[3,6,9]"]),
+                                  variants, steps)
+    assert every_view["deployment"] == pytest.approx(3 * parts["deployment"])
+
+
+def test_every_variant_is_run_and_the_caches_hold_every_teacher():
+    variants = benchmark_variants()
+    assert [v.name for v in variants] == [v.name for v in table3_variants()]  # conf/ablation/, Table 3's rows
+    # C and D need the 12- and 18-view teachers, B the sparse fits' final snapshots (as the sweep prepares).
+    assert teacher_overrides(variants, [3]) == ["data.prepare.dense_views=[12,18,null]",
+                                                "data.prepare.student_final_fits=true"]
+    chosen = benchmark_variants(["F", "A"])
+    assert [v.name for v in chosen] == ["A", "F"] and not chosen[0].trained
+    assert teacher_overrides(chosen, [3]) == ["data.prepare.dense_views=[null]",
+                                              "data.prepare.student_final_fits=false"]
+    for names, problem in ((["A", "G"], r"\['G'\] are not variants"), (["A", "A"], "repeats"), ([], "at least one")):
+        with pytest.raises(ConfigError, match=f"benchmark.variants.*{problem}"):
+            benchmark_variants(names)
+
+
+def _single(steps) -> list[Step]:
+    """The steps as single runs: a multirun's jobs, one per variant (how Hydra expands ``ablation=A,F``)."""
+    out = []
+    for step in steps:
+        if "--multirun" not in step.overrides:
+            out.append(step)
+            continue
+        kept = [o for o in step.overrides if o != "--multirun" and not o.startswith(("hydra/", "hydra."))]
+        (sweep,) = [o for o in kept if o.startswith("ablation=")]
+        for name in sweep.split("=", 1)[1].split(","):
+            out.append(Step(step.app, tuple(f"ablation={name}" if o == sweep else o for o in kept),
+                            f"{step.label} {name}"))
+    return out
 
 
 def test_every_step_composes_and_validates(tmp_path, as_hydra_job):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
-    for step in benchmark_steps("F", 0, [0, 1], out_dir, ["paths.root_dir=/tmp/elsewhere"]):
+    steps = benchmark_steps(benchmark_variants(["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
+    for step in _single(steps):
         cfg = as_hydra_job(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
         assert cfg.paths.root_dir == "/tmp/elsewhere"
-        if step.app == "evaluate":
-            assert Path(cfg.evaluation.out_dir).parent == out_dir / "eval"
+        if step.app == "evaluate" and "3DGS" not in step.label:
+            seed, variant = cfg.seed, cfg.ablation.name
+            assert Path(cfg.evaluation.out_dir) == out_dir / "eval" / f"seed{seed}" / variant
+            assert list(cfg.evaluation.methods) == [str(cfg.ablation.method)]
+        if step.app == "report":
             assert cfg.evaluation.held_out_cache == str(out_dir / "cache" / "test")
 
 
@@ -63,15 +111,16 @@ def _step(steps, label):
 
 
 def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_job):
-    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
-    evaluations = [as_hydra_job("evaluate", list(_step(steps, f"seed {s}: evaluate {m}").overrides))
-                   for s, m in ((0, "[3dgs,baseline,tracegs]"), (1, "[baseline,tracegs]"))]
+    steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    plain = as_hydra_job("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
+    evaluations = [as_hydra_job("evaluate", list(_step(steps, f"seed {s}: evaluate (A,F) F").overrides))
+                   for s in (0, 1)]
+    # What plain 3DGS depends on is identical to every variant's deployment, so it is evaluated once.
+    for cfg in evaluations:
+        for key in ("deploy", "data.prepare.fit", "data.source", "data.synthetic", "evaluation.views"):
+            assert OmegaConf.select(plain, key) == OmegaConf.select(cfg, key), key
+    assert list(plain.evaluation.methods) == ["3dgs"]
     first, second = evaluations
-    # What plain 3DGS depends on is identical, so the first replicate's 3DGS serves every seed.
-    for key in ("deploy", "data.prepare.fit", "data.source", "data.synthetic", "evaluation.views",
-                "evaluation.held_out_cache"):
-        assert OmegaConf.select(first, key) == OmegaConf.select(second, key), key
-    assert list(second.evaluation.methods) == ["baseline", "tracegs"]
     # The restorer is trained from scratch per seed: other model seeds, other folders, one shared cache.
     assert first.stage.seed != second.stage.seed
     assert first.data.datamodule.seed != second.data.datamodule.seed
@@ -80,26 +129,38 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_
 
 
 def test_each_replicate_finds_its_own_upstream_products(tmp_path, as_hydra_job):
-    steps = benchmark_steps("F", 0, [0, 1], tmp_path)
+    steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
     for seed in (0, 1):
         trained = {stage: str(as_hydra_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
                               .run_dir)
-                   for stage, label in (("baseline", "A"), ("stage1", "Stage 1"), ("stage2", "Stage 2"))}
-        methods = "[3dgs,baseline,tracegs]" if seed == 0 else "[baseline,tracegs]"
-        evaluation = as_hydra_job("evaluate", list(_step(steps, f"seed {seed}: evaluate {methods}").overrides))
-        for stage, folder in trained.items():
-            assert str(upstream_config(evaluation, stage).run_dir) == folder, (seed, stage)
-        stage2 = as_hydra_job("train", list(_step(steps, f"seed {seed}: train Stage 2").overrides))
+                   for stage, label in (("baseline", "A"), ("stage1", "Stage 1"))}
+        stage2 = as_hydra_job("train", list(_step(steps, f"seed {seed}: train Stage 2 (F) F").overrides))
         assert str(upstream_config(stage2, "stage1").run_dir) == trained["stage1"]
-        gap = as_hydra_job("report", list(_step(steps, f"seed {seed}: privileged gap").overrides))
-        for stage in ("stage1", "stage2"):
-            assert str(upstream_config(gap, stage).run_dir) == trained[stage], (seed, stage)
+        evaluation = as_hydra_job("evaluate", list(_step(steps, f"seed {seed}: evaluate (A,F) F").overrides))
+        assert str(upstream_config(evaluation, "stage2").run_dir) == str(stage2.run_dir), seed
+        assert str(upstream_config(evaluation, "baseline").run_dir) == trained["baseline"], seed
+        diagnostics = as_hydra_job("report", list(_step(steps, f"seed {seed}: trajectory diagnostics").overrides))
+        for stage in ("baseline", "stage1"):
+            assert str(upstream_config(diagnostics, stage).run_dir) == trained[stage], (seed, stage)
+        assert list(diagnostics.report.inputs) == ["A", "F"]
     assert len({str(as_hydra_job("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
                 for s in (0, 1)}) == 2
 
 
 def test_seeds_must_be_listed_once(tmp_path):
+    variants = benchmark_variants(["A", "F"])
     with pytest.raises(ValueError, match="repeats"):
-        benchmark_steps("F", 0, [1, 1], tmp_path)
+        benchmark_steps(variants, 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):
-        benchmark_steps("F", 0, [], tmp_path)
+        benchmark_steps(variants, 0, [], tmp_path)
+
+
+def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, as_hydra_job):
+    cfg = as_hydra_job("report", ["report.kind=diagnostics", f"paths.root_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="evaluation.held_out_cache.*prepared held-out cache"):
+        diagnostics_report(cfg)
+    cfg = as_hydra_job("report", ["report.kind=diagnostics", "report.inputs=[A,G]", f"paths.root_dir={tmp_path}",
+                                  f"evaluation.held_out_cache={tmp_path}"])
+    with pytest.raises(ConfigError, match=r"report.inputs.*\['G'\] are not variants"):
+        diagnostics_report(cfg)
+    assert not any(tmp_path.iterdir())  # refused before any work

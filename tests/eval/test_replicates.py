@@ -1,49 +1,63 @@
-"""The benchmark's report assembles from several training seeds' results, sharing plain 3DGS."""
+"""The benchmark's report: Table 3's variants over training seeds, the orderings marked, both trajectory
+diagnostics and Fig. 6, assembled from the per-seed results the benchmark's steps write."""
 
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import pytest
 
-from tracegs.eval.replicates import instrument_line, mean_tree, write_benchmark_report
+from tracegs.eval.replicates import BenchmarkInputs, instrument, label, mean_tree, write_benchmark_report
 from tracegs.io import write_json_atomic
 
 SCENES = [f"scene_{100 + i}" for i in range(8)]
 CONTENT = [0.0, 1.5, -2.0, 0.7, 2.4, -1.1, 0.3, -0.6]
+VARIANTS = ["A", "B", "E", "F-", "F"]
+# Each variant's offset over A (dB PSNR): B below A, E < F- < F; seed s adds 0.1 * s to every student.
+OFFSET = {"A": 0.0, "B": -0.2, "E": 0.1, "F-": 0.2, "F": 0.3}
+STEPS = 3
 
 
 def _row(psnr: float) -> dict:
     return {"psnr": psnr, "ssim": 0.5, "lpips": None}
 
 
-def write_seed(root: Path, seed: int) -> tuple[Path, Path]:
-    """One training seed's evaluation (3DGS only in seed 0's) and privileged-gap folders. TRACE-GS - A is
-    0.3 + 0.1 * seed on every scene; A - 3DGS is +1.0."""
-    eval_dir, gap_dir = root / "eval" / f"seed{seed}", root / "privileged" / f"seed{seed}"
-    per_scene = {}
-    for scene, content in zip(SCENES, CONTENT):
-        methods = {"baseline": {"3": _row(19.0 + content)}, "tracegs": {"3": _row(19.3 + content + 0.1 * seed)}}
-        if seed == 0:
-            methods["3dgs"] = {"3": _row(18.0 + content)}
-        per_scene[scene] = methods
-        write_json_atomic({"scene": scene, "views": 3, "per_step": {"baseline": [15.0, 16.0 + content],
-                                                                    "tracegs": [15.0, 16.5 + content]}},
-                          eval_dir / "units" / scene / "views_3.json")
-    write_json_atomic(per_scene, eval_dir / "per_scene.json")
-    held_out = {scene: {"s3_it140": {"input": 20.0 + c, "baseline": 20.2 + c, "tracegs": 20.1 + c + seed}}
-                for scene, c in zip(SCENES, CONTENT)}
-    write_json_atomic({"conditions": {"s3_it140": {"input": 20.0, "baseline": 20.2, "tracegs": 20.1 + seed}},
-                       "mean": {"input": 20.0, "baseline": 20.2, "tracegs": 20.1 + seed}, "clips": 16,
-                       "scenes": SCENES, "per_scene": held_out}, eval_dir / "held_out_clips.json")
-    gap = {scene: {"input R_d": {"gt": 24.0 + c}, "input R_s": {"gt": 20.0 + c, "R_d": 21.0 + c},
-                   "tracegs | R_d": {"gt": 23.0 + c, "R_d": 25.0 + c},
-                   "tracegs | R_s": {"gt": 20.5 + c, "R_d": 21.5 + c}} for scene, c in zip(SCENES, CONTENT)}
-    write_json_atomic({"per_scene": gap, "rows": list(gap[SCENES[0]]), "teacher": "dall", "clips": 16,
-                       "conditions": ["s3_it140", "s3_it340"]},
-                      gap_dir / "privileged_gap.json")
-    return eval_dir, gap_dir
+def _diagnostics(variant: str, content: float, seed: int) -> dict:
+    """Per-step curves: the visited state 0.5 dB above the forward-noised one after step 1, except for E
+    (the same states); the teacher 1 dB above the student; the final sample at the last visited value."""
+    learned = OFFSET[variant] + (0.1 * seed if variant != "A" else 0.0)
+    visited = [15.0 + content, 16.0 + content, 17.0 + content + learned]
+    gap = 0.0 if variant in ("A", "E") else 0.5
+    return {"visited": visited, "noised": [visited[0]] + [v - gap for v in visited[1:]],
+            "teacher": None if variant == "A" else [v + 1.0 for v in visited], "final": visited[-1],
+            "input": 16.5 + content}
+
+
+def write_run(root: Path, seeds: list[int]) -> BenchmarkInputs:
+    """A benchmark's results: plain 3DGS once, every variant's deployment and the diagnostics per seed."""
+    write_json_atomic({s: {"3dgs": {"3": _row(18.0 + c)}} for s, c in zip(SCENES, CONTENT)},
+                      root / "eval" / "3dgs" / "per_scene.json")
+    for seed in seeds:
+        for variant in VARIANTS:
+            method, shift = ("baseline", 0.0) if variant == "A" else ("tracegs", OFFSET[variant] + 0.1 * seed)
+            write_json_atomic({s: {method: {"3": _row(19.0 + c + shift)}} for s, c in zip(SCENES, CONTENT)},
+                              root / "eval" / f"seed{seed}" / variant / "per_scene.json")
+        write_json_atomic({"per_scene": {s: {v: _diagnostics(v, c, seed) for v in VARIANTS}
+                                         for s, c in zip(SCENES, CONTENT)},
+                           "conditions": ["s3_it140", "s3_it340"], "clips": 16, "steps": STEPS},
+                          root / "diagnostics" / f"seed{seed}" / "diagnostics.json")
+    return BenchmarkInputs(seeds=seeds, variants=VARIANTS, descriptions={v: f"variant {v}" for v in VARIANTS},
+                           methods={v: "baseline" if v == "A" else "tracegs" for v in VARIANTS},
+                           eval_dirs={s: root / "eval" / f"seed{s}" for s in seeds},
+                           three_dgs_dir=root / "eval" / "3dgs",
+                           diagnostics_dirs={s: root / "diagnostics" / f"seed{s}" for s in seeds})
+
+
+def _cells(text: str, start: str) -> list[str]:
+    row = next(line for line in text.splitlines() if line.startswith(start))
+    return [c.strip() for c in row.strip("|").split("|")]
 
 
 def test_mean_tree_averages_leaves_and_keeps_labels():
@@ -52,41 +66,63 @@ def test_mean_tree_averages_leaves_and_keeps_labels():
     assert mean_tree(trees) == {"a": {"x": 2.0, "c": [2.0, 4.0], "n": None, "s": "k"}}
 
 
-def test_report_assembles_from_three_seeds(tmp_path):
-    folders = [write_seed(tmp_path, seed) for seed in (0, 1, 2)]
-    path = write_benchmark_report(tmp_path / "report", [0, 1, 2], [f[0] for f in folders],
-                                  [f[1] for f in folders], header="# Embedded benchmark\n")
+def test_variants_are_named_as_in_the_paper():
+    assert [label(v) for v in ("A", "F-", "F", "3dgs")] == ["(A)", "(F⁻)", "(F)", "3DGS"]
+
+
+def test_report_assembles_table3_from_three_seeds(tmp_path):
+    path, figures = write_benchmark_report(tmp_path / "report", write_run(tmp_path, [0, 1, 2]),
+                                           header="# Embedded benchmark: Table 3\n")
     text = path.read_text()
-    # Seeds averaged per scene: TRACE-GS - A = 0.4 on every scene, so a zero-width interval.
-    assert "Instrument: the 95% interval of TRACE-GS − A at 3 views is +0.40 [+0.40, +0.40] dB, half-width ±0.00" \
-           in text and "target ≤ ±0.2 dB: met" in text
-    # Next to it, the spread over seeds: 0.3, 0.4, 0.5 (sd 0.1), and no spread over scenes.
-    row = next(line for line in text.splitlines() if line.startswith("| TRACE-GS − A | 3 |"))
-    cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[2:6] == ["+0.30", "+0.40", "+0.50", "0.10"]
-    assert cells[7] == "0.00"
-    # Plain 3DGS, evaluated only by seed 0, is shared by every seed: A - 3DGS = +1.0 on each.
-    assert "| A − 3DGS | 3 | +1.00 | +1.00 | +1.00 | 0.00 |" in text
-    rows = list(csv.DictReader((tmp_path / "report" / "per_scene_seed2.csv").open()))
-    assert {r["method"] for r in rows} == {"3dgs", "baseline", "tracegs"}
-    # Held-out clips (TRACE-GS gains seed dB: mean +1 over seeds), Fig. 6 with bands, the privileged gap.
-    assert "| TRACE-GS − A | +0.90 [+0.90, +0.90] | +0.90 [+0.90, +0.90] |" in text
+    # Seeds averaged per scene: F - A = 0.3 + 0.1 (mean seed offset) on every scene, a zero-width interval.
+    assert "the 95% interval of (F) − (A) at 3 views is +0.40 [+0.40, +0.40] dB" in text and "met" in text
+    assert figures["f_minus_a_3views_half_width_db"] == 0.0
+    assert figures["f_minus_a_3views_db"] == [0.4, 0.4, 0.4]
+    # Each variant's row: its mean per seed and their spread, its difference to A; plain 3DGS shared.
+    assert _cells(text, "| (F) |")[2:5] == ["19.45 / 19.55 / 19.65", "0.10", "+0.40 [+0.40, +0.40]"]
+    assert _cells(text, "| (B) |")[4] == "-0.10 [-0.10, -0.10]"
+    assert _cells(text, "| 3DGS |")[2:4] == ["18.15 / 18.15 / 18.15", "0.00"]
+    # Every ordering of Tables 1-3 is marked; C and D were not run.
+    assert _cells(text, "| (B) < (A) | PSNR↑ | 3 |")[3:5] == ["+0.10 [+0.10, +0.10]", "**holds**"]
+    assert _cells(text, "| (E) < (F⁻) | PSNR↑ | 3 |")[3:6] == ["+0.10 [+0.10, +0.10]", "**holds**",
+                                                             "+0.10 / +0.10 / +0.10"]
+    assert _cells(text, "| (A) < (C) | PSNR↑ | 3 |")[4] == "**not measured**"
+    assert _cells(text, "| 3DGS < (A) | PSNR↑ | 3 |")[4] == "**holds**"
+    assert figures["orderings"]["(F⁻) < (F), PSNR, 3 views"] == "holds"
+    assert len([k for k in figures["orderings"] if k.endswith("PSNR, 3 views")]) == 7
+    # Held-out clips, Fig. 6 (A, E, F), the exposure gap (0 at step 1; 0.5 later except A and E) and the
+    # teacher advantage (1 dB for the distilled variants).
+    held_out = text[text.index("## Held-out clips"):]
+    assert _cells(held_out, "| (F) | ")[2:] == ["+0.90 [+0.90, +0.90]", "+0.40 [+0.40, +0.40]"]
+    assert _cells(held_out, "| (F) | ")[1].startswith("17.55 [")
     assert (tmp_path / "report" / "fig6_per_step.png").is_file()
-    assert "| TRACE-GS − A |" in (tmp_path / "report" / "per_step_intervals.md").read_text()
-    assert "| Stage-2 student (TRACE-GS) | +2.50 [+2.50, +2.50] |" in text
-    # The report ends with the orderings marked.
-    conclusions = text[text.index("## Conclusions"):]
-    assert "- TRACE-GS > Baseline (A), 3 views, PSNR: **holds** (+0.40 [+0.40, +0.40])" in conclusions
-    assert "- Baseline (A) > 3DGS, 3 views, PSNR: **holds** (+1.00 [+1.00, +1.00])" in conclusions
+    fig6 = (tmp_path / "report" / "per_step_intervals.md").read_text()
+    assert "| step | (A) | (E) | (F) | (F) − (E) | (F) − (A) |" in fig6
+    assert "(A) variant A; (B) variant B;" in text
+    gap = text[text.index("## Exposure gap"):text.index("## Teacher advantage")]
+    assert _cells(gap, "| step |") == ["step", "(A)", "(B)", "(E)", "(F⁻)", "(F)"]
+    assert _cells(gap, "| 1 |")[1:] == ["+0.00 [+0.00, +0.00]"] * 5
+    none, half = "+0.00 [+0.00, +0.00]", "+0.50 [+0.50, +0.50]"
+    assert _cells(gap, "| mean of steps 2+ |")[1:] == [none, half, none, half, half]
+    assert "(B) step 2" in gap and "(E) step 2" not in gap
+    assert figures["exposure_gap_largest_db"] == 0.5
+    advantage = text[text.index("## Teacher advantage"):]
+    assert _cells(advantage, "| step |") == ["step", "(B)", "(E)", "(F⁻)", "(F)"]
+    assert _cells(advantage, "| 2 |")[1:] == ["+1.00 [+1.00, +1.00]"] * 4
+    rows = list(csv.DictReader((tmp_path / "report" / "per_scene_seed2.csv").open()))
+    assert {r["variant"] for r in rows} == {"3dgs", *VARIANTS}
 
 
 def test_the_instrument_is_not_judged_on_too_few_scenes():
-    per_scene = {s: {"baseline": {"3": _row(19.0 + c)}, "tracegs": {"3": _row(19.3 + c)}}
-                 for s, c in zip(SCENES[:2], CONTENT)}
-    assert "not assessable from 2 scenes, fewer than 6" in instrument_line(per_scene)
+    per_scene = {s: {"A": {"3": _row(19.0 + c)}, "F": {"3": _row(19.3 + c)}} for s, c in zip(SCENES[:2], CONTENT)}
+    line, gap = instrument(per_scene, "3")
+    assert "not assessable from 2 scenes, fewer than 6" in line and gap.n == 2
 
 
 def test_a_missing_seed_result_is_named(tmp_path):
-    eval_dir, gap_dir = write_seed(tmp_path, 0)
-    with pytest.raises(FileNotFoundError, match="seed1/per_scene.json is missing"):
-        write_benchmark_report(tmp_path / "report", [0, 1], [eval_dir, tmp_path / "eval" / "seed1"], [gap_dir])
+    inputs = write_run(tmp_path, [0])
+    inputs.seeds, inputs.eval_dirs[1] = [0, 1], tmp_path / "eval" / "seed1"
+    with pytest.raises(FileNotFoundError, match="seed1/A/per_scene.json is missing"):
+        write_benchmark_report(tmp_path / "report", inputs)
+    assert not (tmp_path / "report" / "benchmark.md").exists()
+    assert json.loads((tmp_path / "eval" / "seed0" / "F" / "per_scene.json").read_text())

@@ -11,9 +11,9 @@ from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
-from torchmetrics.functional.image import peak_signal_noise_ratio
 
-from tracegs.restorer.sampler import RestorationPipeline, guided_prediction, sample, using_adapter
+from tracegs.eval.trajectory import ClipEncodings, Role, trajectory_diagnostics
+from tracegs.restorer.sampler import RestorationPipeline
 
 
 @torch.no_grad()
@@ -22,34 +22,17 @@ def per_step_psnr(pipeline: RestorationPipeline, frames: Tensor, ref_images: Ten
     """PSNR (dB, mean over target frames) of the decoded x0 prediction at each of the M reverse steps.
 
     ``frames``/``ground_truth`` are (B, F, 3, H, W) in [0, 1]; frames 0 and -1 are the reference views and
-    are excluded, as everywhere in the evaluation. Element i is the prediction made at state z_{t_{M-i}}.
+    are excluded, as everywhere in the evaluation. Element i is the prediction made at state z_{t_{M-i}}: the
+    visited-state curve of ``tracegs.eval.trajectory``, from the deployment sampler's states and noise.
     """
     if frames.shape != ground_truth.shape:
         raise ValueError(f"frames {tuple(frames.shape)} and ground truth {tuple(ground_truth.shape)} differ")
-    bb, cfg = pipeline.backbone, pipeline.backbone.cfg
+    bb = pipeline.backbone
     device = pipeline.device
-    steps = steps or cfg.schedule.deploy_steps
-    guidance = cfg.sampler.guidance_scale
-    cond = bb.codec.encode(frames.to(device))
     ref_2d, ref_3d = bb.reference_encoder(ref_images.to(device))
-    ref_2d, ref_3d = ref_2d.to(device), ref_3d.to(device)
-    text = bb.text_encoder.encode(captions).to(device)
-    grid = bb.schedule.timesteps(steps)
-    target = ground_truth[:, 1:-1].flatten(0, 1).to(device)
-    curve = []
-    with using_adapter(bb.transformer, pipeline.adapter):
-        _, states = sample(bb.transformer, bb.schedule, cond, ref_2d, ref_3d, text, steps, guidance,
-                           torch.Generator().manual_seed(seed), return_states=True)
-        for z, t in zip(states[:-1], grid[:-1]):
-            t_batch = t.expand(z.shape[0]).to(device)
-            # Re-evaluating v at the visited state (one extra forward per step) gives the exact x0 the
-            # solver is heading for; the sampler itself only keeps the states.
-            v = guided_prediction(bb.transformer, z, cond, t_batch, text, ref_2d, ref_3d, guidance).velocity
-            clean = bb.codec.decode(bb.schedule.predict_clean(z, v.float(), t_batch)).clamp(0, 1)
-            psnr = peak_signal_noise_ratio(clean[:, 1:-1].flatten(0, 1), target, data_range=1.0,
-                                           reduction="none", dim=(1, 2, 3))
-            curve.append(float(psnr.mean()))
-    return curve
+    shared = ClipEncodings(ref_2d, ref_3d, bb.text_encoder.encode(captions), ground_truth[:, 1:-1])
+    student = Role(pipeline.adapter, bb.codec.encode(frames.to(device)))
+    return trajectory_diagnostics(bb, student, shared, seed, steps).visited
 
 
 def mean_curves(curves: Sequence[Mapping[str, Sequence[float]]]) -> dict[str, list[float]]:

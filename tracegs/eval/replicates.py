@@ -1,10 +1,10 @@
-"""The benchmark's report: several training seeds of the restorer, each evaluated on the same test scenes.
+"""The benchmark's report: Table 3's variants, each trained for several training seeds, on the same test scenes.
 
-Each seed's evaluation folder holds ``per_scene.json`` (deployment), ``held_out_clips.json`` (with per-scene
-values), unit files with Fig. 6 curves, and beside it a privileged-gap folder. Plain 3DGS does not depend on the
-restorer, so only the first seed's folder evaluates it and every seed shares it. Per scene, the seeds are
-averaged first; the 95% intervals are then over scenes (``tracegs.eval.intervals``), so the seed-to-seed noise
-of each scene enters them, and the spread over seeds of each figure is reported next to the spread over scenes.
+Per seed, each variant's evaluation folder holds ``per_scene.json`` (deployment; plain 3DGS is evaluated once, in
+its own folder, and shared by every seed), and the seed's diagnostics folder ``diagnostics.json`` (held-out clips:
+per-step curves, exposure gap, teacher advantage, final sample and input; tracegs.eval.diagnostics). Per scene,
+the seeds are averaged first; the 95% intervals are then over scenes (``tracegs.eval.intervals``), so the
+seed-to-seed noise of each scene enters them, and the spread over seeds of each figure is reported next to them.
 """
 
 from __future__ import annotations
@@ -12,31 +12,47 @@ from __future__ import annotations
 import json
 import statistics
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tracegs.eval.conclusions import MAIN_ORDERING, MIN_SCENES
+from tracegs.eval.conclusions import MIN_SCENES, PER_STEP_PAIRS, TABLE3_ORDERINGS, verdict
 from tracegs.eval.interval_tables import (
-    difference_label,
-    held_out_intervals_markdown,
-    main_conclusions,
-    main_difference,
-    main_intervals_markdown,
     measured_metrics,
-    methods_of,
     per_step_intervals,
     unit_scores,
     write_per_scene_csv,
     write_per_step_intervals,
 )
-from tracegs.eval.intervals import Interval, t_interval
-from tracegs.eval.labels import METHOD_LABELS
-from tracegs.eval.privileged import privileged_gap_markdown
+from tracegs.eval.intervals import Interval, mean_interval, paired_interval, t_interval
+from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS
 from tracegs.eval.report import plot_per_step_quality
 from tracegs.io import atomic_write
 
-# The instrument's target: the 95% interval of TRACE-GS - A at 3 views no wider than +-0.2 dB PSNR.
+# The instrument's target: the 95% interval of F - A at 3 views no wider than +-0.2 dB PSNR.
 TARGET_HALF_WIDTH_DB = 0.2
+PLAIN = "3dgs"  # plain 3DGS, the row under every variant
+REFERENCE, TRACEGS = "A", "F"  # the frozen baseline restorer and the full method (Table 3's first and last rows)
+
+
+def label(name: str) -> str:
+    """A variant as the paper names it: ``(A)`` ... ``(F⁻)``, ``(F)``; plain 3DGS as ``3DGS``."""
+    return "3DGS" if name == PLAIN else f"({name.replace('-', '⁻')})"
+
+
+@dataclass
+class BenchmarkInputs:
+    """Where one benchmark run's results are: ``eval_dirs[seed] / <variant> / per_scene.json`` (scored under
+    ``methods[variant]``), ``three_dgs_dir / per_scene.json`` and ``diagnostics_dirs[seed] / diagnostics.json``;
+    ``variants`` in Table 3's row order, each described as its config does."""
+
+    seeds: list[int]
+    variants: list[str]
+    descriptions: dict[str, str]
+    methods: dict[str, str]
+    eval_dirs: dict[int, Path]
+    three_dgs_dir: Path
+    diagnostics_dirs: dict[int, Path]
 
 
 def mean_tree(trees: Sequence[Any]) -> Any:
@@ -60,110 +76,242 @@ def _read(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def seed_per_scene(eval_dirs: Sequence[Path]) -> list[dict]:
-    """Each seed's ``per_scene.json`` with plain 3DGS filled in from the folder that evaluated it."""
-    loaded = [_read(d / "per_scene.json") for d in eval_dirs]
-    shared = next((p for p in loaded if any("3dgs" in m for m in p.values())), None)
-    for per_scene in loaded:
-        for scene, methods in per_scene.items():
-            if shared is not None and "3dgs" not in methods:
-                methods["3dgs"] = shared[scene]["3dgs"]
-    return loaded
+def seed_tables(inputs: BenchmarkInputs) -> list[dict]:
+    """Per seed, ``{scene: {variant or "3dgs": {views: {metric: value}}}}``: each variant's deployment under the
+    method standing for it, and the shared plain 3DGS."""
+    plain = _read(inputs.three_dgs_dir / "per_scene.json")
+    tables = []
+    for seed in inputs.seeds:
+        table: dict[str, dict] = {scene: {PLAIN: methods[PLAIN]} for scene, methods in plain.items()}
+        for variant in inputs.variants:
+            for scene, methods in _read(inputs.eval_dirs[seed] / variant / "per_scene.json").items():
+                table[scene][variant] = methods[inputs.methods[variant]]
+        tables.append(table)
+    return tables
 
 
-def unit_curves(eval_dir: Path) -> dict[tuple[str, str], dict[str, list[float]]]:
-    """(scene, views) -> each restorer's Fig. 6 curve, from an evaluation's unit files."""
-    curves = {}
-    for path in sorted((eval_dir / "units").glob("*/views_*.json")):
-        unit = json.loads(path.read_text())
-        if unit.get("per_step"):
-            curves[(unit["scene"], str(unit["views"]))] = unit["per_step"]
-    return curves
+def _cell(interval: Interval | None, decimals: int, signed: bool = False) -> str:
+    return "" if interval is None else interval.format(decimals, signed=signed)
 
 
-def _num(value: float) -> str:
-    return "n/a" if value != value else f"{value:+.2f}"
+def difference(per_scene: Mapping, better: str, worse: str, metric: str, views: str) -> Interval | None:
+    """``better - worse`` at one view count, paired by scene (None when either is not in the run)."""
+    a, b = unit_scores(per_scene, better, metric, [views]), unit_scores(per_scene, worse, metric, [views])
+    return None if a is None or b is None else paired_interval(a, b)
 
 
-def seed_spread_markdown(per_seed: Sequence[Mapping], seeds: Sequence[int], averaged: Mapping,
-                         views: Sequence[str]) -> str:
-    """Each paired difference per training seed (mean over scenes), its spread over seeds, next to its spread
-    over scenes (of the seed-averaged per-scene differences)."""
-    metric = "psnr"
-    lines = ["Paired differences, PSNR (dB): the mean over scenes for each training seed, the standard deviation "
-             "and 95% t-interval over seeds, and the standard deviation over scenes (seeds averaged per scene):",
-             "", "| difference | views | " + " | ".join(f"seed {s}" for s in seeds)
-             + " | sd over seeds | 95% t-interval over seeds | sd over scenes |",
-             "|" + "---|" * (len(seeds) + 5)]
-    for worse, better in reversed(MAIN_ORDERING.pairs()):
+def _seed_means(per_seed: Sequence[Mapping], better: str, worse: str | None, metric: str, views: str) -> list[float]:
+    """Per seed: the mean over scenes of ``better`` (minus ``worse``)."""
+    values = []
+    for table in per_seed:
+        a = unit_scores(table, better, metric, [views])
+        b = unit_scores(table, worse, metric, [views]) if worse else None
+        values.append(statistics.fmean(a[k] - (b[k] if b else 0.0) for k in a))
+    return values
+
+
+def table3_markdown(per_seed: Sequence[Mapping], seeds: Sequence[int], averaged: Mapping, rows: Sequence[str],
+                    views: Sequence[str], metrics: Sequence[str]) -> str:
+    """Each variant's mean [95% over scenes], its mean per training seed and their spread, and its paired
+    difference to A, per view count and metric."""
+    lines = []
+    for metric in metrics:
+        decimals = METRIC_DECIMALS[metric]
         for v in views:
-            per_seed_means = [main_difference(p, better, worse, metric, v) for p in per_seed]
-            if any(d is None for d in per_seed_means):
-                continue
-            values = [d.mean for d in per_seed_means]
-            a = unit_scores(averaged, better, metric, [v])
-            b = unit_scores(averaged, worse, metric, [v])
-            scene_sd = statistics.stdev([a[k] - b[k] for k in a]) if len(a) > 1 else float("nan")
-            seed_sd = statistics.stdev(values) if len(values) > 1 else float("nan")
-            lines.append(f"| {difference_label(better, worse)} | {v} | " + " | ".join(_num(x) for x in values)
-                         + f" | {seed_sd:.2f} | {t_interval(values).format(signed=True)} | {scene_sd:.2f} |")
+            lines += [f"{METRIC_LABELS[metric]} at {v} views:", "",
+                      "| variant | mean [95% CI over scenes] | " + " / ".join(f"seed {seed}" for seed in seeds)
+                      + " | sd over seeds | − (A) [95% CI] |", "|---|---|---|---|---|"]
+            for name in rows:
+                means = _seed_means(per_seed, name, None, metric, v)
+                overall = mean_interval(list(unit_scores(averaged, name, metric, [v]).values()))
+                to_a = difference(averaged, name, REFERENCE, metric, v) if name != REFERENCE else None
+                spread = f"{statistics.stdev(means):.{decimals}f}" if len(means) > 1 else "n/a"
+                per_seed_cell = " / ".join(f"{m:.{decimals}f}" for m in means)
+                lines.append(f"| {label(name)} | {overall.format(decimals)} | {per_seed_cell} | {spread} | "
+                             f"{_cell(to_a, decimals, signed=True)} |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def orderings_markdown(per_seed: Sequence[Mapping], averaged: Mapping, present: set[str], views: Sequence[str],
+                       metrics: Sequence[str]) -> tuple[str, dict[str, str]]:
+    """Every adjacent pair of the paper's orderings (conclusions.TABLE3_ORDERINGS) marked from the 95% interval of
+    its paired difference over scenes (seeds averaged per scene first), with the difference per training seed
+    and its t-interval over seeds beside it. Returns the table and ``{"(B) < (A), PSNR, 3 views": verdict}``."""
+    lines = ["| claim | metric | views | better − worse [95% CI over scenes] | verdict | per seed | "
+             "95% t-interval over seeds |", "|---|---|---|---|---|---|---|"]
+    verdicts = {}
+    for ordering in TABLE3_ORDERINGS:
+        for worse, better in ordering.pairs():
+            for metric in metrics:
+                for v in views:
+                    claim = f"{label(worse)} < {label(better)}"
+                    if not {worse, better} <= present:
+                        mark, shown, seeds, over_seeds = verdict(None), "", "", ""
+                    else:
+                        signed = 1 if HIGHER_IS_BETTER[metric] else -1
+                        interval = difference(averaged, better, worse, metric, v)
+                        mark = verdict(interval, HIGHER_IS_BETTER[metric])
+                        shown = interval.format(METRIC_DECIMALS[metric], signed=True)
+                        per = [signed * d for d in _seed_means(per_seed, better, worse, metric, v)]
+                        seeds = " / ".join(f"{d:+.{METRIC_DECIMALS[metric]}f}" for d in per)
+                        over_seeds = t_interval(per).format(METRIC_DECIMALS[metric], signed=True)
+                    verdicts[f"{claim}, {METRIC_LABELS[metric][:-1]}, {v} views"] = mark
+                    lines.append(f"| {claim} | {METRIC_LABELS[metric]} | {v} | {shown} | **{mark}** | {seeds} | "
+                                 f"{over_seeds} |")
+    return "\n".join(lines) + "\n", verdicts
+
+
+def instrument(averaged: Mapping, views: str) -> tuple[str, Interval | None]:
+    """The target: is the 95% interval of F - A at ``views`` views within +-0.2 dB?"""
+    gap = difference(averaged, TRACEGS, REFERENCE, "psnr", views)
+    if gap is None:
+        return f"Instrument: (F) − (A) at {views} views was not measured.", None
+    if gap.n < MIN_SCENES:
+        met = f"not assessable from {gap.n} scenes, fewer than {MIN_SCENES}"
+    else:
+        met = "met" if gap.half_width <= TARGET_HALF_WIDTH_DB else "not met"
+    return (f"Instrument: the 95% interval of (F) − (A) at {views} views is {gap.format(signed=True)} dB, half-width "
+            f"±{gap.half_width:.2f} dB (target ≤ ±{TARGET_HALF_WIDTH_DB} dB: {met}).", gap)
+
+
+# ------------------------------------------------------------------------------------ held-out diagnostics
+
+
+def _scene_values(diagnostics: Mapping, variant: str, field: str) -> dict[str, Any]:
+    return {scene: rows[variant][field] for scene, rows in diagnostics["per_scene"].items()}
+
+
+def held_out_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
+    """Each variant's final sample on the held-out clips, against its input R_s and against (A)."""
+    lines = ["| variant | restored [95% CI over scenes] | − input R_s | − (A) |", "|---|---|---|---|"]
+    inputs = {scene: rows[variants[0]]["input"] for scene, rows in diagnostics["per_scene"].items()}
+    lines.append(f"| input R_s | {mean_interval(list(inputs.values())).format()} | | |")
+    for name in variants:
+        final = _scene_values(diagnostics, name, "final")
+        to_a = (paired_interval(final, _scene_values(diagnostics, REFERENCE, "final")).format(signed=True)
+                if name != REFERENCE and REFERENCE in variants else "")
+        lines.append(f"| {label(name)} | {mean_interval(list(final.values())).format()} | "
+                     f"{paired_interval(final, inputs).format(signed=True)} | {to_a} |")
     return "\n".join(lines) + "\n"
 
 
-def instrument_line(averaged: Mapping, views: str = "3") -> str:
-    """The target: is the 95% interval of TRACE-GS - A at 3 views within +-0.2 dB?"""
-    difference: Interval | None = main_difference(averaged, "tracegs", "baseline", "psnr", views)
-    if difference is None:
-        return f"Instrument: TRACE-GS − A at {views} views was not measured."
-    if difference.n < MIN_SCENES:
-        met = f"not assessable from {difference.n} scenes, fewer than {MIN_SCENES}"
-    else:
-        met = "met" if difference.half_width <= TARGET_HALF_WIDTH_DB else "not met"
-    return (f"Instrument: the 95% interval of TRACE-GS − A at {views} views is {difference.format(signed=True)} dB, "
-            f"half-width ±{difference.half_width:.2f} dB (target ≤ ±{TARGET_HALF_WIDTH_DB} dB: {met}).")
+def _per_step(diagnostics: Mapping, variant: str, a: str, b: str) -> dict[str, list[float]] | None:
+    """Per scene, ``a - b`` at each step (``b`` None: ``a`` itself); None when the variant has no ``a`` curve."""
+    first = next(iter(diagnostics["per_scene"].values()))[variant]
+    if first[a] is None:
+        return None
+    return {scene: [x - y for x, y in zip(rows[variant][a], rows[variant][b])]
+            for scene, rows in diagnostics["per_scene"].items()}
 
 
-def write_benchmark_report(out_dir: str | Path, seeds: Sequence[int], eval_dirs: Sequence[Path],
-                           privileged_dirs: Sequence[Path], header: str = "") -> Path:
-    """``benchmark.md`` (+ per-scene CSVs and the Fig. 6 plot with bands) in ``out_dir``; returns its path."""
+def per_step_table(diagnostics: Mapping, variants: Sequence[str], a: str, b: str) -> tuple[str, dict[str, list]]:
+    """Per reverse step (rows) and variant (columns): the mean of ``a - b`` [95% CI over scenes], then each
+    variant's mean over the steps after the first (per scene first). Returns the table and, per variant, its
+    per-step intervals."""
+    curves = {name: c for name in variants if (c := _per_step(diagnostics, name, a, b)) is not None}
+    if not curves:
+        return "", {}
+    steps = len(next(iter(next(iter(curves.values())).values())))
+    bands = {name: [mean_interval([curve[i] for curve in by_scene.values()]) for i in range(steps)]
+             for name, by_scene in curves.items()}
+    lines = ["| step | " + " | ".join(label(n) for n in curves) + " |", "|---|" + "---|" * len(curves)]
+    for i in range(steps):
+        lines.append(f"| {i + 1} | " + " | ".join(bands[n][i].format(signed=True) for n in curves) + " |")
+    later = {n: mean_interval([statistics.fmean(curve[1:]) for curve in by_scene.values()]).format(signed=True)
+             for n, by_scene in curves.items()} if steps > 1 else {}
+    if later:
+        lines.append("| mean of steps 2+ | " + " | ".join(later[n] for n in curves) + " |")
+    return "\n".join(lines) + "\n", bands
+
+
+def _extreme(bands: Mapping[str, Sequence[Interval]]) -> str:
+    """The largest |mean| of any variant at any step, and the (variant, step) cells whose interval excludes 0."""
+    cells = [(abs(i.mean), name, step + 1, i) for name, band in bands.items() for step, i in enumerate(band)]
+    size, name, step, interval = max(cells, key=lambda cell: cell[0])
+    excluding = [f"{label(n)} step {s + 1}" for n, band in bands.items() for s, i in enumerate(band)
+                 if i.n >= MIN_SCENES and (i.low > 0 or i.high < 0)]
+    return (f"Largest in size: {label(name)} at step {step}, {interval.format(signed=True)} dB. Cells whose 95% "
+            f"interval excludes zero ({MIN_SCENES}+ scenes): {', '.join(excluding) if excluding else 'none'}.")
+
+
+def fig6(diagnostics: Mapping, variants: Sequence[str], out_dir: Path) -> str:
+    """Fig. 6 (the variants of the paper's per-step claims: A, E, F) with 95% bands over scenes, from the
+    visited-state curves; ``per_step_intervals.md``, ``per_step_per_scene.csv`` and ``fig6_per_step.png``."""
+    shown = [name for name in variants if any(name in pair for pair in PER_STEP_PAIRS)]
+    if not shown:
+        return ""
+    by_scene = {(scene, "held-out"): {label(name): rows[name]["visited"] for name in shown}
+                for scene, rows in diagnostics["per_scene"].items()}
+    pairs = [(label(a), label(b)) for a, b in PER_STEP_PAIRS if a in shown and b in shown]
+    bands = write_per_step_intervals(by_scene, out_dir, "per_step", pairs=pairs)
+    mean = {name: [i.mean for i in steps] for name, steps in per_step_intervals(by_scene).items()}
+    plot_per_step_quality(mean, out_dir / "fig6_per_step.png", bands=bands)
+    return (out_dir / "per_step_intervals.md").read_text()
+
+
+# ------------------------------------------------------------------------------------------------ report
+
+
+def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header: str = "") -> tuple[Path, dict]:
+    """``benchmark.md`` (+ per-scene CSVs, the Fig. 6 plot with bands) in ``out_dir``; returns its path and the
+    run record's figures (the F - A interval per view count, each ordering's verdict)."""
     out_dir = Path(out_dir)
-    per_seed = seed_per_scene(eval_dirs)
+    per_seed = seed_tables(inputs)
     averaged = mean_tree(per_seed)
     views = sorted({v for methods in averaged.values() for by_views in methods.values() for v in by_views}, key=int)
-    for seed, per_scene in zip(seeds, per_seed):
-        write_per_scene_csv(per_scene, out_dir / f"per_scene_seed{seed}.csv")
-    write_per_scene_csv(averaged, out_dir / "per_scene_seed_mean.csv")
+    for seed, table in zip(inputs.seeds, per_seed):
+        write_per_scene_csv(table, out_dir / f"per_scene_seed{seed}.csv", column="variant")
+    write_per_scene_csv(averaged, out_dir / "per_scene_seed_mean.csv", column="variant")
+    rows = [*inputs.variants, PLAIN]
+    metrics = measured_metrics(averaged, rows)
     scenes = sorted(averaged)
-    sections = [header, f"{len(scenes)} test scenes ({', '.join(scenes)}), training seeds {list(seeds)}. "
-                "Each scene's value is averaged over the seeds first; intervals are 95% percentile bootstraps over "
-                "scenes.", "", instrument_line(averaged), "",
-                "## Deployment (Tables 1/2)", "", main_intervals_markdown(averaged, views, conclusions=False),
-                seed_spread_markdown(per_seed, seeds, averaged, views)]
-    held_out = [_read(d / "held_out_clips.json") for d in eval_dirs if (d / "held_out_clips.json").is_file()]
-    if held_out and all("per_scene" in h for h in held_out):
-        sections += ["## Held-out clips", "", held_out_intervals_markdown(mean_tree(held_out))]
-    curves = [unit_curves(d) for d in eval_dirs]
-    if all(curves):
-        averaged_curves = mean_tree([{f"{s}|{v}": c for (s, v), c in seed.items()} for seed in curves])
-        by_unit = {tuple(key.split("|")): c for key, c in averaged_curves.items()}
-        bands = write_per_step_intervals(by_unit, out_dir, "per_step", pairs=[("tracegs", "baseline")])
-        mean = {label: [i.mean for i in steps] for label, steps in per_step_intervals(by_unit).items()}
-        plot_per_step_quality({METHOD_LABELS.get(m, m): c for m, c in mean.items()}, out_dir / "fig6_per_step.png",
-                              bands={METHOD_LABELS.get(m, m): b for m, b in bands.items()})
-        sections += ["## Fig. 6 (per-step clean-frame PSNR, before 3DGS refinement)", "",
-                     (out_dir / "per_step_intervals.md").read_text(), "Plot: fig6_per_step.png", ""]
-    gaps = [_read(d / "privileged_gap.json") for d in privileged_dirs if (d / "privileged_gap.json").is_file()]
-    if gaps:
-        sections += ["## The privileged gap", "", privileged_gap_markdown(mean_tree(gaps))]
-    metrics = measured_metrics(averaged, methods_of(averaged))
-    sections += ["## Conclusions", "", "The paper's orderings, each pair marked by the 95% interval of its paired "
-                 "difference over scenes, each scene's difference averaged over the training seeds first (holds: "
-                 "entirely above zero; reversed: entirely below; else not resolved); read each mark with the spread "
-                 "over seeds in the deployment section. Table 3's orderings (B < A < C < D, E < F- < F) are not "
-                 "measured by this benchmark (variant F only; `tracegs-report report.kind=ablation` marks them "
-                 "for a sweep).", "",
-                 *main_conclusions(averaged, views, metrics), ""]
+    lines, figures = [], {}
+    for v in views:
+        line, gap = instrument(averaged, v)
+        lines.append(line)
+        if gap is not None:
+            figures[f"f_minus_a_{v}views_db"] = [round(x, 4) for x in (gap.mean, gap.low, gap.high)]
+            figures[f"f_minus_a_{v}views_half_width_db"] = round(gap.half_width, 4)
+    orderings, verdicts = orderings_markdown(per_seed, averaged, set(rows), views, metrics)
+    figures["orderings"] = verdicts
+    sections = [header, f"{len(scenes)} test scenes ({', '.join(scenes)}), training seeds {list(inputs.seeds)}, "
+                f"variants {', '.join(label(n) for n in inputs.variants)} (conf/ablation/). Each scene's value is "
+                "averaged over the seeds first; intervals are 95% percentile bootstraps over scenes.", "",
+                *lines, "", "## Table 3 (deployment)", "",
+                "; ".join(f"{label(n)} {inputs.descriptions[n]}" for n in inputs.variants) + ".", "",
+                table3_markdown(per_seed, inputs.seeds, averaged, rows, views, metrics),
+                "## The paper's orderings", "",
+                "Each adjacent pair of B < A < C < D, E < F⁻ < F and 3DGS < A < F (Tables 1-3), marked by the 95% "
+                f"interval of its paired difference over scenes (holds: above zero; reversed: below; else not "
+                f"resolved; fewer than {MIN_SCENES} scenes resolve nothing); read each mark with its spread over "
+                "training seeds.", "", orderings]
+    diagnostics = [_read(inputs.diagnostics_dirs[s] / "diagnostics.json") for s in inputs.seeds]
+    held_out = {**diagnostics[0], "per_scene": mean_tree([d["per_scene"] for d in diagnostics])}
+    describe = (f"{held_out['clips']} held-out clips of {len(held_out['per_scene'])} test scenes at the student "
+                f"conditions {', '.join(held_out['conditions'])}, the deployment's {held_out['steps']} reverse "
+                "steps; PSNR (dB) against ground truth, reference frames excluded; seeds averaged per scene, "
+                "95% intervals over scenes.")
+    gap_table, gap_bands = per_step_table(held_out, inputs.variants, "visited", "noised")
+    advantage_table, advantage_bands = per_step_table(held_out, inputs.variants, "teacher", "visited")
+    sections += ["## Held-out clips", "", describe, "", held_out_markdown(held_out, inputs.variants)]
+    plot = fig6(held_out, inputs.variants, out_dir)
+    if plot:
+        sections += ["## Fig. 6 (clean-frame PSNR at each reverse step, held-out clips)", "", plot,
+                     "Plot: fig6_per_step.png", ""]
+    sections += ["## Exposure gap", "",
+                 "PSNR of the clean prediction at the variant's own visited state minus at the forward-noised state "
+                 "of the same clip at the same t, from the same noise draw (step 1: the same state, so 0). Near zero "
+                 "at every step, the states on-policy training supervises (F) are those off-policy training "
+                 "supervises (E): the two cannot differ for the reason the paper gives.", "", gap_table,
+                 _extreme(gap_bands), ""]
+    if advantage_table:
+        sections += ["## Teacher advantage at the student's states", "",
+                     "PSNR of the teacher's clean prediction (the Stage-1 adapter on the variant's R_d) minus the "
+                     "student's (on R_s), both at the student's own states: what distillation can transfer there.",
+                     "", advantage_table, _extreme(advantage_bands), ""]
+    figures["exposure_gap_largest_db"] = round(max(abs(i.mean) for b in gap_bands.values() for i in b), 4)
     path = out_dir / "benchmark.md"
     with atomic_write(path) as tmp:
         tmp.write_text("\n".join(sections))
-    return path
+    return path, figures

@@ -1,15 +1,19 @@
-"""``tracegs-benchmark``: the demo's pipeline replicated over training seeds, on enough scenes to measure.
+"""``tracegs-benchmark``: Table 3 of the paper measured at the embedded scale, over test scenes and training seeds.
 
-What depends on the training seed is the restorer: variant A, the Stage-1 adapter and the Stage-2 student
-are trained from scratch once per seed in ``benchmark.training_seeds`` (root ``seed`` of those runs). Everything
-else is fixed by this run's own root ``seed`` and shared by every replicate: the synthetic scenes, the prepared
-training and held-out caches (prepared once), the 3DGS fits and the deployment noise (``data.prepare.seed``,
-``data.prepare.fit.seed`` and ``deploy.seed`` are pinned to this seed's values). Plain 3DGS therefore does not
-depend on the training seed and is evaluated once, by the first replicate.
+Every variant of conf/ablation/ (or ``benchmark.variants``) is trained and deployed on the same test scenes for
+each training seed in ``benchmark.training_seeds`` (root ``seed`` of those runs): A, the Stage-1 adapter and the
+distilled students B ... F are trained from scratch once per seed, the students from that seed's Stage-1
+adapter. Everything else is fixed by this run's own root ``seed`` and shared by every variant and replicate: the
+synthetic scenes, the prepared training and held-out caches (prepared once, with every teacher condition the
+chosen variants need: the 12- and 18-view teachers and B's 3-view teacher at the full scale), the 3DGS fits and
+the deployment noise (``data.prepare.seed``, ``data.prepare.fit.seed`` and ``deploy.seed`` are pinned to this
+seed's values). Plain 3DGS does not depend on the restorer and is evaluated once.
 
 Each step is the command a user would type (``tracegs-prepare``, ``-train``, ``-evaluate``, ``-report``), run as
 a child process with its overrides on its own command line, so each finds its upstream products by the
-run-identity rule exactly as when typed by hand, and every step resumes when the benchmark is rerun.
+run-identity rule exactly as when typed by hand, and every step resumes when the benchmark is rerun. A seed's
+Stage-2 students and its evaluations are one multirun each (Hydra's local launcher), as
+``launch/sweep_ablation.sh`` runs them: one interpreter start per step rather than per variant.
 """
 
 from __future__ import annotations
@@ -19,41 +23,79 @@ import shlex
 import subprocess
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from tracegs.config.identity import command_line_overrides, derive_seed, override_key
 from tracegs.console import show
-from tracegs.errors import TraceGSError
-from tracegs.eval.replicates import write_benchmark_report
+from tracegs.errors import ConfigError, TraceGSError
+from tracegs.eval.replicates import BenchmarkInputs, write_benchmark_report
 from tracegs.io import write_json_atomic
-from tracegs.pipeline.steps import Step, data_steps, restorer_steps
+from tracegs.pipeline.steps import Step, data_steps
 from tracegs.pipeline.upstream import quoted
+from tracegs.pipeline.variants import table3_configs, table3_names
 from tracegs.provenance import describe, peak_rss_gib
 
 log = logging.getLogger("tracegs")
 
-# Stage timings of `tracegs-demo 'evaluation.views=[3,6,9]'` on an idle 2-core machine (6 training scenes,
-# 2 test scenes, four fits per scene), in minutes, and what each scales with: the basis of the wall-time
-# estimate printed before the run. Machines of this kind differ by up to 2x.
-# Preparing the 12 training scenes took 6.7 min once the sparse fits stopped at their last student snapshot.
-PREPARE_PER_TRAIN_SCENE = 6.7 / 12
-# Dominated by the scene's 3DGS fits, not by its number of clips: 1.0 min with four full fits, scaled to three
-# sparse fits of 340 and one of 600 iterations.
-PREPARE_PER_TEST_SCENE = 1.0 * (3 * 340 + 600) / (4 * 600)
-# Baseline (A), Stage 1, Stage 2; Stage 2's 20 steps took 25 s in a demo where A's 500 took 107 s (A: 2.0 here).
-TRAIN_PER_SEED = 2.0 + 0.6 + 0.5
-# Restoring one clip (one condition) with the tiny restorer at 48x72, 9 frames, the deployment schedule:
-# 1.5 s measured in a batch of 7 at load 6 on the 2 cores, so about 0.5 s idle (0.0083 min).
-RESTORE_PER_CLIP = 0.5 / 60
-# The demo's evaluation took 7.2 min: its held-out clips (2 restorers x 16 clips x 6 conditions, ~1.6 min
-# by the figure above) and 6 (scene, views) units of 3 methods with grids, videos and Fig. 6 (~5.6 min).
-# Plain 3DGS is taken as a third of a unit: it fits the same 600 iterations but restores no clips.
-EVAL_PER_UNIT = (7.2 - 2 * 16 * 6 * RESTORE_PER_CLIP) / 6
-EVAL_3DGS_SHARE = 1 / 3
-STEP_OVERHEAD = 0.15  # starting a child process (torch, Hydra) per step
-STUDENT_CONDITIONS = 6  # 3/6/9 views x two snapshots in the held-out cache
+# Rates behind the wall-time estimate printed before the run, on an idle 2-core machine of the README's kind
+# (AMD EPYC, torch 2.13 CPU, the compiled rasterizer); the estimate multiplies them by this config's sizes.
+# Machines of this kind, and one VM from hour to hour, differ by up to 2x.
+FIT_ITERATION_S = 0.0055  # one 3DGS iteration at 48x72, one core
+REFINE_ITERATION_S = 0.010  # one deployment iteration with restored pseudo views (a second render), one core
+RESTORER_FORWARD_S = 0.026  # one tiny-restorer forward of one 9-frame 48x72 clip, one core
+PREPARED_CONDITION_S = 0.023  # rendering and encoding one condition of one prepared clip
+# Training wall time per sample (both cores) of the demo's batch of 4 at 48x72: A's step, Stage 1's step,
+# and one state of Stage 2's rollout (student forward and backward, teacher forward).
+BASELINE_SAMPLE_S = 0.056
+STAGE1_SAMPLE_S = 0.082
+STAGE2_SAMPLE_STATE_S = 0.056
+PROCESS_START_S = 7.0  # a child command: interpreter, torch, Hydra, the restorer
+JOB_START_S = 3.0  # one more job of a multirun in a running process (composition, restorer weights, lookups)
+CORES = 2
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One Table 3 variant as the benchmark runs it: whether it trains a Stage-2 student, the teacher's view
+    count it is distilled from (None = all training views) and the evaluation method standing for it."""
+
+    name: str
+    trained: bool
+    teacher_views: int | None
+    method: str
+    description: str
+
+
+def benchmark_variants(names: Sequence[str] | None = None) -> list[Variant]:
+    """The variants of conf/ablation/ in Table 3's rows (``names``: only those), read from their configs."""
+    if names is not None:
+        unknown = sorted(set(names) - set(table3_names()))
+        if unknown:
+            raise ConfigError("benchmark.variants", f"{unknown} are not variants of conf/ablation/")
+        if len(set(names)) != len(names):
+            raise ConfigError("benchmark.variants", f"{list(names)} repeats a variant")
+        if not names:
+            raise ConfigError("benchmark.variants", "list at least one variant")
+    return [Variant(cfg.ablation.name, bool(cfg.ablation.train_stage2), cfg.teacher.views, str(cfg.ablation.method),
+                    cfg.ablation.description) for cfg in table3_configs(names)]
+
+
+def teacher_conditions(variants: Sequence[Variant], student_views: Sequence[int]) -> tuple[list[int | None], bool]:
+    """What preparation must render for the chosen variants' teachers, as ``launch/sweep_ablation.sh`` prepares
+    them: every privileged view count and the all-view teacher (the embedded default's), and whether the sparse
+    fits run to their final snapshot, which is the teacher of a variant seeing as many views as a student (B)."""
+    views = {v.teacher_views for v in variants if v.trained}
+    dense: list[int | None] = sorted(k for k in views if k is not None and k not in student_views)
+    return [*dense, None], any(k in student_views for k in views if k is not None)
+
+
+def teacher_overrides(variants: Sequence[Variant], student_views: Sequence[int]) -> list[str]:
+    dense, final = teacher_conditions(variants, student_views)
+    return [f"data.prepare.dense_views={_listed(['null' if k is None else k for k in dense])}",
+            f"data.prepare.student_final_fits={str(final).lower()}"]
 
 
 def _merge(defaults: Sequence[str], user: Sequence[str]) -> list[str]:
@@ -62,10 +104,16 @@ def _merge(defaults: Sequence[str], user: Sequence[str]) -> list[str]:
     return [o for o in defaults if override_key(o) not in given] + list(user)
 
 
-def benchmark_steps(variant: str, root_seed: int, training_seeds: Sequence[int], out_dir: Path,
-                    user: Sequence[str] = (), held_out_clips_per_scene: int = 2) -> list[Step]:
-    """The pipeline's steps (tracegs.pipeline.steps) for one benchmark run, in order: the data once, the
-    restorer's steps per training seed (see the module docstring for what is shared)."""
+def _listed(values: Sequence) -> str:
+    return "[" + ",".join(map(str, values)) + "]"
+
+
+def benchmark_steps(variants: Sequence[Variant], root_seed: int, training_seeds: Sequence[int], out_dir: Path,
+                    user: Sequence[str] = (), held_out_clips_per_scene: int = 2,
+                    views: Sequence[int] = (3,)) -> list[Step]:
+    """The steps of one benchmark run, in order: the data once, plain 3DGS once, then per training seed A,
+    Stage 1, every student, every variant's deployment and the trajectory diagnostics (see the module
+    docstring for what is shared)."""
     if not training_seeds:
         raise ValueError("benchmark.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
@@ -74,55 +122,122 @@ def benchmark_steps(variant: str, root_seed: int, training_seeds: Sequence[int],
     shared = ["experiment=benchmark",
               f"data.prepare.seed={derive_seed(root_seed, 'prepare')}",
               f"data.prepare.fit.seed={derive_seed(root_seed, 'fit')}",
-              f"deploy.seed={derive_seed(root_seed, 'deploy')}"]
-    steps = [Step(step.app, tuple(_merge(step.overrides, user)), step.label) for step in data_steps(
+              f"deploy.seed={derive_seed(root_seed, 'deploy')}",
+              f"evaluation.views={_listed(views)}",
+              *teacher_overrides(variants, views)]
+    names = ",".join(v.name for v in variants)
+    trained = ",".join(v.name for v in variants if v.trained)
+    steps = data_steps(
         common=[*shared, f"seed={root_seed}"], training=[f"data.prepare.cache_dir={train_cache}"],
-        held_out=[f"data.prepare.clips_per_scene={held_out_clips_per_scene}", f"data.prepare.cache_dir={test_cache}"])]
-    for index, seed in enumerate(training_seeds):
-        methods = "[3dgs,baseline,tracegs]" if index == 0 else "[baseline,tracegs]"
-        replicate = restorer_steps(
-            variant, common=[*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"],
-            evaluation=[f"evaluation.methods={methods}", f"evaluation.held_out_cache={test_cache}",
-                        f"evaluation.out_dir={quoted(eval_dir(out_dir, seed))}"],
-            privileged=[f"evaluation.held_out_cache={test_cache}",
-                        f"report.output_dir={quoted(privileged_dir(out_dir, seed))}"])
-        steps += [Step(step.app, tuple(_merge(step.overrides, user)),
-                       f"seed {seed}: {step.label}" + (f" {methods}" if step.app == "evaluate" else ""))
-                  for step in replicate]
-    return steps
+        held_out=[f"data.prepare.clips_per_scene={held_out_clips_per_scene}", f"data.prepare.cache_dir={test_cache}",
+                  # The diagnostics restore the held-out clips at the deployed view counts only.
+                  f"data.prepare.student_views={_listed(views)}"])
+    # Fig. 6 comes from the held-out clips (the diagnostics), so deployment computes no per-step curves.
+    deployment = ["evaluation.per_step=false"]
+    steps.append(Step("evaluate", (*shared, f"seed={root_seed}", "evaluation.methods=[3dgs]", *deployment,
+                                   f"evaluation.out_dir={quoted(three_dgs_dir(out_dir))}"), "evaluate plain 3DGS"))
+    for seed in training_seeds:
+        common = [*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"]
+
+        def multirun(kind: str, seed: int = seed) -> list[str]:
+            return ["--multirun", "hydra/launcher=local",
+                    f"hydra.sweep.dir={quoted(out_dir / 'multirun' / f'seed{seed}' / kind)}"]
+
+        steps += [Step("train", (*common, "stage=baseline"), f"seed {seed}: train A"),
+                  Step("train", (*common, "stage=stage1"), f"seed {seed}: train Stage 1")]
+        if trained:
+            steps.append(Step("train", (*multirun("stage2"), *common, "stage=stage2", f"ablation={trained}"),
+                              f"seed {seed}: train Stage 2 ({trained})"))
+        # Each variant is deployed by the method standing for it (A: the baseline restorer; else its student).
+        # The seed's folder, quoted, with each job's variant name interpolated inside the quotes.
+        variant_dir = quoted(eval_dir(out_dir, seed))[:-1] + "/${ablation.name}'"
+        steps.append(Step("evaluate", (*multirun("evaluate"), *common, f"ablation={names}",
+                                       "evaluation.methods=[${ablation.method}]", *deployment,
+                                       f"evaluation.out_dir={variant_dir}"), f"seed {seed}: evaluate ({names})"))
+        steps.append(Step("report", (*common, "report.kind=diagnostics", f"report.inputs=[{names}]",
+                                     f"evaluation.held_out_cache={test_cache}",
+                                     f"report.output_dir={quoted(diagnostics_dir(out_dir, seed))}"),
+                          f"seed {seed}: trajectory diagnostics"))
+    return [Step(step.app, tuple(_merge(step.overrides, user)), step.label) for step in steps]
 
 
 def eval_dir(out_dir: Path, seed: int) -> Path:
+    """The seed's evaluations, one folder per variant."""
     return out_dir / "eval" / f"seed{seed}"
 
 
-def privileged_dir(out_dir: Path, seed: int) -> Path:
-    return out_dir / "privileged" / f"seed{seed}"
+def three_dgs_dir(out_dir: Path) -> Path:
+    return out_dir / "eval" / "3dgs"
 
 
-def estimate_minutes(train_scenes: int, test_scenes: int, views: int, seeds: int, steps: int,
-                     held_out_clips_per_scene: int) -> float:
-    """Wall time from the demo's measured stage timings (module constants), on the same idle machine."""
-    units = test_scenes * views
-    evaluation = units * EVAL_PER_UNIT + (seeds - 1) * units * EVAL_PER_UNIT * (1 - EVAL_3DGS_SHARE)
-    clips = test_scenes * held_out_clips_per_scene
-    # Per seed: A and TRACE-GS on every student condition; the privileged gap's two restorers on R_d and the
-    # two snapshots of each view count evaluated.
-    restorations = seeds * clips * (2 * STUDENT_CONDITIONS + 2 * (1 + 2 * views))
-    return (train_scenes * PREPARE_PER_TRAIN_SCENE + test_scenes * PREPARE_PER_TEST_SCENE
-            + seeds * TRAIN_PER_SEED + evaluation + restorations * RESTORE_PER_CLIP + steps * STEP_OVERHEAD)
+def diagnostics_dir(out_dir: Path, seed: int) -> Path:
+    return out_dir / "diagnostics" / f"seed{seed}"
+
+
+def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequence[Step]) -> dict[str, float]:
+    """Wall time on an idle 2-core machine, in minutes per part of the run: the module's rates times this
+    config's sizes (fits and their iterations, clips and their conditions, training steps and batch, deployment
+    rounds and reverse steps)."""
+    prepare, fit, deploy, exp = cfg.data.prepare, cfg.data.prepare.fit, cfg.deploy, cfg.experiment
+    views, seeds = list(cfg.evaluation.views), len(cfg.benchmark.training_seeds)
+    train_scenes, test_scenes = len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds)
+    trained = sum(v.trained for v in variants)
+    dense_views, final = teacher_conditions(variants, views)
+    dense = len(dense_views)
+    sparse_iterations = fit.iterations if final else max(prepare.student_snapshots)
+    snapshots = len(prepare.student_snapshots)
+
+    def prepare_s(scenes: int, student_views: int, clips: int) -> float:
+        fits = scenes * (student_views * sparse_iterations + dense * fit.iterations) * FIT_ITERATION_S / CORES
+        # Each clip: the student conditions, the teachers (and the final snapshots), the target.
+        conditions = student_views * snapshots + dense + (student_views if final else 0) + 1
+        return fits + scenes * clips * conditions * PREPARED_CONDITION_S
+
+    data = (prepare_s(train_scenes, len(prepare.student_views), exp.clips_per_scene)
+            + prepare_s(test_scenes, len(views), cfg.benchmark.held_out_clips_per_scene))
+    batch = exp.batch_size
+    training = seeds * batch * (exp.baseline_steps * BASELINE_SAMPLE_S + exp.stage1_steps * STAGE1_SAMPLE_S
+                                + trained * exp.stage2_steps * cfg.stage.rollout_steps * STAGE2_SAMPLE_STATE_S)
+    reverse_steps = deploy.steps or cfg.backbone.schedule.deploy_steps
+    units = test_scenes * len(views)
+    cold_start = deploy.repair_iters[0] * FIT_ITERATION_S
+    after_cold = deploy.total_iters - deploy.repair_iters[0]
+    clips_per_round = deploy.max_clips_per_round or max(views)
+    restorer_method = (after_cold * REFINE_ITERATION_S
+                       + len(deploy.repair_iters) * clips_per_round * reverse_steps * RESTORER_FORWARD_S)
+    workers = min(cfg.evaluation.workers, CORES)
+    deployment = (units * (cold_start + after_cold * FIT_ITERATION_S)
+                  + seeds * len(variants) * units * (cold_start + restorer_method)) / workers
+    # Diagnostics: per held-out clip and variant, the rollout and the forward-noised predictions (and the
+    # teacher's for a distilled variant), each over the clip's student conditions at the deployed view counts.
+    clip_conditions = len(views) * snapshots
+    forwards = reverse_steps * clip_conditions * (2 * len(variants) + trained)
+    diagnostics = seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
+    # The multiruns' further jobs, and the diagnostics' composition of each variant's config and its upstream.
+    jobs = seeds * (trained + 2 * len(variants))
+    starts = len(steps) * PROCESS_START_S + jobs * JOB_START_S
+    parts = {"data": data, "training": training, "deployment": deployment, "diagnostics": diagnostics,
+             "process starts": starts}
+    return {part: seconds / 60 for part, seconds in parts.items()}
 
 
 def benchmark(cfg: DictConfig) -> Path:
-    """Run every step (each resumes when rerun), then write ``benchmark.md`` into ``cfg.run_dir``."""
+    """Run every step (each resumes when rerun), then write ``benchmark.md`` and ``run.json`` into
+    ``cfg.run_dir``."""
     out_dir = Path(cfg.run_dir).resolve()
     seeds = list(cfg.benchmark.training_seeds)
-    user = [o for o in command_line_overrides() if override_key(o).split(".")[0] not in ("benchmark", "seed")]
+    variants = benchmark_variants(None if cfg.benchmark.variants is None else list(cfg.benchmark.variants))
+    user = [o for o in command_line_overrides()
+            if override_key(o).split(".")[0] not in ("benchmark", "seed", "ablation")]
     clips = cfg.benchmark.held_out_clips_per_scene
-    steps = benchmark_steps(cfg.ablation.name, cfg.seed, seeds, out_dir, user, clips)
-    estimate = estimate_minutes(len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds),
-                                len(cfg.evaluation.views), len(seeds), len(steps), clips)
-    show(f"tracegs-benchmark: {len(steps)} steps, about {estimate:.0f} min on two CPU cores; output in {out_dir}")
+    steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views))
+    parts = estimate_minutes(cfg, variants, steps)
+    estimate = sum(parts.values())
+    show(f"tracegs-benchmark: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
+         f"{len(cfg.data.synthetic.test_seeds)} test scenes at {list(cfg.evaluation.views)} views: {len(steps)} "
+         f"steps, about {estimate:.0f} min on an idle 2-core machine ("
+         + ", ".join(f"{part} {minutes:.1f}" for part, minutes in parts.items())
+         + f"; up to twice that on a slow one); output in {out_dir}")
     start = time.perf_counter()
     timings: dict[str, float] = {}
     for index, step in enumerate(steps, 1):
@@ -132,15 +247,23 @@ def benchmark(cfg: DictConfig) -> Path:
             raise TraceGSError(f"benchmark step '{step.label}'", "failed (its error is printed above)",
                                f"rerun it alone: {shlex.join(step.command())}")
         timings[step.label] = round(time.perf_counter() - step_start, 1)
-    run = {**describe(cfg.seed), "training_seeds": seeds, "wall_s": round(time.perf_counter() - start, 1),
-           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1)}
-    write_json_atomic(run, out_dir / "run.json")
+    wall_s = time.perf_counter() - start
+    run = {**describe(cfg.seed), "training_seeds": seeds, "variants": [v.name for v in variants],
+           "wall_s": round(wall_s, 1), "table3_minutes": round(wall_s / 60, 1),
+           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1),
+           "estimate_parts_min": {part: round(minutes, 1) for part, minutes in parts.items()}}
     machine = run["machine"]
-    header = (f"# Embedded benchmark\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} cores, "
-              f"torch {machine['torch']}): {run['wall_s'] / 60:.1f} min (estimated {estimate:.0f}), peak RSS "
-              f"{run['peak_rss_gib']:.2f} GiB (largest step). Data, 3DGS fits and deployment noise from seed "
-              f"{cfg.seed}; the restorer trained from scratch for each training seed.\n")
-    report = write_benchmark_report(out_dir, seeds, [eval_dir(out_dir, s) for s in seeds],
-                                    [privileged_dir(out_dir, s) for s in seeds], header)
+    header = (f"# Embedded benchmark: Table 3\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "
+              f"cores, torch {machine['torch']}): wall time {run['table3_minutes']:.1f} min (estimated "
+              f"{estimate:.0f}), peak RSS {run['peak_rss_gib']:.2f} GiB (largest step). Data, 3DGS fits and "
+              f"deployment noise from seed {cfg.seed}; every restorer trained from scratch for each training "
+              "seed.\n")
+    inputs = BenchmarkInputs(seeds=seeds, variants=[v.name for v in variants],
+                             descriptions={v.name: v.description for v in variants},
+                             methods={v.name: v.method for v in variants},
+                             eval_dirs={s: eval_dir(out_dir, s) for s in seeds}, three_dgs_dir=three_dgs_dir(out_dir),
+                             diagnostics_dirs={s: diagnostics_dir(out_dir, s) for s in seeds})
+    report, figures = write_benchmark_report(out_dir, inputs, header)
+    write_json_atomic({**run, **figures}, out_dir / "run.json")
     show(report.read_text())
     return report

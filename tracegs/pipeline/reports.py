@@ -18,6 +18,7 @@ from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
 from tracegs.eval.report import plot_per_step_quality, write_ablation_report, write_held_out_report
 from tracegs.eval.seeds import seed_spread_markdown
 from tracegs.io import atomic_write, write_json_atomic
+from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import compose_run, locate_artifacts, section, upstream_config
 from tracegs.pipeline.variants import per_step_variants, table3_variants
@@ -34,7 +35,7 @@ def report(cfg: DictConfig) -> Path:
         return out / "results.json"
     # report.kind is checked at composition (tracegs.config.schema.ReportKind).
     return {"per_step": per_step_report, "seeds": seed_report, "privileged": privileged_report,
-            "ablation": ablation_report}[kind](cfg)
+            "ablation": ablation_report, "diagnostics": diagnostics_report}[kind](cfg)
 
 
 def ablation_inputs(cfg: DictConfig) -> list[Path]:

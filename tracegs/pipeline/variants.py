@@ -13,7 +13,7 @@ from collections.abc import Iterable
 
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
@@ -25,17 +25,24 @@ GROUP = "ablation"
 DEFAULT_CHOICE = "default"
 
 
-def table3_variants() -> list[AblationConfig]:
-    """Every variant of the ablation group on the active Hydra search path, in Table 3's row order.
+def table3_names() -> list[str]:
+    """The variants' names (the ablation group's files on the active Hydra search path but the default choice),
+    in no particular order."""
+    options = GlobalHydra.instance().config_loader().get_group_options(GROUP)
+    return [option for option in options if option != DEFAULT_CHOICE]
+
+
+def table3_configs(names: Iterable[str] | None = None) -> list[DictConfig]:
+    """The training config of every variant of the ablation group (``names``: of those only), in Table 3's row
+    order: its ``ablation`` and the groups the variant sets, e.g. ``teacher``.
 
     A variant's name must be its file's: the run folders (``.../stage2/<name>/``) and the upstream lookup
     (``ablation=<name>``) use it; two variants on one row would leave the table's order undefined."""
-    variants = []
+    configs = []
     rows: dict[int, str] = {}
-    for option in GlobalHydra.instance().config_loader().get_group_options(GROUP):
-        if option == DEFAULT_CHOICE:
-            continue
-        variant = OmegaConf.to_object(compose(config_name="train", overrides=[f"{GROUP}={option}"]).ablation)
+    for option in table3_names() if names is None else names:
+        cfg = compose(config_name="train", overrides=[f"{GROUP}={option}"])
+        variant = cfg.ablation
         if variant.name != option:
             raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "
                                                f"name it {option!r}, as its file")
@@ -43,8 +50,13 @@ def table3_variants() -> list[AblationConfig]:
             raise ConfigError(f"{GROUP}.row", f"{GROUP}/{option}.yaml and {GROUP}/{rows[variant.row]}.yaml both "
                                               f"take Table 3 row {variant.row}")
         rows[variant.row] = option
-        variants.append(variant)
-    return sorted(variants, key=lambda variant: variant.row)
+        configs.append(cfg)
+    return sorted(configs, key=lambda cfg: cfg.ablation.row)
+
+
+def table3_variants() -> list[AblationConfig]:
+    """Every variant of the ablation group (:func:`table3_configs`), in Table 3's row order."""
+    return [OmegaConf.to_object(cfg.ablation) for cfg in table3_configs()]
 
 
 def in_table_order(names: Iterable[str]) -> list[str]:

@@ -1,0 +1,68 @@
+"""``tracegs-report report.kind=diagnostics``: the trajectory diagnostics of Table 3's variants on held-out clips.
+
+For one training seed (this command line's settings), every variant in ``report.inputs`` (default: every
+variant of conf/ablation/) is restored along its own deployment trajectory on the held-out clips, at the
+student conditions of ``evaluation.views``: its per-step clean prediction (Fig. 6), the exposure gap and, for
+the distilled variants, the advantage of their teacher (the Stage-1 adapter on the variant's R_d, Eq. 5) at the
+student's states (tracegs.eval.diagnostics). All restorers share one backbone: A's weights, the Stage-1 adapter
+and each student adapter loaded once.
+
+Any split's prepared cache works: the test split's held-out clips (the benchmark's), or the validation split's
+(``tracegs-prepare data.prepare.split=val``), on which a schedule or Stage-2 budget that makes the trajectory
+matter would be chosen. Its teacher conditions must cover the variants' (``data.prepare.dense_views``,
+``data.prepare.student_final_fits``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from tracegs.deploy.assembly import AdapterFile, shared_restorers
+from tracegs.errors import ConfigError
+from tracegs.eval.diagnostics import VariantRoles, held_out_diagnostics
+from tracegs.io import write_json_atomic
+from tracegs.pipeline.upstream import compose_run, locate_artifacts, section
+from tracegs.pipeline.variants import in_table_order, table3_variants
+
+TEACHER = "stage1"  # the adapter name of the frozen Stage-1 teacher on the shared backbone
+
+
+def diagnostics_report(cfg: DictConfig) -> Path:
+    """``diagnostics.json`` in ``report.output_dir`` (the benchmark's report reads it); returns its path."""
+    if cfg.evaluation.held_out_cache is None:
+        raise ConfigError("evaluation.held_out_cache", "report.kind=diagnostics needs a prepared held-out cache "
+                                                       "(tracegs-prepare data.prepare.split=test)")
+    names = in_table_order(cfg.report.inputs) if cfg.report.inputs else [v.name for v in table3_variants()]
+    unknown = sorted(set(cfg.report.inputs) - set(names))
+    if unknown:
+        raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    if not Path(cfg.artifacts.stage1_adapter).exists():
+        raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
+                                "(run tracegs-train stage=stage1 with the same settings)")
+    files: dict[str, AdapterFile | None] = {
+        TEACHER: AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", TEACHER, "stage1")}
+    roles = {}
+    for name in names:
+        variant = compose_run("report", [f"ablation={name}"])
+        if not variant.ablation.train_stage2:
+            roles[name] = VariantRoles(student=None)
+            continue
+        locate_artifacts(variant, ["student_adapter"])
+        student = Path(variant.artifacts.student_adapter)
+        if not student.exists():
+            raise FileNotFoundError(f"artifacts.student_adapter: no student adapter at {student} (run "
+                                    f"tracegs-train stage=stage2 ablation={name} with the same settings)")
+        files[name] = AdapterFile(student, "artifacts.student_adapter", name)
+        roles[name] = VariantRoles(student=name, teacher=TEACHER, teacher_views=variant.teacher.views, distilled=True)
+    restorers = shared_restorers(section(cfg.backbone), cfg.artifacts.baseline_weights, files,
+                                 batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
+    result = held_out_diagnostics(restorers[TEACHER].pipeline.backbone, roles, cfg.evaluation.held_out_cache,
+                                  student_views=list(cfg.evaluation.views), seed=cfg.deploy.seed,
+                                  steps=cfg.deploy.steps, progress=cfg.evaluation.progress,
+                                  workers=cfg.evaluation.workers)
+    path = Path(cfg.report.output_dir) / "diagnostics.json"
+    write_json_atomic(result, path)
+    return path

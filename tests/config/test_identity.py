@@ -110,6 +110,69 @@ def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
 
 
+TEST_ONLY = ["data.synthetic.test_seeds=[9001,9002]"]
+
+
+@pytest.mark.parametrize("kind", ["baseline", "stage1", "stage2"])
+def test_a_test_scene_list_never_renames_a_trained_product(kind):
+    """A, Stage 1 and Stage 2 never see a test scene: another test list keeps their folders (and the train
+    split's cache they read), and a validation list too."""
+    stage = [f"stage={kind}"]
+    assert run_dir([*stage, *TEST_ONLY]) == run_dir(stage)
+    assert run_dir([*stage, "data.synthetic.val_seeds=[60]"]) == run_dir(stage)
+    assert run_dir([*stage, "data.synthetic.train_seeds=[0,2,3]"]) != run_dir(stage)
+
+
+def test_each_cache_is_named_by_the_scenes_of_its_split():
+    def cache(split: str, *overrides: str) -> str:
+        return str(compose(config_name="prepare", overrides=[f"data.prepare.split={split}", *overrides])
+                   .data.prepare.cache_dir)
+
+    for split, own, other in (("train", "data.synthetic.train_seeds=[0,2]", "data.synthetic.test_seeds=[9001]"),
+                              ("test", "data.synthetic.test_seeds=[9001]", "data.synthetic.train_seeds=[0,2]"),
+                              ("val", "data.synthetic.val_seeds=[60]", "data.synthetic.test_seeds=[9001]")):
+        assert cache(split, own) != cache(split), split
+        assert cache(split, other) == cache(split), split
+        assert "9001" not in cache(split, other)  # nor named in the readable part
+    train = compose(config_name="evaluate", overrides=TEST_ONLY).data.datamodule.cache_dir
+    assert train == compose(config_name="train").data.datamodule.cache_dir
+
+
+def test_evaluation_on_other_test_scenes_finds_the_same_restorers(as_hydra_job):
+    """The embedded demo's models, evaluated on other test scenes: the same A and student, another evaluation."""
+    cfg = as_hydra_job("evaluate", ["ablation=F", *TEST_ONLY])
+    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    assert cfg.artifacts.student_adapter == str(Path(run_dir(["stage=stage2", "ablation=F"])) / "student_adapter")
+    assert cfg.artifacts.baseline_weights == str(Path(run_dir(["stage=baseline"])) / "baseline_transformer")
+    assert cfg.evaluation.out_dir != compose(config_name="evaluate", overrides=["ablation=F"]).evaluation.out_dir
+    assert "test_seeds-9001+9002" in Path(str(cfg.evaluation.out_dir)).name
+
+
+@pytest.mark.parametrize("experiment", ["paper", "rehearsal"])
+def test_evaluation_of_another_dataset_finds_the_students_of_the_training_data(as_hydra_job, experiment):
+    """Table 2: ``tracegs-evaluate experiment=paper data=mipnerf360`` loads the student trained on DL3DV (the
+    experiment's training_data), whatever the evaluated dataset's own settings; its folder is its own."""
+    scale = [f"experiment={experiment}"]
+    cfg = as_hydra_job("evaluate", [*scale, "data=mipnerf360", "ablation=E", "seed=1",
+                                    "data.source.root=/elsewhere/mip", "data.prepare.clips_per_scene=3"])
+    locate_artifacts(cfg, ["stage1_adapter", "student_adapter"])
+    trained = ["seed=1", *scale]
+    student = run_dir([*trained, "stage=stage2", "ablation=E"])
+    assert compose(config_name="train", overrides=[*trained, "stage=stage2"]).data.name == "dl3dv"
+    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
+    assert cfg.artifacts.stage1_adapter == str(Path(run_dir([*trained, "stage=stage1"])) / "stage1_adapter")
+    in_domain = compose(config_name="evaluate", overrides=[*trained, "ablation=E"]).evaluation.out_dir
+    assert cfg.evaluation.out_dir != in_domain and "data-mipnerf360" in Path(str(cfg.evaluation.out_dir)).name
+
+
+def test_training_data_names_where_the_students_are_looked_up(as_hydra_job):
+    """Restorers trained on a dataset of one's own are found by naming it as the training data."""
+    cfg = as_hydra_job("evaluate", ["experiment=paper", "data=mipnerf360", "training_data=custom"])
+    locate_artifacts(cfg, ["student_adapter"])
+    student = run_dir(["experiment=paper", "data=custom", "training_data=custom", "stage=stage2"])
+    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
+
+
 def test_training_reads_the_cache_that_prepare_writes():
     prepared = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
     trained = compose(config_name="train", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
@@ -122,7 +185,7 @@ def test_training_reads_the_cache_that_prepare_writes():
 
 
 @pytest.mark.parametrize("overrides", [
-    ["data.synthetic.test_seeds=[100,101]", "loss.lambda_ret=0.3"],
+    ["data.synthetic.train_seeds=[0,2]", "loss.lambda_ret=0.3"],
     ["artifacts.stage1_adapter=/some/where/adapter", "data.prepare.student_views=[3,6]"],
     [f"data.synthetic.train_seeds=[{','.join(str(s) for s in range(40))}]", "optimizer.lr=1e-4",
      "loss.lambda_align=0.5", "loss.lambda_ret=0.25", "experiment.stage1_steps=10"],

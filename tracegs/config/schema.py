@@ -194,6 +194,10 @@ class TraceGSConfig:
     task: Task = MISSING  # set by each entry point's conf/<task>.yaml
     # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
     seed: int = 0
+    # The ``data`` option the restorers are trained on (the experiment chooses it). Training runs on it; ``data``
+    # names what a command prepares, deploys or evaluates, so evaluating another dataset (``data=mipnerf360``)
+    # loads the students trained on this one (tracegs.pipeline.upstream).
+    training_data: str = MISSING
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = "${paths.experiment_dir}/${task}"

@@ -138,39 +138,48 @@ def test_each_cache_is_named_by_the_scenes_of_its_split():
     assert train == compose(config_name="train").data.datamodule.cache_dir
 
 
-def test_evaluation_on_other_test_scenes_finds_the_same_restorers(as_hydra_job):
+def trained(as_hydra_job, root: Path, overrides: list[str], product: str) -> Path:
+    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job)."""
+    folder = Path(str(as_hydra_job("train", [f"paths.root_dir={root}", *overrides]).run_dir)) / product
+    folder.mkdir(parents=True)
+    return folder
+
+
+def test_evaluation_on_other_test_scenes_finds_the_same_restorers(as_hydra_job, tmp_path):
     """The embedded demo's models, evaluated on other test scenes: the same A and student, another evaluation."""
-    cfg = as_hydra_job("evaluate", ["ablation=F", *TEST_ONLY])
+    baseline = trained(as_hydra_job, tmp_path, ["stage=baseline"], "baseline_transformer")
+    student = trained(as_hydra_job, tmp_path, ["stage=stage2", "ablation=F"], "student_adapter")
+    in_domain = as_hydra_job("evaluate", [f"paths.root_dir={tmp_path}", "ablation=F"]).evaluation.out_dir
+    cfg = as_hydra_job("evaluate", [f"paths.root_dir={tmp_path}", "ablation=F", *TEST_ONLY])
     locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
-    assert cfg.artifacts.student_adapter == str(Path(run_dir(["stage=stage2", "ablation=F"])) / "student_adapter")
-    assert cfg.artifacts.baseline_weights == str(Path(run_dir(["stage=baseline"])) / "baseline_transformer")
-    assert cfg.evaluation.out_dir != compose(config_name="evaluate", overrides=["ablation=F"]).evaluation.out_dir
-    assert "test_seeds-9001+9002" in Path(str(cfg.evaluation.out_dir)).name
+    assert (Path(cfg.artifacts.student_adapter), Path(cfg.artifacts.baseline_weights)) == (student, baseline)
+    assert cfg.evaluation.out_dir != in_domain and "test_seeds-9001+9002" in Path(str(cfg.evaluation.out_dir)).name
 
 
 @pytest.mark.parametrize("experiment", ["paper", "rehearsal"])
-def test_evaluation_of_another_dataset_finds_the_students_of_the_training_data(as_hydra_job, experiment):
-    """Table 2: ``tracegs-evaluate experiment=paper data=mipnerf360`` loads the student trained on DL3DV (the
-    experiment's training_data), whatever the evaluated dataset's own settings; its folder is its own."""
-    scale = [f"experiment={experiment}"]
-    cfg = as_hydra_job("evaluate", [*scale, "data=mipnerf360", "ablation=E", "seed=1",
-                                    "data.source.root=/elsewhere/mip", "data.prepare.clips_per_scene=3"])
+def test_evaluation_of_another_dataset_finds_the_students_of_the_training_data(as_hydra_job, tmp_path, experiment):
+    """Table 2: ``tracegs-evaluate experiment=paper data=mipnerf360`` loads the Stage-1 adapter and the student
+    trained on DL3DV (the experiment's training_data) by the training command lines as typed, whatever the
+    evaluated dataset's own settings; its folder is its own."""
+    common = [f"paths.root_dir={tmp_path}", f"experiment={experiment}", "seed=1"]
+    stage1 = trained(as_hydra_job, tmp_path, [*common, "stage=stage1"], "stage1_adapter")
+    student = trained(as_hydra_job, tmp_path, [*common, "stage=stage2", "ablation=E"], "student_adapter")
+    assert compose(config_name="train", overrides=[*common, "stage=stage2"]).data.name == "dl3dv"
+    in_domain = as_hydra_job("evaluate", [*common, "ablation=E"]).evaluation.out_dir
+    cfg = as_hydra_job("evaluate", [*common, "data=mipnerf360", "ablation=E", "data.source.root=/elsewhere/mip",
+                                    "data.prepare.clips_per_scene=3"])
     locate_artifacts(cfg, ["stage1_adapter", "student_adapter"])
-    trained = ["seed=1", *scale]
-    student = run_dir([*trained, "stage=stage2", "ablation=E"])
-    assert compose(config_name="train", overrides=[*trained, "stage=stage2"]).data.name == "dl3dv"
-    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
-    assert cfg.artifacts.stage1_adapter == str(Path(run_dir([*trained, "stage=stage1"])) / "stage1_adapter")
-    in_domain = compose(config_name="evaluate", overrides=[*trained, "ablation=E"]).evaluation.out_dir
+    assert (Path(cfg.artifacts.stage1_adapter), Path(cfg.artifacts.student_adapter)) == (stage1, student)
     assert cfg.evaluation.out_dir != in_domain and "data-mipnerf360" in Path(str(cfg.evaluation.out_dir)).name
 
 
-def test_training_data_names_where_the_students_are_looked_up(as_hydra_job):
+def test_training_data_names_where_the_students_are_looked_up(as_hydra_job, tmp_path):
     """Restorers trained on a dataset of one's own are found by naming it as the training data."""
-    cfg = as_hydra_job("evaluate", ["experiment=paper", "data=mipnerf360", "training_data=custom"])
+    common = [f"paths.root_dir={tmp_path}", "experiment=paper", "training_data=custom"]
+    student = trained(as_hydra_job, tmp_path, [*common, "data=custom", "stage=stage2"], "student_adapter")
+    cfg = as_hydra_job("evaluate", [*common, "data=mipnerf360"])
     locate_artifacts(cfg, ["student_adapter"])
-    student = run_dir(["experiment=paper", "data=custom", "training_data=custom", "stage=stage2"])
-    assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
+    assert Path(cfg.artifacts.student_adapter) == student
 
 
 def test_training_reads_the_cache_that_prepare_writes():

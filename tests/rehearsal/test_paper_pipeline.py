@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config, rehearsal_run_dir, run_rehearsal_task
+from conftest import rehearsal_config, rehearsal_job, rehearsal_run_dir, run_rehearsal_task
 from paper_weights import write_vggt_double_package
 from safetensors import safe_open
 from test_size_keys import SIZE_KEYS
@@ -31,6 +31,7 @@ from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report
 from tracegs.pipeline.train import train
+from tracegs.pipeline.upstream import locate_artifacts
 
 # The default suite's overrides on top of experiment=rehearsal: each makes a count smaller, none touches a
 # mode, rate, weight, schedule or sampler (test_budget_overrides_are_sizes checks the keys).
@@ -111,6 +112,32 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     results = run_pipeline(root, ())
     check_products(root, results, views=[3, 6, 9], extra=())
+
+
+def evaluate_out_of_domain(root: Path, mipnerf360: Path, extra: tuple[str, ...]) -> tuple[dict, Path]:
+    """``tracegs-evaluate data=mipnerf360`` (Table 2) after the pipeline trained on DL3DV: no artifact named (the
+    rehearsal's Mip-NeRF 360 root holds one scene of the published nine). Returns results.json and the student
+    adapter it loaded."""
+    overrides = ("ablation=F", "data=mipnerf360", f"data.source.root={mipnerf360}", "data.source.test_list=null",
+                 *extra)
+    results = run_rehearsal_task(evaluate, root, "evaluate", overrides)
+    with rehearsal_job(root, "evaluate", overrides) as cfg:
+        locate_artifacts(cfg, ["student_adapter"])
+        return results, Path(cfg.artifacts.student_adapter)
+
+
+@pytest.mark.slow
+def test_the_dl3dv_student_is_evaluated_out_of_domain_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """Table 2 at rehearsal: after training on DL3DV, ``tracegs-evaluate data=mipnerf360`` finds the DL3DV-trained
+    student (the experiment's training_data) and scores it on the Mip-NeRF 360 scene."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_pipeline(root, BUDGET)
+    extra = (*BUDGET, "evaluation.methods=[tracegs]", "evaluation.save_media=false")
+    results, student = evaluate_out_of_domain(root, paper_data["mipnerf360"], extra)
+    trained = rehearsal_run_dir(root, "train", ("stage=stage2", "ablation=F", *BUDGET))
+    assert student == trained / "student_adapter" and student.is_dir()
+    assert results["meta"]["scenes"] == ["scene_100"] and results["meta"]["variant"] == "F"
+    assert math.isfinite(results["tracegs"]["3"]["psnr"]) and results["tracegs"]["3"]["lpips"] > 0
 
 
 # The two-process trainers: experiment=rehearsal keeps the paper's bf16-mixed precision on two gloo CPU ranks.

@@ -163,6 +163,8 @@ class ReportConfig:
 
     kind: ReportKind = ReportKind.main
     inputs: list[str] = field(default_factory=list)  # result folders; empty = the experiment's defaults
+    # Table 3's datasets (``data`` options), one column group each: the sweep's evaluations on each of them.
+    datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
     output_dir: str = "${paths.experiment_dir}/report"
 
 

@@ -71,7 +71,7 @@ def _validate_known_keys(cfg: DictConfig) -> None:
 
 # Config values that become one folder name under a configured root (lists: every item).
 NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "training_data", "data.source.scenes",
-               "data.datamodule.val_scenes", "evaluation.scenes")
+               "data.datamodule.val_scenes", "evaluation.scenes", "report.datasets")
 
 
 def validate_names(cfg: DictConfig) -> None:
@@ -136,10 +136,13 @@ def _validate_data(cfg: DictConfig) -> None:
 
 
 def _validate_training_data(cfg: DictConfig) -> None:
-    """``training_data`` is a ``data`` option; training runs on it; its scenes are never benchmark scenes."""
+    """``training_data`` and Table 3's datasets are ``data`` options; training runs on the training data, whose
+    scenes are never benchmark scenes."""
     options = sorted(path.stem for path in (Path(CONF_DIR) / "data").glob("*.yaml"))
-    _require(cfg.training_data in options, "training_data",
-             f"{cfg.training_data!r} is not a data option (conf/data/<name>.yaml); choose one of {options}")
+    for field, names in (("training_data", [cfg.training_data]), ("report.datasets", cfg.report.datasets)):
+        unknown = [name for name in names if name not in options]
+        _require(not unknown, field, f"{unknown[0] if unknown else ''!r} is not a data option "
+                                     f"(conf/data/<name>.yaml); choose from {options}")
     if cfg.task == "train":  # the trained products are looked up on training_data (tracegs.pipeline.upstream)
         _require(cfg.data.name == cfg.training_data, "training_data",
                  f"{cfg.training_data!r}, but this run trains on data={cfg.data.name}: the restorers train on "

@@ -19,7 +19,7 @@ from tracegs.eval.report import plot_per_step_quality, write_ablation_report, wr
 from tracegs.eval.seeds import seed_spread_markdown
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.restorers import restorers_for_run
-from tracegs.pipeline.upstream import compose_run, locate_artifacts, section, upstream_config
+from tracegs.pipeline.upstream import compose_run, locate_artifacts, same_identity, section, upstream_config
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 
 
@@ -37,11 +37,18 @@ def report(cfg: DictConfig) -> Path:
             "ablation": ablation_report}[kind](cfg)
 
 
-def ablation_inputs(cfg: DictConfig) -> list[Path]:
-    """The folders in ``report.inputs``, else the evaluation folder of every variant (conf/ablation/) that this
-    command line's settings give, in Table 3's row order."""
-    return [Path(p) for p in cfg.report.inputs] or [
-        Path(upstream_config(cfg, "evaluate", variant.name).evaluation.out_dir) for variant in table3_variants()]
+def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
+    """Per dataset, the evaluation folder of every variant: ``report.inputs`` (this command's dataset), else for
+    each of ``report.datasets`` the evaluation of every variant (conf/ablation/) that this command line's settings
+    give on it, in Table 3's row order (the restorers trained on the training data, evaluated there)."""
+    if cfg.report.inputs:
+        return {cfg.data.name: [Path(p) for p in cfg.report.inputs]}
+    inputs = {}
+    for dataset in cfg.report.datasets:
+        folders = [Path(upstream_config(cfg, "evaluate", variant.name, data=dataset).evaluation.out_dir)
+                   for variant in table3_variants()]
+        inputs[dataset] = [same_identity(folder, "results.json") for folder in folders]
+    return inputs
 
 
 def ablation_report(cfg: DictConfig) -> Path:

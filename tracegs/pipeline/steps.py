@@ -45,3 +45,11 @@ def restorer_steps(variant: str, common: Sequence[str] = (), evaluation: Sequenc
     if privileged is not None:
         steps.append(Step("report", (*common, chosen, "report.kind=privileged", *privileged), "privileged gap"))
     return steps
+
+
+def out_of_domain_steps(variant: str, datasets: Sequence[str], common: Sequence[str] = (),
+                        evaluation: Sequence[str] = ()) -> list[Step]:
+    """Evaluate ``variant``'s restorers, trained on the training data (``training_data``), on each of ``datasets``
+    (``data=<name>``, e.g. Mip-NeRF 360): paper Table 2, and Table 3's out-of-domain columns (report.datasets)."""
+    return [Step("evaluate", (*common, f"ablation={variant}", f"data={dataset}", *evaluation), f"evaluate on {dataset}")
+            for dataset in datasets]

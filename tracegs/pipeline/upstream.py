@@ -78,7 +78,20 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
         if cfg.artifacts[artifact] != AUTO:
             continue
         producer = producers[artifact]
-        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
+        folder = same_identity(Path(upstream_config(cfg, producer).run_dir), PRODUCTS[producer])
+        cfg.artifacts[artifact] = str(folder / PRODUCTS[producer])
+
+
+def same_identity(folder: Path, product: str) -> Path:
+    """``folder``, or the folder beside it of the same identity (``<readable>-<digest>``, the same digest) that
+    holds ``product``. The readable part repeats in-scope overrides of the command line that computes the name,
+    and two command lines of one configuration may spell it differently: the training command typed nothing,
+    the evaluation of another dataset ``data=mipnerf360``; a group typed or left to the experiment's default."""
+    if (folder / product).exists() or not folder.parent.is_dir():
+        return folder
+    digest = folder.name.rsplit("-", 1)[-1]
+    found = sorted(p for p in folder.parent.glob(f"*-{digest}") if (p / product).exists())
+    return found[0] if found else folder
 
 
 def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:

@@ -27,6 +27,13 @@ def run_dir(overrides: list[str], config_name: str = "train") -> str:
     return str(compose(config_name=config_name, overrides=overrides).run_dir)
 
 
+def trained(as_hydra_job, root: Path, overrides: list[str], product: str) -> Path:
+    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job)."""
+    folder = Path(str(as_hydra_job("train", [f"paths.root_dir={root}", *overrides]).run_dir)) / product
+    folder.mkdir(parents=True)
+    return folder
+
+
 @pytest.mark.parametrize("changed", [
     ["loss.lambda_ret=0.3"], ["optimizer.lr=1e-4"], ["teacher=v12"], ["policy=off"], ["seed=1"],
     ["stage.rollout_steps=3"], ["debug=fdr"], ["debug=limit"], ["data.prepare.clips_per_scene=4"],
@@ -65,19 +72,19 @@ def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
     assert Path(str(cfg.run_dir)).parent.name == "F"
 
 
-def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
-    cfg = as_hydra_job("train", ["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
-                                 "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job, tmp_path):
+    # The earlier stages were run with the experiment's shared settings and their own stage defaults, each by its
+    # own command line (whose folder's readable part holds no Stage-2 override).
+    shared = [f"paths.root_dir={tmp_path}", "seed=3", "data.prepare.clips_per_scene=4"]
+    stage1 = trained(as_hydra_job, tmp_path, [*shared, "stage=stage1", "loss.lambda_ret=0.3"], "stage1_adapter")
+    baseline = trained(as_hydra_job, tmp_path, [*shared, "stage=baseline"], "baseline_transformer")
+    own = [*shared, "stage=stage2", "ablation=C", "optimizer.lr=1e-4", "loss.lambda_ret=0.3"]
+    cfg = as_hydra_job("train", own)
     locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
-    # The earlier stages were run with the experiment's shared settings and their own stage defaults.
-    stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
-    baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
-    assert cfg.artifacts.stage1_adapter == str(Path(stage1) / "stage1_adapter")
+    assert (Path(cfg.artifacts.stage1_adapter), Path(cfg.artifacts.baseline_weights)) == (stage1, baseline)
     assert cfg.stage.init_adapter == cfg.artifacts.stage1_adapter
-    assert cfg.artifacts.baseline_weights == str(Path(baseline) / "baseline_transformer")
     # The run's own folder keeps the name it had before its inputs were located.
-    assert cfg.run_dir == run_dir(["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
-                                   "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+    assert cfg.run_dir == run_dir(own)
 
 
 @pytest.mark.parametrize("stage2_only", [
@@ -136,13 +143,6 @@ def test_each_cache_is_named_by_the_scenes_of_its_split():
         assert "9001" not in cache(split, other)  # nor named in the readable part
     train = compose(config_name="evaluate", overrides=TEST_ONLY).data.datamodule.cache_dir
     assert train == compose(config_name="train").data.datamodule.cache_dir
-
-
-def trained(as_hydra_job, root: Path, overrides: list[str], product: str) -> Path:
-    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job)."""
-    folder = Path(str(as_hydra_job("train", [f"paths.root_dir={root}", *overrides]).run_dir)) / product
-    folder.mkdir(parents=True)
-    return folder
 
 
 def test_evaluation_on_other_test_scenes_finds_the_same_restorers(as_hydra_job, tmp_path):

@@ -185,6 +185,9 @@ def test_wrong_type_names_the_field():
         (["backbone.schedule.deploy_time_power=-1"], "backbone.schedule.deploy_time_power"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
+        (["training_data=dl3dvx"], "training_data"),
+        (["report.datasets=[dl3dv,mip360]"], "report.datasets"),
+        (["data=custom"], "training_data"),  # training runs on the training data (training_data=custom to train)
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",
           "backbone.schedule.deploy_time_power=0"], "backbone.transformer.prediction"),

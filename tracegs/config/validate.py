@@ -140,9 +140,9 @@ def _validate_training_data(cfg: DictConfig) -> None:
     scenes are never benchmark scenes."""
     options = sorted(path.stem for path in (Path(CONF_DIR) / "data").glob("*.yaml"))
     for field, names in (("training_data", [cfg.training_data]), ("report.datasets", cfg.report.datasets)):
-        unknown = [name for name in names if name not in options]
-        _require(not unknown, field, f"{unknown[0] if unknown else ''!r} is not a data option "
-                                     f"(conf/data/<name>.yaml); choose from {options}")
+        for name in names:
+            _require(name in options, field, f"{name!r} is not a data option (conf/data/<name>.yaml); choose from "
+                                             f"{options}")
     if cfg.task == "train":  # the trained products are looked up on training_data (tracegs.pipeline.upstream)
         _require(cfg.data.name == cfg.training_data, "training_data",
                  f"{cfg.training_data!r}, but this run trains on data={cfg.data.name}: the restorers train on "

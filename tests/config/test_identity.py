@@ -13,7 +13,9 @@ from omegaconf import OmegaConf
 from tracegs.config.identity import derive_seed, scoped_values
 from tracegs.config.validate import ConfigError
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
+from tracegs.pipeline.reports import ablation_inputs
 from tracegs.pipeline.upstream import locate_artifacts
+from tracegs.pipeline.variants import table3_variants
 
 # Every part that draws random numbers, by its seed field.
 SEED_FIELDS = ("stage.seed", "data.prepare.seed", "data.prepare.fit.seed", "data.datamodule.seed", "deploy.seed",
@@ -339,3 +341,22 @@ def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
     values = json.loads(record.read_text())
     record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
     assert check_run_record(cfg, "stage1", folder)
+
+
+def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(as_hydra_job, tmp_path):
+    """``tracegs-report report.kind=ablation experiment=paper`` finds what ``tracegs-evaluate ablation=<v>`` and
+    ``tracegs-evaluate ablation=<v> data=mipnerf360`` wrote, and names the first evaluation missing."""
+    common = [f"paths.root_dir={tmp_path}", "experiment=paper"]
+    report = [*common, "report.kind=ablation"]
+    with pytest.raises(FileNotFoundError, match="no evaluation of variant A on dl3dv"):
+        ablation_inputs(as_hydra_job("report", report))
+    written = {}
+    for dataset in ("dl3dv", "mipnerf360"):
+        for variant in table3_variants():
+            chosen = [] if dataset == "dl3dv" else [f"data={dataset}"]
+            folder = Path(str(as_hydra_job("evaluate", [*common, f"ablation={variant.name}", *chosen])
+                              .evaluation.out_dir))
+            folder.mkdir(parents=True)
+            (folder / "results.json").write_text("{}")
+            written.setdefault(dataset, []).append(folder)
+    assert ablation_inputs(as_hydra_job("report", report)) == written

@@ -43,11 +43,16 @@ def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
     give on it, in Table 3's row order (the restorers trained on the training data, evaluated there)."""
     if cfg.report.inputs:
         return {cfg.data.name: [Path(p) for p in cfg.report.inputs]}
-    inputs = {}
+    inputs: dict[str, list[Path]] = {}
     for dataset in cfg.report.datasets:
-        folders = [Path(upstream_config(cfg, "evaluate", variant.name, data=dataset).evaluation.out_dir)
-                   for variant in table3_variants()]
-        inputs[dataset] = [same_identity(folder, "results.json") for folder in folders]
+        for variant in table3_variants():
+            computed = Path(upstream_config(cfg, "evaluate", variant.name, data=dataset).evaluation.out_dir)
+            folder = same_identity(computed, "results.json")
+            if not (folder / "results.json").is_file():
+                raise FileNotFoundError(f"report.datasets: no evaluation of variant {variant.name} on {dataset} "
+                                        f"({folder}/results.json); run tracegs-evaluate ablation={variant.name} "
+                                        f"data={dataset} with this command's settings")
+            inputs.setdefault(dataset, []).append(folder)
     return inputs
 
 

@@ -87,6 +87,19 @@ def test_demo_runs_every_step_and_writes_its_tables(demo):
     assert "Deployment on the test scenes" in (out / "tables.md").read_text()
 
 
+def test_the_demo_models_evaluate_on_other_test_scenes_without_naming_them(demo, run):
+    """``tracegs-evaluate data.synthetic.test_seeds=[...]`` after the demo finds the demo's A and student (a trained
+    model is named by its training scenes, never by a test list) and evaluates them on the new scene."""
+    root = demo[0]
+    run("evaluate", root, "ablation=F", "data.synthetic.test_seeds=[102]", "evaluation.methods=[baseline,tracegs]",
+        "evaluation.save_media=false")
+    (path,) = root.glob("outputs/embedded/eval/F/*test_seeds-102*/results.json")
+    results = json.loads(path.read_text())
+    assert results["meta"]["scenes"] == ["scene_102"]
+    for method in ("baseline", "tracegs"):
+        assert results[method]["3"]["psnr"] > 0
+
+
 def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
     root = demo[0]
     held_out = ("data.prepare.split=test", "data.synthetic.test_seeds=[100,101]", "data.prepare.num_shards=2")

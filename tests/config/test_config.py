@@ -42,6 +42,9 @@ NEEDS_EXPERIMENT = {
     **{("embedded", group, option): "data.prepare.student_final_fits"
        for group, option in (("ablation", "B"), ("teacher", "v3"))},
 }
+# A benchmark-only dataset trained on (its every scene a test scene) is refused from the config alone.
+NEEDS_EXPERIMENT.update({(scale, "data", option): "benchmark scenes included"
+                         for scale in ("embedded", "paper") for option in ("mipnerf360", "nerfbusters")})
 
 
 pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
@@ -106,7 +109,8 @@ def test_every_group_option_composes_alone_at_either_scale(group, option, scale)
             assert str(launcher.tasks_per_node) == str(cfg.trainer.devices)  # training: a rank per device
             assert launcher.max_num_timeout == 0  # Lightning, not submitit, owns requeueing
         return
-    cfg = compose(config_name="train", overrides=[f"experiment={scale}", f"{group}={option}"])
+    trained_on = [f"training_data={option}"] if group == "data" else []  # training runs on the training data
+    cfg = compose(config_name="train", overrides=[f"experiment={scale}", f"{group}={option}", *trained_on])
     OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
     needed = NEEDS_EXPERIMENT.get((scale, group, option))
     if needed is None:
@@ -175,6 +179,9 @@ def test_wrong_type_names_the_field():
         (["backbone.schedule.deploy_time_power=-1"], "backbone.schedule.deploy_time_power"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
+        (["training_data=dl3dvx"], "training_data"),
+        (["report.datasets=[dl3dv,mip360]"], "report.datasets"),
+        (["data=custom"], "training_data"),  # training runs on the training data (training_data=custom to train)
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",
           "backbone.schedule.deploy_time_power=0"], "backbone.transformer.prediction"),

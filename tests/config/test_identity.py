@@ -13,7 +13,9 @@ from omegaconf import OmegaConf
 from tracegs.config.identity import derive_seed, scoped_values
 from tracegs.config.validate import ConfigError
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
+from tracegs.pipeline.reports import ablation_inputs
 from tracegs.pipeline.upstream import locate_artifacts
+from tracegs.pipeline.variants import table3_variants
 
 # Every part that draws random numbers, by its seed field.
 SEED_FIELDS = ("stage.seed", "data.prepare.seed", "data.prepare.fit.seed", "data.datamodule.seed", "deploy.seed",
@@ -25,6 +27,13 @@ pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 def run_dir(overrides: list[str], config_name: str = "train") -> str:
     return str(compose(config_name=config_name, overrides=overrides).run_dir)
+
+
+def trained(as_hydra_job, root: Path, overrides: list[str], product: str) -> Path:
+    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job)."""
+    folder = Path(str(as_hydra_job("train", [f"paths.root_dir={root}", *overrides]).run_dir)) / product
+    folder.mkdir(parents=True)
+    return folder
 
 
 @pytest.mark.parametrize("changed", [
@@ -65,19 +74,19 @@ def test_folder_name_shows_the_seed_and_the_overrides(as_hydra_job):
     assert Path(str(cfg.run_dir)).parent.name == "F"
 
 
-def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job):
-    cfg = as_hydra_job("train", ["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
-                                 "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job, tmp_path):
+    # The earlier stages were run with the experiment's shared settings and their own stage defaults, each by its
+    # own command line (whose folder's readable part holds no Stage-2 override).
+    shared = [f"paths.root_dir={tmp_path}", "seed=3", "data.prepare.clips_per_scene=4"]
+    stage1 = trained(as_hydra_job, tmp_path, [*shared, "stage=stage1", "loss.lambda_ret=0.3"], "stage1_adapter")
+    baseline = trained(as_hydra_job, tmp_path, [*shared, "stage=baseline"], "baseline_transformer")
+    own = [*shared, "stage=stage2", "ablation=C", "optimizer.lr=1e-4", "loss.lambda_ret=0.3"]
+    cfg = as_hydra_job("train", own)
     locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
-    # The earlier stages were run with the experiment's shared settings and their own stage defaults.
-    stage1 = run_dir(["stage=stage1", "seed=3", "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
-    baseline = run_dir(["stage=baseline", "seed=3", "data.prepare.clips_per_scene=4"])
-    assert cfg.artifacts.stage1_adapter == str(Path(stage1) / "stage1_adapter")
+    assert (Path(cfg.artifacts.stage1_adapter), Path(cfg.artifacts.baseline_weights)) == (stage1, baseline)
     assert cfg.stage.init_adapter == cfg.artifacts.stage1_adapter
-    assert cfg.artifacts.baseline_weights == str(Path(baseline) / "baseline_transformer")
     # The run's own folder keeps the name it had before its inputs were located.
-    assert cfg.run_dir == run_dir(["stage=stage2", "ablation=C", "seed=3", "optimizer.lr=1e-4",
-                                   "loss.lambda_ret=0.3", "data.prepare.clips_per_scene=4"])
+    assert cfg.run_dir == run_dir(own)
 
 
 @pytest.mark.parametrize("stage2_only", [
@@ -110,6 +119,71 @@ def test_evaluation_finds_the_student_its_variant_trained(as_hydra_job):
     assert cfg.artifacts.student_adapter == str(Path(student) / "student_adapter")
 
 
+TEST_ONLY = ["data.synthetic.test_seeds=[9001,9002]"]
+
+
+@pytest.mark.parametrize("kind", ["baseline", "stage1", "stage2"])
+def test_a_test_scene_list_never_renames_a_trained_product(kind):
+    """A, Stage 1 and Stage 2 never see a test scene: another test list keeps their folders (and the train
+    split's cache they read), and a validation list too."""
+    stage = [f"stage={kind}"]
+    assert run_dir([*stage, *TEST_ONLY]) == run_dir(stage)
+    assert run_dir([*stage, "data.synthetic.val_seeds=[60]"]) == run_dir(stage)
+    assert run_dir([*stage, "data.synthetic.train_seeds=[0,2,3]"]) != run_dir(stage)
+
+
+def test_each_cache_is_named_by_the_scenes_of_its_split():
+    def cache(split: str, *overrides: str) -> str:
+        return str(compose(config_name="prepare", overrides=[f"data.prepare.split={split}", *overrides])
+                   .data.prepare.cache_dir)
+
+    for split, own, other in (("train", "data.synthetic.train_seeds=[0,2]", "data.synthetic.test_seeds=[9001]"),
+                              ("test", "data.synthetic.test_seeds=[9001]", "data.synthetic.train_seeds=[0,2]"),
+                              ("val", "data.synthetic.val_seeds=[60]", "data.synthetic.test_seeds=[9001]")):
+        assert cache(split, own) != cache(split), split
+        assert cache(split, other) == cache(split), split
+        assert "9001" not in cache(split, other)  # nor named in the readable part
+    train = compose(config_name="evaluate", overrides=TEST_ONLY).data.datamodule.cache_dir
+    assert train == compose(config_name="train").data.datamodule.cache_dir
+
+
+def test_evaluation_on_other_test_scenes_finds_the_same_restorers(as_hydra_job, tmp_path):
+    """The embedded demo's models, evaluated on other test scenes: the same A and student, another evaluation."""
+    baseline = trained(as_hydra_job, tmp_path, ["stage=baseline"], "baseline_transformer")
+    student = trained(as_hydra_job, tmp_path, ["stage=stage2", "ablation=F"], "student_adapter")
+    in_domain = as_hydra_job("evaluate", [f"paths.root_dir={tmp_path}", "ablation=F"]).evaluation.out_dir
+    cfg = as_hydra_job("evaluate", [f"paths.root_dir={tmp_path}", "ablation=F", *TEST_ONLY])
+    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    assert (Path(cfg.artifacts.student_adapter), Path(cfg.artifacts.baseline_weights)) == (student, baseline)
+    assert cfg.evaluation.out_dir != in_domain and "test_seeds-9001+9002" in Path(str(cfg.evaluation.out_dir)).name
+
+
+@pytest.mark.parametrize("experiment", ["paper", "rehearsal"])
+def test_evaluation_of_another_dataset_finds_the_students_of_the_training_data(as_hydra_job, tmp_path, experiment):
+    """Table 2: ``tracegs-evaluate experiment=paper data=mipnerf360`` loads the Stage-1 adapter and the student
+    trained on DL3DV (the experiment's training_data) by the training command lines as typed, whatever the
+    evaluated dataset's own settings; its folder is its own."""
+    common = [f"paths.root_dir={tmp_path}", f"experiment={experiment}", "seed=1"]
+    stage1 = trained(as_hydra_job, tmp_path, [*common, "stage=stage1"], "stage1_adapter")
+    student = trained(as_hydra_job, tmp_path, [*common, "stage=stage2", "ablation=E"], "student_adapter")
+    assert compose(config_name="train", overrides=[*common, "stage=stage2"]).data.name == "dl3dv"
+    in_domain = as_hydra_job("evaluate", [*common, "ablation=E"]).evaluation.out_dir
+    cfg = as_hydra_job("evaluate", [*common, "data=mipnerf360", "ablation=E", "data.source.root=/elsewhere/mip",
+                                    "data.prepare.clips_per_scene=3"])
+    locate_artifacts(cfg, ["stage1_adapter", "student_adapter"])
+    assert (Path(cfg.artifacts.stage1_adapter), Path(cfg.artifacts.student_adapter)) == (stage1, student)
+    assert cfg.evaluation.out_dir != in_domain and "data-mipnerf360" in Path(str(cfg.evaluation.out_dir)).name
+
+
+def test_training_data_names_where_the_students_are_looked_up(as_hydra_job, tmp_path):
+    """Restorers trained on a dataset of one's own are found by naming it as the training data."""
+    common = [f"paths.root_dir={tmp_path}", "experiment=paper", "training_data=custom"]
+    student = trained(as_hydra_job, tmp_path, [*common, "data=custom", "stage=stage2"], "student_adapter")
+    cfg = as_hydra_job("evaluate", [*common, "data=mipnerf360"])
+    locate_artifacts(cfg, ["student_adapter"])
+    assert Path(cfg.artifacts.student_adapter) == student
+
+
 def test_training_reads_the_cache_that_prepare_writes():
     prepared = compose(config_name="prepare", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
     trained = compose(config_name="train", overrides=["seed=4", "data.prepare.clips_per_scene=4"])
@@ -122,7 +196,7 @@ def test_training_reads_the_cache_that_prepare_writes():
 
 
 @pytest.mark.parametrize("overrides", [
-    ["data.synthetic.test_seeds=[100,101]", "loss.lambda_ret=0.3"],
+    ["data.synthetic.train_seeds=[0,2]", "loss.lambda_ret=0.3"],
     ["artifacts.stage1_adapter=/some/where/adapter", "data.prepare.student_views=[3,6]"],
     [f"data.synthetic.train_seeds=[{','.join(str(s) for s in range(40))}]", "optimizer.lr=1e-4",
      "loss.lambda_align=0.5", "loss.lambda_ret=0.25", "experiment.stage1_steps=10"],
@@ -267,3 +341,22 @@ def test_a_record_read_back_compares_equal_to_its_run(tmp_path, monkeypatch):
     values = json.loads(record.read_text())
     record.write_text(json.dumps({**values, "artifacts.baseline_weights": f"{tmp_path}/outputs/baseline/a"}))
     assert check_run_record(cfg, "stage1", folder)
+
+
+def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(as_hydra_job, tmp_path):
+    """``tracegs-report report.kind=ablation experiment=paper`` finds what ``tracegs-evaluate ablation=<v>`` and
+    ``tracegs-evaluate ablation=<v> data=mipnerf360`` wrote, and names the first evaluation missing."""
+    common = [f"paths.root_dir={tmp_path}", "experiment=paper"]
+    report = [*common, "report.kind=ablation"]
+    with pytest.raises(FileNotFoundError, match="no evaluation of variant A on dl3dv"):
+        ablation_inputs(as_hydra_job("report", report))
+    written = {}
+    for dataset in ("dl3dv", "mipnerf360"):
+        for variant in table3_variants():
+            chosen = [] if dataset == "dl3dv" else [f"data={dataset}"]
+            folder = Path(str(as_hydra_job("evaluate", [*common, f"ablation={variant.name}", *chosen])
+                              .evaluation.out_dir))
+            folder.mkdir(parents=True)
+            (folder / "results.json").write_text("{}")
+            written.setdefault(dataset, []).append(folder)
+    assert ablation_inputs(as_hydra_job("report", report)) == written

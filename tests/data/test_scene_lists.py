@@ -71,3 +71,23 @@ def test_preparing_training_data_from_benchmark_scenes_is_refused_before_any_wor
     (line,) = result.stderr_lines()
     assert line.startswith(f"tracegs-prepare: error: config field 'data.source.train_list': {named}"), line
     assert not out.exists()  # refused before Hydra's run folder, a model or a scene was touched
+
+
+TRAINING_STAGE2_ON_A_BENCHMARK = {
+    # The experiment trains on DL3DV: another dataset is evaluated, never trained on.
+    "not_the_training_data": ([], "config field 'training_data': 'dl3dv', but this run trains on data=mipnerf360"),
+    # Named as the training data, a benchmark-only dataset with no training list: all its scenes are benchmarks.
+    "named_training_data": (["training_data=mipnerf360"], "config field 'data.source.train_list': null, so every"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TRAINING_STAGE2_ON_A_BENCHMARK))
+def test_training_stage2_on_a_benchmark_is_refused_before_any_work(entry_point, tmp_path, case):
+    extra, named = TRAINING_STAGE2_ON_A_BENCHMARK[case]
+    out = tmp_path / "out"
+    result = entry_point("train", ["experiment=rehearsal", "data=mipnerf360", "stage=stage2",
+                                   f"paths.root_dir={out}", *extra], tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    (line,) = result.stderr_lines()
+    assert line.startswith(f"tracegs-train: error: {named}"), line
+    assert not out.exists()

@@ -65,7 +65,7 @@ def _variant_folder(root: Path, variant: str, shift: float) -> Path:
 def test_ablation_table_marks_the_orderings(tmp_path):
     shifts = {"A": 0.0, "B": -0.3, "E": 0.2, "F-": 0.1, "F": 0.5}
     folders = [_variant_folder(tmp_path / "eval", v, s) for v, s in shifts.items()]
-    write_ablation_report(folders, tmp_path / "report")
+    write_ablation_report({"synthetic": folders}, tmp_path / "report")
     text = (tmp_path / "report" / "table3_intervals.md").read_text()
     # Scene content averages 0.633 dB; the two view counts cancel (+-0.1).
     assert "| F | 19.13 [" in text and "| +0.50 [+0.50, +0.50] |" in text
@@ -73,7 +73,7 @@ def test_ablation_table_marks_the_orderings(tmp_path):
     assert "- C > A, PSNR: **not measured**" in text
     assert "- F- > E, PSNR: **reversed** (-0.10 [-0.10, -0.10])" in text
     assert "- F > F-, PSNR: **holds** (+0.40 [+0.40, +0.40])" in text
-    rows = list(csv.DictReader((tmp_path / "report" / "table3_per_scene.csv").open()))
+    rows = list(csv.DictReader((tmp_path / "report" / "table3_synthetic_per_scene.csv").open()))
     assert {r["variant"] for r in rows} == set(shifts)
     f_row = next(r for r in rows if r["scene"] == "scene_101" and r["views"] == "9" and r["variant"] == "F")
     assert float(f_row["psnr"]) == 18.0 + 3.1 + 0.5 - 0.1

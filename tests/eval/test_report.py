@@ -65,16 +65,42 @@ def test_ablation_table_from_sweep_result_files(tmp_path):
         run_dir.mkdir(parents=True)
         (run_dir / "results.json").write_text(json.dumps(res))
     inputs = [tmp_path / "sweep" / f"job_{v}" for v in ("A", "E", "F")]
-    md = write_ablation_report(inputs, tmp_path)
+    md = write_ablation_report({"synthetic": inputs}, tmp_path)
     rows = {r["variant"]: r for r in csv.DictReader((tmp_path / "table3.csv").open())}
-    assert list(rows) == ["A", "E", "F"]
+    assert list(rows) == ["A", "E", "F"] and rows["F"]["dataset"] == "synthetic"
     # mean over 3/6/9 views: baseline (i=1) -> 11 + 6 = 17; tracegs (i=2) -> 12 + 6 + offset
     assert float(rows["A"]["psnr"]) == pytest.approx(17.0)
     assert float(rows["F"]["psnr"]) == pytest.approx(20.0)
     assert float(rows["E"]["lpips"]) == pytest.approx(0.3)
-    assert "| F | 3,6,9 | 20.00 |" in md.read_text()
+    assert "| F | 20.00 | 0.300 | 0.300 |" in md.read_text()
+    assert "(Synthetic: 3,6,9)" in md.read_text()
     with pytest.raises(FileNotFoundError, match="job_B"):
-        write_ablation_report([tmp_path / "sweep" / "job_B"], tmp_path)
+        write_ablation_report({"synthetic": [tmp_path / "sweep" / "job_B"]}, tmp_path)
+
+
+def test_ablation_table_has_a_column_group_per_dataset(tmp_path):
+    """Paper Table 3: DL3DV and Mip-NeRF 360 side by side, each cell averaged over 3/6/9 views."""
+    inputs = {}
+    for dataset, shift in (("dl3dv", 0.0), ("mipnerf360", -1.5)):
+        for variant in ("A", "F"):
+            res = _results(shift + (1.0 if variant == "F" else 0.0), lpips=0.3)
+            method = "baseline" if variant == "A" else "tracegs"
+            res = {method: res[method], "meta": {**res["meta"], "variant": variant}}
+            folder = tmp_path / dataset / variant
+            folder.mkdir(parents=True)
+            (folder / "results.json").write_text(json.dumps(res))
+            inputs.setdefault(dataset, []).append(folder)
+    text = write_ablation_report(inputs, tmp_path / "report").read_text()
+    header = [cell.strip() for cell in text.splitlines()[0].split("|")[1:-1]]
+    assert header == ["Variant", "DL3DV PSNR↑", "DL3DV SSIM↑", "DL3DV LPIPS↓", "Mip-NeRF 360 PSNR↑",
+                      "Mip-NeRF 360 SSIM↑", "Mip-NeRF 360 LPIPS↓"]
+    # A: baseline 11 + 6 (mean over 3/6/9) + shift; F: tracegs 12 + 6 + 1 + shift.
+    assert "| A | 17.00 | 0.200 | 0.300 | 15.50 | 0.200 | 0.300 |" in text
+    assert "| F | 19.00 | 0.300 | 0.300 | 17.50 | 0.300 | 0.300 |" in text
+    assert "(DL3DV: 3,6,9; Mip-NeRF 360: 3,6,9)" in text
+    rows = list(csv.DictReader((tmp_path / "report" / "table3.csv").open()))
+    assert [(r["variant"], r["dataset"]) for r in rows] == [("A", "dl3dv"), ("A", "mipnerf360"), ("F", "dl3dv"),
+                                                            ("F", "mipnerf360")]
 
 
 def test_grid_video_and_plot_are_written(tmp_path):

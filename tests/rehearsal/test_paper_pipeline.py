@@ -22,15 +22,20 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config, rehearsal_run_dir, run_rehearsal_task
+from conftest import rehearsal_config, rehearsal_job, rehearsal_run_dir, run_rehearsal_task
+from hydra import initialize_config_dir
 from paper_weights import write_vggt_double_package
 from safetensors import safe_open
 from test_size_keys import SIZE_KEYS
 
+from tracegs.cli.app import CONF_DIR
 from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report
+from tracegs.pipeline.steps import Step, out_of_domain_steps, restorer_steps
 from tracegs.pipeline.train import train
+from tracegs.pipeline.upstream import locate_artifacts
+from tracegs.pipeline.variants import table3_variants
 
 # The default suite's overrides on top of experiment=rehearsal: each makes a count smaller, none touches a
 # mode, rate, weight, schedule or sampler (test_budget_overrides_are_sizes checks the keys).
@@ -111,6 +116,66 @@ def test_paper_pipeline_rehearsal_at_rehearsal_budgets(tmp_path, paper_data, reh
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     results = run_pipeline(root, ())
     check_products(root, results, views=[3, 6, 9], extra=())
+
+
+def evaluate_out_of_domain(root: Path, mipnerf360: Path, extra: tuple[str, ...]) -> tuple[dict, Path]:
+    """``tracegs-evaluate data=mipnerf360`` (Table 2) after the pipeline trained on DL3DV: no artifact named (the
+    rehearsal's Mip-NeRF 360 root holds one scene of the published nine). Returns results.json and the student
+    adapter it loaded."""
+    overrides = ("ablation=F", "data=mipnerf360", f"data.source.root={mipnerf360}", "data.source.test_list=null",
+                 *extra)
+    results = run_rehearsal_task(evaluate, root, "evaluate", overrides)
+    with rehearsal_job(root, "evaluate", overrides) as cfg:
+        locate_artifacts(cfg, ["student_adapter"])
+        return results, Path(cfg.artifacts.student_adapter)
+
+
+@pytest.mark.slow
+def test_the_dl3dv_student_is_evaluated_out_of_domain_at_rehearsal(tmp_path, paper_data, rehearsal_root, vggt_double):
+    """Table 2 at rehearsal: after training on DL3DV, ``tracegs-evaluate data=mipnerf360`` finds the DL3DV-trained
+    student (the experiment's training_data) and scores it on the Mip-NeRF 360 scene."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    run_pipeline(root, BUDGET)
+    extra = (*BUDGET, "evaluation.methods=[tracegs]", "evaluation.save_media=false")
+    results, student = evaluate_out_of_domain(root, paper_data["mipnerf360"], extra)
+    trained = rehearsal_run_dir(root, "train", ("stage=stage2", "ablation=F", *BUDGET))
+    assert student == trained / "student_adapter" and student.is_dir()
+    assert results["meta"]["scenes"] == ["scene_100"] and results["meta"]["variant"] == "F"
+    assert math.isfinite(results["tracegs"]["3"]["psnr"]) and results["tracegs"]["3"]["lpips"] > 0
+
+
+TASKS = {"prepare": prepare, "train": train, "evaluate": evaluate, "report": report}
+
+
+@pytest.mark.slow
+def test_table_3_in_the_paper_layout_from_the_pipeline_steps_at_rehearsal(tmp_path, paper_data, rehearsal_root,
+                                                                          vggt_double):
+    """The ablation sweep's steps (tracegs.pipeline.steps) run in this process: one Stage-1 adapter, Stage 2 for
+    B..F, every variant evaluated on DL3DV (in domain) and on Mip-NeRF 360 (out of domain) at 3, 6 and 9 views,
+    then Table 3 with a column group per dataset, each cell the variant's mean over the three view counts."""
+    root = fresh_root(tmp_path, rehearsal_root, paper_data)
+    (root / "data" / "mipnerf360").symlink_to(paper_data["mipnerf360"])  # where data=mipnerf360 looks
+    common = tuple(o for o in BUDGET if not o.startswith("evaluation.views="))
+    evaluation = ("evaluation.methods=[${ablation.method}]", "evaluation.save_media=false")
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        variants = [variant.name for variant in table3_variants()]
+    steps = [Step("prepare", common, "prepare")]
+    for variant in variants:
+        steps += restorer_steps(variant, common, evaluation)
+        # The rehearsal's Mip-NeRF 360 root holds one scene of the published nine.
+        steps += out_of_domain_steps(variant, ["mipnerf360"], common, (*evaluation, "evaluation.scenes=[scene_100]"))
+    for step in steps:
+        run_rehearsal_task(TASKS[step.app], root, step.app, step.overrides)
+    table = run_rehearsal_task(report, root, "report", (*common, "report.kind=ablation"))
+    lines = Path(table).read_text().splitlines()
+    assert [cell.strip() for cell in lines[0].split("|")[1:-1]] == [
+        "Variant", "DL3DV PSNR↑", "DL3DV SSIM↑", "DL3DV LPIPS↓", "Mip-NeRF 360 PSNR↑", "Mip-NeRF 360 SSIM↑",
+        "Mip-NeRF 360 LPIPS↓"]
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in lines[2:] if line.startswith("|")]
+    assert [row[0] for row in rows] == variants == ["A", "B", "C", "D", "E", "F-", "F"]
+    assert all(math.isfinite(float(cell)) for row in rows for cell in row[1:])  # LPIPS too: required
+    assert "(DL3DV: 3,6,9; Mip-NeRF 360: 3,6,9)" in Path(table).read_text()
+    assert "### Mip-NeRF 360" in Path(table).with_name("table3_intervals.md").read_text()
 
 
 # The two-process trainers: experiment=rehearsal keeps the paper's bf16-mixed precision on two gloo CPU ranks.

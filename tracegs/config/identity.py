@@ -10,6 +10,12 @@ the product it needs by computing the earlier stage's folder with the same rule 
 Keys that change how a run executes but not what it produces (paths, logging, progress bars,
 parallelism, sharding, checkpoint cadence) are never part of an identity.
 
+A product is named by the scenes it read: a trained restorer (A, Stage 1, Stage 2) and the training split's
+cache by the training scenes, never by the test or validation lists; a cache of another split by that split's
+scenes; an evaluation adds its own test scenes to the identity of the restorers it loads. The restorers are
+trained on ``training_data`` (a ``data`` option the experiment chooses), so an evaluation of another dataset
+(``data=mipnerf360``) finds the students of the experiment's training data (tracegs.pipeline.upstream).
+
 One root ``seed`` drives every stochastic part: each part's own ``seed`` field is derived from it with
 :func:`derive_seed` under the part's stream name, so streams differ between parts and between seeds.
 """
@@ -48,8 +54,10 @@ SCOPES: dict[str, tuple[str, ...]] = {
     "stage1": (*_TRAINING, "loss.lambda_align", "teacher.views", "artifacts.baseline_weights"),
     "stage2": (*_TRAINING, "loss", "teacher", "policy", "ablation.name", "artifacts.baseline_weights",
                "artifacts.stage1_adapter"),
-    # Deployment and evaluation depend on everything that selects the restorers they load.
-    "deploy": (*_TRAINING, "loss", "teacher", "policy", "ablation.name", "artifacts", "deploy", "evaluation"),
+    # Deployment and evaluation depend on everything that selects the restorers they load: the dataset those
+    # were trained on, and the scenes deployed (``data``, the training dataset or another).
+    "deploy": (*_TRAINING, "training_data", "loss", "teacher", "policy", "ablation.name", "artifacts", "deploy",
+               "evaluation"),
 }
 SCOPES["evaluate"] = SCOPES["deploy"]
 # A capture of the user's own (tracegs-restore): deployment's scope plus which capture and views.
@@ -77,9 +85,25 @@ EXECUTION_KEYS = frozenset({
     "evaluation.save_media", "evaluation.save_models", "evaluation.save_frames", "evaluation.grid_views",
     "evaluation.video_frames", "evaluation.video_fps",
 })
-# Training reads the train split's cache whatever split a later prepare builds.
+# The keys naming each split's scenes (data.config.Split): a product reads the scenes of the splits it uses only.
+SPLIT_SCENES = {
+    "train": frozenset({"data.source.train_list", "data.synthetic.train_seeds"}),
+    "val": frozenset({"data.synthetic.val_seeds"}),
+    "test": frozenset({"data.source.test_list", "data.synthetic.test_seeds"}),
+}
+
+
+def other_splits(*splits: str) -> frozenset[str]:
+    """The scene keys of every split but ``splits``."""
+    return frozenset().union(*(keys for split, keys in SPLIT_SCENES.items() if split not in splits))
+
+
+# Training reads the train split's cache whatever split a later prepare builds; the trained restorers never see a
+# test or validation scene, deployment and evaluation add the test scenes, a capture of the user's own none.
 _TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate", "restore")
-_IGNORED_PER_KIND = {kind: {"data.prepare.split"} for kind in _TRAINING_KINDS}
+_READ_SPLITS = {"baseline": ("train",), "stage1": ("train",), "stage2": ("train",), "deploy": ("train", "test"),
+                "evaluate": ("train", "test"), "restore": ("train",)}
+_IGNORED_PER_KIND = {kind: {"data.prepare.split", *other_splits(*_READ_SPLITS[kind])} for kind in _TRAINING_KINDS}
 # What only Stage 2 reads: its budget, its rollout, and the deployment grid and sampler it resamples and rolls out
 # with. A and Stage 1 never read them, so a Stage-2 sweep reuses one A and one Stage-1 adapter. (Keys of *earlier*
 # stages stay in a later stage's scope: its folder is named before the earlier products are located.)
@@ -132,12 +156,22 @@ def scope(cfg: DictConfig, kind: str) -> tuple[str, ...]:
     return SCOPES[kind]
 
 
+def _unread(kind: str, split: str | None = None) -> frozenset[str]:
+    """Keys a ``kind`` run never reads (a cache: of ``split``, which reads only that split's scenes)."""
+    unread = EXECUTION_KEYS | _IGNORED_PER_KIND.get(kind, frozenset())
+    return unread | other_splits(split) if kind == "prepare" else unread
+
+
 def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:
     """The flattened, resolved values that determine the product of a ``kind`` run.
 
     A path inside the run's root is kept relative to it, so the same root reached through another spelling, or
     copied or moved, is the same run; a capture handed in is known by its content (tracegs.content)."""
-    skip = EXECUTION_KEYS | _IGNORED_PER_KIND.get(kind, frozenset())
+    split = OmegaConf.select(cfg, "data.prepare.split") if kind == "prepare" else None
+    return _scoped_values(cfg, kind, _unread(kind, split))
+
+
+def _scoped_values(cfg: DictConfig, kind: str, skip: frozenset[str]) -> dict[str, Any]:
     values: dict[str, Any] = {}
     for key in scope(cfg, kind):
         parent, _, leaf = key.rpartition(".")
@@ -161,11 +195,11 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-def _in_scope(key: str, kind: str) -> bool:
+def _in_scope(key: str, kind: str, unread: frozenset[str]) -> bool:
     root = re.split(r"[./]", key, maxsplit=1)[0]
-    if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS or key in EXECUTION_KEYS:
+    if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS:
         return False
-    if any(key == ignored or key.startswith(ignored + ".") for ignored in _IGNORED_PER_KIND.get(kind, ())):
+    if any(key == ignored or key.startswith(ignored + ".") for ignored in unread):
         return False
     # Debug presets set trainer / stage keys (in scope); naming them keeps a debug run recognisable.
     # Otherwise: a group choice (``teacher=v12``) or a key inside a scoped section.
@@ -173,17 +207,19 @@ def _in_scope(key: str, kind: str) -> bool:
                                  for s in SCOPES[kind])
 
 
-def readable_name(seed: int, overrides: Sequence[str], kind: str) -> str:
+def readable_name(seed: int, overrides: Sequence[str], kind: str, unread: frozenset[str] | None = None) -> str:
     """``seed<k>`` and the in-scope overrides as ``<last key component>-<value>``, joined by ``_``.
 
     The name pastes safely into a command line (no ``=``, ``,``, brackets or quotes: Hydra's override syntax),
     names no path (a path value is left to the digest) and cuts no value: overrides that do not fit in
-    ``READABLE_MAX_CHARS`` are left out whole and counted (``more<n>``)."""
+    ``READABLE_MAX_CHARS`` are left out whole and counted (``more<n>``); keys in ``unread`` (default: those a
+    ``kind`` run never reads) are not named."""
+    unread = _unread(kind) if unread is None else unread
     parts = [f"seed{seed}"]
     left_out = 0
     for override in sorted(set(overrides)):
         key = override_key(override)
-        if "=" not in override or not _in_scope(key, kind):
+        if "=" not in override or not _in_scope(key, kind, unread):
             continue
         value = override.split("=", 1)[1].strip("[]'\"")
         if "/" in value:
@@ -212,10 +248,11 @@ def differing_keys(recorded: dict[str, Any], current: dict[str, Any]) -> list[st
 def cache_name(cfg: DictConfig, split: str, overrides: Sequence[str] = ()) -> str:
     """The folder name of the paired-clip cache of ``split`` under ``cfg`` (what ``tracegs-prepare
     data.prepare.split=<split>`` writes), also from a run that prepares another split or none."""
-    values = scoped_values(cfg, "prepare")
+    unread = _unread("prepare", split)
+    values = _scoped_values(cfg, "prepare", unread)
     values["data.prepare.split"] = split
     named = [o for o in overrides if override_key(o) != "data.prepare.split"]
-    return f"{readable_name(cfg.seed, named, 'prepare')}-{digest(values)}"
+    return f"{readable_name(cfg.seed, named, 'prepare', unread)}-{digest(values)}"
 
 
 def command_line_overrides() -> list[str]:

@@ -164,6 +164,8 @@ class ReportConfig:
 
     kind: ReportKind = ReportKind.main
     inputs: list[str] = field(default_factory=list)  # result folders; empty = the experiment's defaults
+    # Table 3's datasets (``data`` options), one column group each: the sweep's evaluations on each of them.
+    datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
     output_dir: str = "${paths.experiment_dir}/report"
 
 
@@ -197,6 +199,10 @@ class TraceGSConfig:
     task: Task = MISSING  # set by each entry point's conf/<task>.yaml
     # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
     seed: int = 0
+    # The ``data`` option the restorers are trained on (the experiment chooses it). Training runs on it; ``data``
+    # names what a command prepares, deploys or evaluates, so evaluating another dataset (``data=mipnerf360``)
+    # loads the students trained on this one (tracegs.pipeline.upstream).
+    training_data: str = MISSING
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = "${paths.experiment_dir}/${task}"

@@ -8,10 +8,12 @@ Every error names the offending field so a sweep with a bad point fails with a o
 from __future__ import annotations
 
 from collections.abc import Iterable
+from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
+from tracegs.config.location import CONF_DIR
 from tracegs.data.colmap import require_training_source
 from tracegs.data.config import overlapping_seeds
 from tracegs.data.synthetic import benchmark_scene_names
@@ -69,8 +71,8 @@ def _validate_known_keys(cfg: DictConfig) -> None:
 
 
 # Config values that become one folder name under a configured root (lists: every item).
-NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "data.source.scenes", "data.datamodule.val_scenes",
-               "evaluation.scenes", "stage.deployment_eval.scenes")
+NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "training_data", "data.source.scenes",
+               "data.datamodule.val_scenes", "evaluation.scenes", "report.datasets", "stage.deployment_eval.scenes")
 
 
 def validate_names(cfg: DictConfig) -> None:
@@ -96,8 +98,7 @@ def _validate_data(cfg: DictConfig) -> None:
         "data.prepare.split",
         f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
     )
-    if cfg.task == "prepare" and cfg.data.source.preset != "synthetic":  # training data, never benchmark scenes
-        require_training_source(OmegaConf.to_object(cfg.data.source))
+    _validate_training_data(cfg)
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
     snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")
     _require(
@@ -133,6 +134,26 @@ def _validate_data(cfg: DictConfig) -> None:
         _require(not unknown, "data.datamodule.student_snapshots",
                  f"{unknown} are not prepared (data.prepare.student_snapshots)")
     _require(0.0 <= datamodule.caption_dropout < 1.0, "data.datamodule.caption_dropout", "must be in [0, 1)")
+
+
+def _validate_training_data(cfg: DictConfig) -> None:
+    """``training_data`` and Table 3's datasets are ``data`` options; training runs on the training data, whose
+    scenes are never benchmark scenes."""
+    options = sorted(path.stem for path in (Path(CONF_DIR) / "data").glob("*.yaml"))
+    for field, names in (("training_data", [cfg.training_data]), ("report.datasets", cfg.report.datasets)):
+        for name in names:
+            _require(name in options, field, f"{name!r} is not a data option (conf/data/<name>.yaml); choose from "
+                                             f"{options}")
+    if cfg.task == "train":  # the trained products are looked up on training_data (tracegs.pipeline.upstream)
+        _require(cfg.data.name == cfg.training_data, "training_data",
+                 f"{cfg.training_data!r}, but this run trains on data={cfg.data.name}: the restorers train on "
+                 f"the training data; set training_data={cfg.data.name} here and for the commands that use them")
+    # Never benchmark scenes: prepare reads the scene lists; training, which reads the cache, refuses from the
+    # config alone a dataset with no training list (a benchmark's every scene).
+    source = cfg.data.source
+    unlisted = source.scenes is None and source.train_list is None
+    if source.preset != "synthetic" and (cfg.task == "prepare" or (cfg.task == "train" and unlisted)):
+        require_training_source(OmegaConf.to_object(source))
 
 
 def _validate_training(cfg: DictConfig) -> None:

@@ -6,3 +6,6 @@ RESTORER_LABELS = {**METHOD_LABELS, "stage1": "Stage-1 adapter", "tracegs": "Sta
 METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
 METRIC_DECIMALS = {"psnr": 2, "ssim": 3, "lpips": 3}
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False}
+# Table 3's column groups (paper: DL3DV-Benchmark in domain, Mip-NeRF 360 out of domain), by data option.
+DATASET_LABELS = {"dl3dv": "DL3DV", "mipnerf360": "Mip-NeRF 360", "nerfbusters": "NeRFBusters",
+                  "synthetic": "Synthetic"}

@@ -25,7 +25,7 @@ from tracegs.eval.interval_tables import (
     held_out_intervals_markdown,
     write_per_scene_csv,
 )
-from tracegs.eval.labels import METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
+from tracegs.eval.labels import DATASET_LABELS, METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
 from tracegs.eval.metrics import METRIC_NAMES
 from tracegs.io import atomic_directory, atomic_write, write_json_atomic
 
@@ -142,57 +142,80 @@ def variant_method(variant: str, results: Mapping, method: str = "tracegs") -> s
     return candidates[0]
 
 
-def write_ablation_table(variant_files: Mapping[str, str | Path], out_dir: str | Path,
+def _views_note(rows: Mapping[str, Mapping]) -> str:
+    """The view counts a dataset's cells average: one list, or each variant's where they differ."""
+    counts = {row["views"] for row in rows.values()}
+    if len(counts) == 1:
+        return next(iter(counts))
+    return "; ".join(f"{variant}: {row['views']}" for variant, row in rows.items())
+
+
+def write_ablation_table(dataset_files: Mapping[str, Mapping[str, str | Path]], out_dir: str | Path,
                          stem: str = "table3") -> dict[str, Path]:
-    """Table 3 from an ablation sweep's per-variant result files, as markdown and CSV; with each variant's
-    ``per_scene.json`` beside its results, also ``<stem>_intervals.md`` and ``<stem>_per_scene.csv``."""
-    loaded = {variant: load_results(path) for variant, path in variant_files.items()}
-    rows = ablation_rows(loaded)
-    lpips_notes = {r.get(META_KEY, {}).get("lpips", "not recorded") for r in loaded.values()}
+    """Table 3 in the paper's layout from an ablation sweep's per-variant result files of each dataset
+    (``dataset_files[dataset][variant]``): a row per variant, per dataset a PSNR / SSIM / LPIPS column group, each
+    cell the variant's mean over the view counts evaluated (paper: 3, 6 and 9). Markdown and CSV; with each
+    variant's ``per_scene.json`` beside its results, also ``<stem>_intervals.md`` (a section per dataset) and
+    ``<stem>_<dataset>_per_scene.csv``."""
+    loaded = {dataset: {variant: load_results(path) for variant, path in files.items()}
+              for dataset, files in dataset_files.items()}
+    rows = {dataset: ablation_rows(results) for dataset, results in loaded.items()}
+    variants = list(dict.fromkeys(variant for files in dataset_files.values() for variant in files))
+    lpips_notes = {r.get(META_KEY, {}).get("lpips", "not recorded") for d in loaded.values() for r in d.values()}
     out_dir = Path(out_dir)
-    md = ["| Variant | views averaged | " + " | ".join(METRIC_LABELS[m] for m in METRIC_NAMES) + " |",
-          "|---|---|" + "---|" * len(METRIC_NAMES)]
-    for variant, row in rows.items():
-        md.append(f"| {variant} | {row['views']} | " + " | ".join(_fmt(row[m], m) for m in METRIC_NAMES) + " |")
-    md.append("")
-    md.append("LPIPS: " + "; ".join(sorted(lpips_notes)) + ".")
+    label = {dataset: DATASET_LABELS.get(dataset, dataset) for dataset in dataset_files}
+    md = ["| Variant | " + " | ".join(f"{label[d]} {METRIC_LABELS[m]}" for d in rows for m in METRIC_NAMES) + " |",
+          "|---|" + "---|" * (len(rows) * len(METRIC_NAMES))]
+    for variant in variants:
+        cells = [_fmt(rows[d][variant][m], m) if variant in rows[d] else "–" for d in rows for m in METRIC_NAMES]
+        md.append(f"| {variant} | " + " | ".join(cells) + " |")
+    md += ["", "Each cell: the variant's mean over the view counts evaluated ("
+           + "; ".join(f"{label[d]}: {_views_note(rows[d])}" for d in rows) + ").",
+           "LPIPS: " + "; ".join(sorted(lpips_notes)) + "."]
     paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv"}
     with atomic_write(paths["md"]) as tmp:
         tmp.write_text("\n".join(md) + "\n")
     with atomic_write(paths["csv"]) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["variant", "views_averaged", *METRIC_NAMES])
-        for variant, row in rows.items():
-            writer.writerow([variant, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
-    scene_files = {variant: Path(path).parent / "per_scene.json" for variant, path in variant_files.items()}
-    if all(f.is_file() for f in scene_files.values()):
+        writer.writerow(["variant", "dataset", "views_averaged", *METRIC_NAMES])
+        for variant in variants:
+            for dataset in (d for d in rows if variant in rows[d]):
+                row = rows[dataset][variant]
+                writer.writerow([variant, dataset, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
+    sections = []
+    for dataset, files in dataset_files.items():
+        scene_files = {variant: Path(path).parent / "per_scene.json" for variant, path in files.items()}
+        if not all(f.is_file() for f in scene_files.values()):
+            continue
         per_scene = {variant: load_results(f) for variant, f in scene_files.items()}
-        variants = {v: (per_scene[v], variant_method(v, loaded[v])) for v in loaded}
+        chosen = {v: (per_scene[v], variant_method(v, loaded[dataset][v])) for v in files}
+        sections.append(f"### {label[dataset]}\n\n" + ablation_intervals_markdown(chosen))
+        paths[f"per_scene_{dataset}"] = write_per_scene_csv(
+            {scene: {v: per_scene[v][scene][method] for v, (_, method) in chosen.items()}
+             for scene in sorted(set.intersection(*(set(p) for p in per_scene.values())))},
+            out_dir / f"{stem}_{dataset}_per_scene.csv", column="variant")
+    if sections:
         paths["intervals"] = out_dir / f"{stem}_intervals.md"
         with atomic_write(paths["intervals"]) as tmp:
-            tmp.write_text(ablation_intervals_markdown(variants))
-        paths["per_scene"] = write_per_scene_csv(
-            {scene: {v: per_scene[v][scene][method] for v, (_, method) in variants.items()}
-             for scene in sorted(set.intersection(*(set(p) for p in per_scene.values())))},
-            out_dir / f"{stem}_per_scene.csv", column="variant")
+            tmp.write_text("\n".join(sections))
     return paths
 
 
-def write_ablation_report(inputs: Sequence[str | Path], out_dir: str | Path) -> Path:
-    """Table 3 from the evaluation folders (or ``results.json`` files) of an ablation sweep, one per variant.
-
-    A variant is named by the ``meta.variant`` its evaluation recorded, else by its folder name.
-    Returns the markdown table's path.
-    """
-    files: dict[str, Path] = {}
-    for item in inputs:
-        path = Path(item)
-        path = path / "results.json" if path.is_dir() or not path.suffix else path
-        variant = load_results(path).get(META_KEY, {}).get("variant") or path.parent.name
-        if variant in files:
-            raise ValueError(f"variant {variant!r} appears twice: {files[variant]} and {path}")
-        files[str(variant)] = path
-    return write_ablation_table(files, out_dir)["md"]
+def write_ablation_report(inputs: Mapping[str, Sequence[str | Path]], out_dir: str | Path) -> Path:
+    """Table 3 from the evaluation folders (or ``results.json`` files) of an ablation sweep: ``inputs[dataset]``
+    holds one per variant. A variant is named by the ``meta.variant`` its evaluation recorded, else by its folder
+    name. Returns the markdown table's path."""
+    dataset_files: dict[str, dict[str, Path]] = {}
+    for dataset, folders in inputs.items():
+        files = dataset_files.setdefault(dataset, {})
+        for item in folders:
+            path = Path(item)
+            path = path / "results.json" if path.is_dir() or not path.suffix else path
+            variant = load_results(path).get(META_KEY, {}).get("variant") or path.parent.name
+            if variant in files:
+                raise ValueError(f"variant {variant!r} appears twice for {dataset}: {files[variant]} and {path}")
+            files[str(variant)] = path
+    return write_ablation_table(dataset_files, out_dir)["md"]
 
 
 def held_out_table_markdown(quality: Mapping) -> str:

@@ -20,7 +20,7 @@ from tracegs.eval.seeds import seed_spread_markdown
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run
-from tracegs.pipeline.upstream import compose_run, locate_artifacts, section, upstream_config
+from tracegs.pipeline.upstream import compose_run, locate_artifacts, same_identity, section, upstream_config
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 
 
@@ -38,11 +38,23 @@ def report(cfg: DictConfig) -> Path:
             "ablation": ablation_report, "diagnostics": diagnostics_report}[kind](cfg)
 
 
-def ablation_inputs(cfg: DictConfig) -> list[Path]:
-    """The folders in ``report.inputs``, else the evaluation folder of every variant (conf/ablation/) that this
-    command line's settings give, in Table 3's row order."""
-    return [Path(p) for p in cfg.report.inputs] or [
-        Path(upstream_config(cfg, "evaluate", variant.name).evaluation.out_dir) for variant in table3_variants()]
+def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
+    """Per dataset, the evaluation folder of every variant: ``report.inputs`` (this command's dataset), else for
+    each of ``report.datasets`` the evaluation of every variant (conf/ablation/) that this command line's settings
+    give on it, in Table 3's row order (the restorers trained on the training data, evaluated there)."""
+    if cfg.report.inputs:
+        return {cfg.data.name: [Path(p) for p in cfg.report.inputs]}
+    inputs: dict[str, list[Path]] = {}
+    for dataset in cfg.report.datasets:
+        for variant in table3_variants():
+            computed = Path(upstream_config(cfg, "evaluate", variant.name, data=dataset).evaluation.out_dir)
+            folder = same_identity(computed, "results.json")
+            if not (folder / "results.json").is_file():
+                raise FileNotFoundError(f"report.datasets: no evaluation of variant {variant.name} on {dataset} "
+                                        f"({folder}/results.json); run tracegs-evaluate ablation={variant.name} "
+                                        f"data={dataset} with this command's settings")
+            inputs.setdefault(dataset, []).append(folder)
+    return inputs
 
 
 def ablation_report(cfg: DictConfig) -> Path:

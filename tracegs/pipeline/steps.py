@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from hydra import initialize_config_dir
+from hydra import compose, initialize_config_dir
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
@@ -69,6 +69,14 @@ def restorer_steps(variant: str, common: Sequence[str] = (), evaluation: Sequenc
     return steps
 
 
+def out_of_domain_steps(variant: str, datasets: Sequence[str], common: Sequence[str] = (),
+                        evaluation: Sequence[str] = ()) -> list[Step]:
+    """Evaluate ``variant``'s restorers, trained on the training data (``training_data``), on each of ``datasets``
+    (``data=<name>``, e.g. Mip-NeRF 360): paper Table 2, and Table 3's out-of-domain columns (report.datasets)."""
+    return [Step("evaluate", (*common, f"ablation={variant}", f"data={dataset}", *evaluation), f"evaluate on {dataset}")
+            for dataset in datasets]
+
+
 # The embedded benchmark's cache holds only the all-view teacher (F); Table 3's C and D need 12 and 18 views and
 # B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there).
 SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student_final_fits=true")
@@ -76,19 +84,22 @@ SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student
 NOT_EMBEDDED = ("experiment", "data")
 
 
-def sweep_steps(variants: Sequence[str], trained: Sequence[str], overrides: Sequence[str] = ()) -> list[Step]:
+def sweep_steps(variants: Sequence[str], trained: Sequence[str], overrides: Sequence[str] = (),
+                other_datasets: Sequence[str] = ()) -> list[Step]:
     """Table 3 as multiruns: (embedded scale: prepare) -> A -> one shared Stage-1 adapter -> Stage 2 for the
     ``trained`` variants (each cloning the same Stage-1 checkpoint) -> evaluation of every variant by the method
-    standing for it -> Table 3 -> (embedded: Fig. 6 of the per-step variants on held-out clips).
+    standing for it, on the training data's test scenes and on each of ``other_datasets`` (Table 3's
+    out-of-domain columns) -> Table 3 -> (embedded: Fig. 6 of the per-step variants on held-out clips).
 
     A SLURM array carries one name: the swept steps name themselves after their first and last variants."""
     embedded = not any(o.split("=", 1)[0].lstrip("+~") in NOT_EMBEDDED for o in overrides)
     common = (*SWEEP_TEACHERS, *overrides) if embedded else tuple(overrides)
     steps = [Step("prepare", common, "prepare (training scenes, every teacher)")] if embedded else []
+    # Each variant is scored by the method standing for it (the frozen A or its student).
+    evaluation = ("evaluation.methods=[${ablation.method}]", f"job_name=evaluate-{variants[0]}-{variants[-1]}")
     steps += restorer_steps(",".join(trained), common, evaluated=",".join(variants),
-                            stage2=(f"job_name=train-stage2-{trained[0]}-{trained[-1]}",),
-                            evaluation=("evaluation.methods=[${ablation.method}]",
-                                        f"job_name=evaluate-{variants[0]}-{variants[-1]}"))
+                            stage2=(f"job_name=train-stage2-{trained[0]}-{trained[-1]}",), evaluation=evaluation)
+    steps += out_of_domain_steps(",".join(variants), other_datasets, common, evaluation)
     steps.append(Step("report", (*common, "report.kind=ablation"), "Table 3"))
     if embedded:
         steps += [Step("prepare", (*common, HELD_OUT_SPLIT), "prepare (held-out test scenes)"),
@@ -104,7 +115,10 @@ def run_sweep(launcher: str, overrides: Sequence[str], dry_run: bool = False) ->
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         variants = table3_variants()
-    steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], overrides)
+        table = compose(config_name="report", overrides=list(overrides))
+    other_datasets = [name for name in table.report.datasets if name != table.training_data]
+    steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], overrides,
+                        other_datasets)
     for index, step in enumerate(steps, 1):
         command = step.multirun(launcher)
         print(f"[sweep {index}/{len(steps)}] {step.label}: {shlex.join(command)}", flush=True)

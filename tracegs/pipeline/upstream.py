@@ -31,29 +31,38 @@ _STAGE_OWN = ("stage", "optimizer")
 _ABLATION_AXES = ("ablation", "teacher", "policy")
 
 
-def _carried(override: str, upstream: str, from_training: bool) -> bool:
+# The products a training stage makes: they are looked up on the training data (``training_data``).
+TRAINED = ("baseline", "stage1", "stage2")
+
+
+def _carried(override: str, upstream: str, from_training: bool, other_data: bool) -> bool:
     root = override_key(override).split(".")[0].split("/")[0]
-    if root == "hydra":
+    if root == "hydra" or (other_data and root == "data"):  # the run's data settings are of its own dataset
         return False
     if from_training and root in _STAGE_OWN:
         return False
     return not (upstream in ("baseline", "stage1") and root in (*_STAGE_OWN, *_ABLATION_AXES))
 
 
-def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> DictConfig:
+def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None, data: str | None = None) -> DictConfig:
     """The config of the earlier run whose product ``cfg`` needs: the same command line, its own stage.
 
     ``kind`` is "baseline", "stage1", "stage2" or "evaluate" (the last two for ``variant``, default the
-    variant of ``cfg.ablation``). The earlier run's folder follows from this config by the run-identity
-    rule (tracegs.config.identity).
+    variant of ``cfg.ablation``), on dataset ``data``: default the training data (``cfg.training_data``) for a
+    trained product, this run's for an evaluation. On a dataset other than this run's, the run's ``data``
+    overrides are left out (they describe its own dataset). The earlier run's folder follows from this config
+    by the run-identity rule (tracegs.config.identity).
     """
     from_training = cfg.task == "train"
     variant = variant or cfg.ablation.name
+    data = data or (cfg.training_data if kind in TRAINED else cfg.data.name)
+    other_data = data != cfg.data.name
     extra = {"evaluate": [f"ablation={variant}"],
              "stage2": ["stage=stage2", f"ablation={variant}"]}.get(kind, [f"stage={kind}"])
+    extra += [f"data={data}"] if other_data else []
     replaced = {override_key(o) for o in extra}
     overrides = [o for o in command_line_overrides()
-                 if _carried(o, kind, from_training) and override_key(o) not in replaced]
+                 if _carried(o, kind, from_training, other_data) and override_key(o) not in replaced]
     return compose(config_name="evaluate" if kind == "evaluate" else "train", overrides=[*overrides, *extra])
 
 
@@ -69,7 +78,20 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
         if cfg.artifacts[artifact] != AUTO:
             continue
         producer = producers[artifact]
-        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
+        folder = same_identity(Path(upstream_config(cfg, producer).run_dir), PRODUCTS[producer])
+        cfg.artifacts[artifact] = str(folder / PRODUCTS[producer])
+
+
+def same_identity(folder: Path, product: str) -> Path:
+    """``folder``, or the folder beside it of the same identity (``<readable>-<digest>``, the same digest) that
+    holds ``product``. The readable part repeats in-scope overrides of the command line that computes the name,
+    and two command lines of one configuration may spell it differently: the training command typed nothing,
+    the evaluation of another dataset ``data=mipnerf360``; a group typed or left to the experiment's default."""
+    if (folder / product).exists() or not folder.parent.is_dir():
+        return folder
+    digest = folder.name.rsplit("-", 1)[-1]
+    found = sorted(p for p in folder.parent.glob(f"*-{digest}") if (p / product).exists())
+    return found[0] if found else folder
 
 
 def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file
 
 from tracegs.data.config import DataModuleConfig
@@ -34,21 +35,49 @@ def two_scene_cache(prepared, tmp_path: Path) -> Path:
     return cache
 
 
-def test_sample_dict_matches_the_cache(prepared):
-    cache = prepared[0] / "cache"
+def test_sample_dict_matches_the_cache(prepared, backbone):
+    """Latents from the clip's shard; reference tokens and text gathered from the scene files equal what the frozen
+    encoders give for the clip's reference pair and caption (the 2D tokens stored per view, the 3D per pair)."""
+    from tracegs.data.colmap import load_scene
+
+    tmp, _, source, _, _ = prepared
+    cache = tmp / "cache"
     dm = module(cache, teacher_views=None, caption_dropout=0.0)
     batch = next(iter(dm.train_dataloader()))
-    shard = load_file(str(cache / "scene_000" / f"clip_{int(batch['clip'][0]):03d}.safetensors"))
+    path = cache / "scene_000" / f"clip_{int(batch['clip'][0]):03d}.safetensors"
+    shard = load_file(str(path))
+    with safe_open(str(path), framework="pt") as f:
+        metadata = f.metadata()
     f, c, h, w = shard["latent/target"].shape
     assert batch["student_cond"].shape == (2, f, c, h, w) and batch["student_cond"].dtype == torch.float32
     torch.testing.assert_close(batch["student_cond"][0], shard["latent/s3_it8"].float())
     torch.testing.assert_close(batch["teacher_cond"][0], shard["latent/dall"].float())
     torch.testing.assert_close(batch["target"][0], shard["latent/target"].float())
-    torch.testing.assert_close(batch["text"][0], shard["text"].float())
-    assert batch["ref_2d"].shape[:2] == (2, shard["ref_2d"].shape[0])
+    scene = load_scene(source, "scene_000")
+    refs = torch.stack([scene.load_image(i) for i in json.loads(metadata["refs"])])
+    ref_2d, ref_3d = backbone.reference_encoder(refs[None])
+    assert torch.equal(batch["ref_2d"][0], ref_2d[0].half().float())
+    assert torch.equal(batch["ref_3d"][0], ref_3d[0].half().float())
+    assert torch.equal(batch["text"][0], backbone.text_encoder.encode([metadata["caption"]])[0].half().float())
     assert batch["teacher_views"].tolist() == [-1, -1] and batch["student_views"].tolist() == [3, 3]
     assert batch["snapshot"].tolist() == [8, 8] and batch["scene"] == ["scene_000", "scene_000"]
     assert not batch["text_dropped"].any()
+
+
+def test_a_missing_scene_file_names_itself(prepared, tmp_path):
+    cache = two_scene_cache(prepared, tmp_path)
+    text = next((cache / "scene_001" / "text").glob("*.safetensors"))
+    text.unlink()
+    with pytest.raises(CacheError, match=f"{text}: file of the cache is missing"):
+        module(cache)
+
+
+def test_a_cache_of_another_layout_version_is_refused(prepared, tmp_path):
+    cache = two_scene_cache(prepared, tmp_path)
+    manifest = json.loads((cache / "manifest.json").read_text())
+    (cache / "manifest.json").write_text(json.dumps({**manifest, "version": 1}))
+    with pytest.raises(CacheError, match="cache layout version 1, this tracegs reads 2; run prepare again"):
+        module(cache)
 
 
 def test_teacher_view_setting_selects_the_dense_condition(prepared):
@@ -113,8 +142,8 @@ def test_loader_resumes_inside_an_epoch_where_its_state_says(prepared, tmp_path)
 def test_split_by_scene(prepared, tmp_path):
     cache = two_scene_cache(prepared, tmp_path)
     dm = module(cache, val_scenes=["scene_001"])
-    assert {s for s, _, _ in dm.train_set.clips} == {"scene_000"}
-    assert {s for s, _, _ in dm.val_set.clips} == {"scene_001"}
+    assert {clip.scene for clip in dm.train_set.clips} == {"scene_000"}
+    assert {clip.scene for clip in dm.val_set.clips} == {"scene_001"}
     assert next(iter(dm.val_dataloader()))["scene"] == ["scene_001", "scene_001"]
     with pytest.raises(CacheError, match="scene_009"):
         module(cache, val_scenes=["scene_009"])

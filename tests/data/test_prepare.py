@@ -26,21 +26,28 @@ from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare
 def test_prepare_builds_the_cache_from_nothing(prepared):
     tmp, _, _, prepare, manifest_path = prepared
     manifest = json.loads(manifest_path.read_text())
-    assert manifest["teacher_views"] == ["3", "6", "all"]
+    assert manifest["teacher_views"] == ["3", "6", "all"] and manifest["frames_stored"]
     entry = manifest["scenes"]["scene_000"]
     assert len(entry["clips"]) == 2
+    scene_info = json.loads((tmp / "cache" / entry["scene_file"]).read_text())
+    assert scene_info["clip_views"] == [3, 3]
     for rel in entry["clips"]:
         with safe_open(str(tmp / "cache" / rel), framework="pt") as f:
             keys = set(f.keys())
             latent = f.get_tensor("latent/s3_it8")
             poses = f.get_tensor("poses")
-            refs = json.loads(f.metadata()["refs"])
-        assert {"latent/s3_it8", "latent/d3", "latent/d6", "latent/dall", "latent/target", "ref_2d", "ref_3d",
-                "text", "frames/gt", "frames/target", "frames/ref"} <= keys
+            metadata = f.metadata()
+        assert {"latent/s3_it8", "latent/d3", "latent/d6", "latent/dall", "latent/target", "frames/gt",
+                "frames/target", "frames/ref"} <= keys
+        assert not keys & {"ref_2d", "ref_3d", "text"}  # in the scene files the clip indexes
         assert latent.shape[0] == 5 and poses.shape == (5, 4, 4)
-        # Both clip ends are reference views of the 3-view set (hence of every sparse set).
-        scene_info = json.loads((tmp / "cache" / entry["scene_file"]).read_text())
-        assert set(refs) <= set(scene_info["split"]["view_sets"]["3"])
+        # Both clip ends are reference views of the clip's own 3-view set.
+        a, b = json.loads(metadata["refs"])
+        assert metadata["student_views"] == "3" and {a, b} <= set(scene_info["split"]["view_sets"]["3"])
+        scene = tmp / "cache" / "scene_000"
+        assert (scene / f"refs/view_{a:04d}.safetensors").is_file()
+        assert (scene / f"refs/pair_{a:04d}_{b:04d}.safetensors").is_file()
+        assert (scene / metadata["text_file"]).is_file()
     assert (tmp / "cache" / "scene_000" / "contact_sheet.png").is_file()
     psnr = entry["psnr_vs_gt"]
     assert set(psnr) == {"s3_it8", "d3", "d6", "dall"} and all(v > 5 for v in psnr.values())

@@ -448,11 +448,10 @@ def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, tuple[Path
     return paths
 
 
-def clip_condition_paths(paths: dict[str, tuple[Path, int]], cfg: PrepareConfig, views: int
-                         ) -> dict[str, tuple[Path, int]]:
+def clip_condition_keys(cfg: PrepareConfig, views: int) -> list[str]:
     """The conditions a K-view clip holds: its own K's student snapshots and every teacher condition."""
-    others = tuple(cache_keys.student_prefix(v) for v in cfg.student_views if v != views)
-    return {key: path for key, path in paths.items() if not key.startswith(others)}
+    return ([condition_key(views, snapshot) for snapshot in cfg.student_snapshots]
+            + [condition_key(count) for count in teacher_view_counts(cfg)])
 
 
 def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, tuple[Path, int]],
@@ -487,9 +486,9 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
     settings = clip_settings(cfg, backbone)
     todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
     paths = condition_paths(plan, cfg)
-    rendered = run_units(pool, render_conditions, [(plan, clips[c]["cameras"],
-                                                    clip_condition_paths(paths, cfg, clips[c]["views"]), cfg)
-                                                   for c in todo])
+    rendered = run_units(pool, render_conditions, [
+        (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg)
+        for c in todo])
     return SceneClips(clips, shard_paths, settings, todo, rendered)
 
 
@@ -572,7 +571,7 @@ def write_if_changed(data: dict, path: Path) -> None:
     write_json_atomic(data, path)
 
 
-def manifest_header(cfg: PrepareConfig, backbone: Backbone) -> dict:
+def manifest_header(cfg: PrepareConfig, backbone_name: str) -> dict:
     return {
         "version": CACHE_VERSION,
         "student_views": list(cfg.student_views),
@@ -582,7 +581,7 @@ def manifest_header(cfg: PrepareConfig, backbone: Backbone) -> dict:
         "frames_per_clip": cfg.frames_per_clip,
         "frames_stored": frames_stored(cfg),
         "pseudo_target": cfg.pseudo_target,
-        "backbone": backbone.cfg.name,
+        "backbone": backbone_name,
     }
 
 
@@ -668,7 +667,7 @@ def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, sourc
     with Progress(disable=not progress) as bar:
         fit_all(plans, prepare, pool, bar)
         entries = prepare_all_scenes(plans, prepare, backbone, pipeline, pool, bar)
-    manifest = {**manifest_header(prepare, backbone), "scenes": entries}
+    manifest = {**manifest_header(prepare, backbone.cfg.name), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
     write_if_changed(manifest, path)
     return path

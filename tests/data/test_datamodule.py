@@ -188,3 +188,66 @@ def test_lightning_redraws_dropout_each_epoch(prepared):
     per_epoch = [sorted((c, d) for e, c, d in seen if e == epoch) for epoch in range(6)]
     assert all(len(p) == 2 for p in per_epoch)
     assert len({tuple(p) for p in per_epoch}) > 1
+
+
+def test_a_sample_reads_only_the_tensors_it_returns(prepared, monkeypatch):
+    """Per sample: the student, teacher and target latents of its own shard, the two views' 2D tokens, the pair's
+    3D tokens and the caption's embedding; nothing of other clips, no frames."""
+    from tracegs.data import datamodule
+
+    dataset = module(prepared[0] / "cache").train_set
+    fetched: list[tuple[str, str]] = []
+    real = datamodule.safe_open
+
+    class Recording:
+        def __init__(self, path, framework):
+            self.path, self.handle = path, real(path, framework=framework)
+
+        def __enter__(self):
+            self.inner = self.handle.__enter__()
+            return self
+
+        def __exit__(self, *exc):
+            self.handle.__exit__(*exc)
+
+        def get_tensor(self, key):
+            fetched.append((Path(self.path).relative_to(dataset.cache_dir / "scene_000").as_posix(), key))
+            return self.inner.get_tensor(key)
+
+    monkeypatch.setattr(datamodule, "safe_open", Recording)
+    clip = dataset.clips[1]
+    dataset[(1, 0)]
+    a, b = clip.refs
+    assert sorted(fetched) == sorted([
+        ("clip_001.safetensors", "latent/s3_it8"), ("clip_001.safetensors", "latent/dall"),
+        ("clip_001.safetensors", "latent/target"), (f"refs/view_{a:04d}.safetensors", "ref_2d"),
+        (f"refs/view_{b:04d}.safetensors", "ref_2d"), (f"refs/pair_{a:04d}_{b:04d}.safetensors", "ref_3d"),
+        (clip.metadata["text_file"], "text")])
+
+
+def test_clips_of_the_listed_student_view_counts_are_served(tmp_path):
+    """A cache with a 3-view and a 6-view clip (written by prepare's writer): each clip serves its own K's
+    snapshot, and ``student_views`` picks the clips."""
+    from tracegs.data.cache_keys import CACHE_VERSION
+    from tracegs.data.prepare import EncodedClip, write_clip
+
+    g = torch.Generator().manual_seed(0)
+    paths = []
+    for index, views in enumerate((3, 6)):
+        tensors = {f"latent/{name}": torch.randn(2, 4, 3, 3, generator=g).half()
+                   for name in (f"s{views}_it8", "dall", "target")}
+        clip = EncodedClip(tensors, views, (0, views - 1), f"clip {index}",
+                           (torch.randn(2, 5, generator=g).half(), torch.randn(2, 5, generator=g).half()),
+                           torch.randn(4, 7, generator=g).half(), torch.randn(3, 6, generator=g).half())
+        paths.append(str(write_clip(tmp_path / "s", index, clip, {}, "random").relative_to(tmp_path)))
+        (tmp_path / "manifest.json").write_text(json.dumps({"version": CACHE_VERSION, "teacher_views": ["all"],
+                                                            "scenes": {"s": {"clips": paths}}}))
+    for listed, served in (([6], [6]), ([3, 6], [3, 6])):
+        cfg = DataModuleConfig(cache_dir=str(tmp_path), student_views=listed, student_snapshots=[8])
+        dm = PairedClipDataModule(cfg)
+        dm.setup("fit")
+        samples = [dm.train_set[i] for i in range(len(dm.train_set))]
+        assert [s["student_views"] for s in samples] == served
+        for sample in samples:
+            shard = load_file(str(tmp_path / "s" / f"clip_{sample['clip']:03d}.safetensors"))
+            assert torch.equal(sample["student_cond"], shard[f"latent/s{sample['student_views']}_it8"].float())

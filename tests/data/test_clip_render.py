@@ -62,8 +62,8 @@ def test_a_six_view_training_clip_follows_deployment_from_those_six_views(colmap
     fitter = GaussianFitter(GaussianModel.random(50, radius=1.0, generator=torch.Generator().manual_seed(0)), fit,
                             scene_extent=1.0)
     generator = torch.Generator().manual_seed(trajectory_seed(prepare, root.name, 6))
-    deployed = render_round_clips(fitter, captured, 0, RefinementConfig(trajectory=trajectory, max_clips_per_round=None),
-                                  fit, "", generator)
+    refinement = RefinementConfig(trajectory=trajectory, max_clips_per_round=None)
+    deployed = render_round_clips(fitter, captured, 0, refinement, fit, "", generator)
     assert len(deployed) == len(six) == 6
     assert {i for clip in six for i in clip["refs"]} == set(views)
     for training, deployment in zip(six, deployed):

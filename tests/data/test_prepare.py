@@ -17,6 +17,7 @@ import pytest
 import torch
 from PIL import Image
 from safetensors import safe_open
+from safetensors.torch import load_file
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
@@ -279,3 +280,23 @@ def test_a_cache_without_dense_views_scores_from_r_s_only(tmp_path, prepared, ba
                 assert torch.equal(reference.get_tensor(key), bare_clip.get_tensor(key))
     sheet = Image.open(tmp_path / "cache" / "scene_000" / "contact_sheet.png")
     assert sheet.width == 3 * 48  # R_s, target, ground truth
+
+
+def test_a_training_cache_holds_latents_only(tmp_path, prepared, backbone):
+    """By default a training split's shards keep no frames (training reads latents); everything else, latents and
+    the scene files they index, is the frame-keeping cache's bytes, and the contact sheet is still drawn."""
+    _, synthetic, source, full, _ = prepared
+    lean = replace(full, cache_dir=str(tmp_path / "cache"), store_frames=None)
+    manifest = json.loads(run_prepare(lean, source, backbone, synthetic, progress=False).read_text())
+    assert manifest["frames_stored"] is False
+    for rel in manifest["scenes"]["scene_000"]["clips"]:
+        with safe_open(str(Path(full.cache_dir) / rel), framework="pt") as kept, \
+                safe_open(str(tmp_path / "cache" / rel), framework="pt") as latents_only:
+            assert set(latents_only.keys()) == {k for k in kept.keys() if not k.startswith("frames/")}
+            assert all(torch.equal(kept.get_tensor(k), latents_only.get_tensor(k)) for k in latents_only.keys())
+    scene_files = sorted(p.relative_to(tmp_path / "cache") for p in (tmp_path / "cache").rglob("*/*/*.safetensors"))
+    assert scene_files == sorted(p.relative_to(full.cache_dir) for p in Path(full.cache_dir).rglob("*/*/*.safetensors"))
+    for rel in scene_files:
+        kept, lean_file = load_file(str(Path(full.cache_dir) / rel)), load_file(str(tmp_path / "cache" / rel))
+        assert kept.keys() == lean_file.keys() and all(torch.equal(kept[k], lean_file[k]) for k in kept)
+    assert (tmp_path / "cache" / "scene_000" / "contact_sheet.png").is_file()

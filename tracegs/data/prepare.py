@@ -13,8 +13,8 @@ loads them.
 
 Work units and resumability: one PLY per (scene, view set, snapshot) in ``work_dir`` and one safetensors
 shard per (scene, clip) in ``cache_dir``, written after the scene files it indexes; every file is written
-atomically, finished units are skipped, and ``force`` redoes them. Runs can be sharded by scene (``shard_index`` / ``num_shards``); each shard
-writes its own manifest and ``merge_manifests`` joins them.
+atomically, finished units are skipped, and ``force`` redoes them. Runs can be sharded by scene
+(``shard_index`` / ``num_shards``); each shard writes its own manifest and ``merge_manifests`` joins them.
 """
 
 from __future__ import annotations

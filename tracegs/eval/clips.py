@@ -17,7 +17,6 @@ from pathlib import Path
 
 import torch
 from rich.progress import track
-from safetensors import safe_open
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 

@@ -222,7 +222,7 @@ def test_a_sample_reads_only_the_tensors_it_returns(prepared, monkeypatch):
         ("clip_001.safetensors", "latent/s3_it8"), ("clip_001.safetensors", "latent/dall"),
         ("clip_001.safetensors", "latent/target"), (f"refs/view_{a:04d}.safetensors", "ref_2d"),
         (f"refs/view_{b:04d}.safetensors", "ref_2d"), (f"refs/pair_{a:04d}_{b:04d}.safetensors", "ref_3d"),
-        (clip.metadata["text_file"], "text")])
+        (clip.text, "text")])
 
 
 def test_clips_of_the_listed_student_view_counts_are_served(tmp_path):

@@ -157,7 +157,7 @@ class DataModuleConfig:
     """Which cached conditions the PairedClipDataModule serves and how it batches them."""
 
     cache_dir: str = "data/cache"
-    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])  # the clips of these K are served
     student_snapshots: list[int] = field(default_factory=lambda: [140, 340])
     batch_size: int = 2  # paper: 2 per GPU
     num_workers: int = 0

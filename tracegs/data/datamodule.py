@@ -72,6 +72,7 @@ class ClipRecord:
     path: Path
     views: int
     refs: tuple[int, int]
+    text: str  # the text file of the clip's caption, relative to the scene folder
     keys: frozenset[str]
     metadata: dict[str, str]
 
@@ -91,7 +92,7 @@ class ClipRecord:
         return [(self.scene_dir / cache_keys.view_tokens_file(a), cache_keys.REF_2D),
                 (self.scene_dir / cache_keys.view_tokens_file(b), cache_keys.REF_2D),
                 (self.scene_dir / cache_keys.pair_tokens_file(a, b), cache_keys.REF_3D),
-                (self.scene_dir / self.metadata[cache_keys.META_TEXT], cache_keys.TEXT)]
+                (self.scene_dir / self.text, cache_keys.TEXT)]
 
 
 def clip_record(scene: str, index: int, path: Path) -> ClipRecord:
@@ -102,11 +103,10 @@ def clip_record(scene: str, index: int, path: Path) -> ClipRecord:
         with safe_open(str(path), framework="pt") as f:
             keys, metadata = frozenset(f.keys()), f.metadata() or {}
         a, b = json.loads(metadata[cache_keys.META_REFS])
-        views = int(metadata[cache_keys.META_VIEWS])
-        metadata[cache_keys.META_TEXT]
+        views, text = int(metadata[cache_keys.META_VIEWS]), metadata[cache_keys.META_TEXT]
     except (SafetensorError, OSError, ValueError, KeyError, TypeError) as error:
         raise CacheError(f"{path}: corrupt shard ({error})") from error
-    return ClipRecord(scene, index, path, views, (int(a), int(b)), keys, metadata)
+    return ClipRecord(scene, index, path, views, (int(a), int(b)), text, keys, metadata)
 
 
 def manifest_clips(cache_dir: str | Path, manifest: dict, scenes: list[str]) -> list[ClipRecord]:

@@ -3,9 +3,8 @@
 The clips come from a cache that ``prepare`` built for scenes no restorer was trained on (the benchmark's
 test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split). Every clip
 belongs to one student view count K; for each of its student conditions R_s (K views, snapshot) the restorer
-runs its full
-deployment schedule from the cached latents; the decoded output and the input R_s are both scored against the
-clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
+runs its full deployment schedule from the cached latents; the decoded output and the input R_s are both
+scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
 evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
 """
 

@@ -54,7 +54,8 @@ def tiny_configs(tmp: Path) -> tuple[SyntheticConfig, SceneSourceConfig, Prepare
                             dense_views=[6, None], student_snapshots=[8],
                             fit=GaussianFitConfig(iterations=16, snapshot_iters=[8, 16]),
                             clips_per_scene=2, frames_per_clip=5, workers=1,
-                            trajectory=TrajectoryConfig(frames_per_clip=5))
+                            trajectory=TrajectoryConfig(frames_per_clip=5),
+                            store_frames=True)  # the data tests also score these clips as held-out ones
     return synthetic, source, prepare
 
 

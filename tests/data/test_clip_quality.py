@@ -5,12 +5,11 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from safetensors.torch import load_file
 
 from tracegs.data.datamodule import CacheError
 from tracegs.data.prepare import read_shard_psnr
 from tracegs.eval.clips import INPUT, clip_restoration_psnr, held_out_per_step_curves
-from tracegs.io import save_safetensors_atomic
+from tracegs.io import read_safetensors, save_safetensors_atomic
 from tracegs.restorer.sampler import RestorationPipeline
 
 
@@ -37,8 +36,9 @@ def test_needs_ground_truth_frames_and_names_the_shard(prepared, backbone, tmp_p
     cache = tmp_path / "cache"
     shutil.copytree(prepared[0] / "cache", cache)
     shard = cache / "scene_000" / "clip_001.safetensors"
-    tensors = {k: v for k, v in load_file(str(shard)).items() if k != "frames/gt"}
-    save_safetensors_atomic(tensors, shard)  # a shard as prepare writes one for a scene without ground truth
+    tensors, metadata = read_safetensors(shard, "")
+    del tensors["frames/gt"]
+    save_safetensors_atomic(tensors, shard, metadata)  # a shard as prepare writes one for a scene without ground truth
     with pytest.raises(CacheError, match="clip_001.safetensors: no ground-truth frames"):
         clip_restoration_psnr({"untrained": RestorationPipeline(backbone)}, cache, progress=False)
 

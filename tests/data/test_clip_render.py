@@ -1,11 +1,12 @@
-"""One render path for clips: prepare's conditions and deployment's clips are the same images."""
+"""One render path and one trajectory rule for clips: prepare's conditions and deployment's clips are the same
+images along the same cameras."""
 
 from __future__ import annotations
 
 import torch
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import plan_scene, render_conditions
+from tracegs.data.prepare import clip_cameras, plan_scene, render_conditions, trajectory_seed
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.refine import render_round_clips
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
@@ -39,3 +40,34 @@ def test_prepare_and_deployment_render_one_clip_identically(colmap_scene, tmp_pa
         conditions, ground_truth = render_conditions(plan, clip.cameras, {"s3_it340": (snapshot, 340)}, prepare)
         assert ground_truth is None
         assert torch.equal(conditions["s3_it340"], clip.frames)
+
+
+def test_a_six_view_training_clip_follows_deployment_from_those_six_views(colmap_scene):
+    """Prepare's clips of K = 6 and deployment's round 0 from the same six captured views, with the same seed
+    stream: identical cameras, clip for clip (the ellipse and references are the 6-view set's, not the 3-view
+    set's); and the scene's clips are divided evenly among K = 3, 6, 9."""
+    root, _ = colmap_scene
+    source = SceneSourceConfig(root=str(root.parent), preset="custom")
+    fit = GaussianFitConfig()
+    trajectory = TrajectoryConfig(frames_per_clip=5)
+    prepare = PrepareConfig(student_views=[3, 6, 9], dense_views=[None], pseudo_target="dense", fit=fit,
+                            clips_per_scene=19, frames_per_clip=5, trajectory=trajectory)
+    plan = plan_scene(source, prepare, root.name)
+    clips = clip_cameras(plan, prepare)
+    counts = sorted([c["views"] for c in clips].count(k) for k in (3, 6, 9))
+    assert counts == [6, 6, 7]
+    six = [clip for clip in clips if clip["views"] == 6][:6]  # round 0 of six views has six clips
+    views = plan.split.views(6)
+    captured = [View(image=plan.scene.load_image(i), camera=plan.scene.cameras[i]) for i in views]
+    fitter = GaussianFitter(GaussianModel.random(50, radius=1.0, generator=torch.Generator().manual_seed(0)), fit,
+                            scene_extent=1.0)
+    generator = torch.Generator().manual_seed(trajectory_seed(prepare, root.name, 6))
+    refinement = RefinementConfig(trajectory=trajectory, max_clips_per_round=None)
+    deployed = render_round_clips(fitter, captured, 0, refinement, fit, "", generator)
+    assert len(deployed) == len(six) == 6
+    assert {i for clip in six for i in clip["refs"]} == set(views)
+    for training, deployment in zip(six, deployed):
+        assert len(training["cameras"]) == len(deployment.cameras) == 5
+        for ours, theirs in zip(training["cameras"], deployment.cameras):
+            assert torch.equal(ours.world_to_camera, theirs.world_to_camera) and torch.equal(ours.K, theirs.K)
+        assert torch.equal(deployment.references[0], plan.scene.load_image(training["refs"][0]))

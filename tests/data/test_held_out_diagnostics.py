@@ -29,7 +29,7 @@ def test_each_variant_gets_both_diagnostics_on_the_clips_it_restores(prepared, b
     # Spread over two forked workers (one clip each, one thread as here), the same result bit for bit.
     forked = held_out_diagnostics(backbone, variants, cache, student_views=[3], seed=4, progress=False, workers=2)
     assert forked == result
-    with pytest.raises(ValueError, match=r"no student condition at \[9\] views"):
+    with pytest.raises(ValueError, match=r"no held-out clip at \[9\] views"):
         held_out_diagnostics(backbone, variants, cache, student_views=[9], progress=False)
     with pytest.raises(KeyError, match="no teacher condition d12 for variant C"):
         held_out_diagnostics(backbone, {"C": VariantRoles(None, None, 12, distilled=True)}, cache, [3], progress=False)

@@ -17,6 +17,7 @@ import pytest
 import torch
 from PIL import Image
 from safetensors import safe_open
+from safetensors.torch import load_file
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
@@ -26,21 +27,28 @@ from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare
 def test_prepare_builds_the_cache_from_nothing(prepared):
     tmp, _, _, prepare, manifest_path = prepared
     manifest = json.loads(manifest_path.read_text())
-    assert manifest["teacher_views"] == ["3", "6", "all"]
+    assert manifest["teacher_views"] == ["3", "6", "all"] and manifest["frames_stored"]
     entry = manifest["scenes"]["scene_000"]
     assert len(entry["clips"]) == 2
+    scene_info = json.loads((tmp / "cache" / entry["scene_file"]).read_text())
+    assert scene_info["clip_views"] == [3, 3]
     for rel in entry["clips"]:
         with safe_open(str(tmp / "cache" / rel), framework="pt") as f:
             keys = set(f.keys())
             latent = f.get_tensor("latent/s3_it8")
             poses = f.get_tensor("poses")
-            refs = json.loads(f.metadata()["refs"])
-        assert {"latent/s3_it8", "latent/d3", "latent/d6", "latent/dall", "latent/target", "ref_2d", "ref_3d",
-                "text", "frames/gt", "frames/target", "frames/ref"} <= keys
+            metadata = f.metadata()
+        assert {"latent/s3_it8", "latent/d3", "latent/d6", "latent/dall", "latent/target", "frames/gt",
+                "frames/target", "frames/ref"} <= keys
+        assert not keys & {"ref_2d", "ref_3d", "text"}  # in the scene files the clip indexes
         assert latent.shape[0] == 5 and poses.shape == (5, 4, 4)
-        # Both clip ends are reference views of the 3-view set (hence of every sparse set).
-        scene_info = json.loads((tmp / "cache" / entry["scene_file"]).read_text())
-        assert set(refs) <= set(scene_info["split"]["view_sets"]["3"])
+        # Both clip ends are reference views of the clip's own 3-view set.
+        a, b = json.loads(metadata["refs"])
+        assert metadata["student_views"] == "3" and {a, b} <= set(scene_info["split"]["view_sets"]["3"])
+        scene = tmp / "cache" / "scene_000"
+        assert (scene / f"refs/view_{a:04d}.safetensors").is_file()
+        assert (scene / f"refs/pair_{a:04d}_{b:04d}.safetensors").is_file()
+        assert (scene / metadata["text_file"]).is_file()
     assert (tmp / "cache" / "scene_000" / "contact_sheet.png").is_file()
     psnr = entry["psnr_vs_gt"]
     assert set(psnr) == {"s3_it8", "d3", "d6", "dall"} and all(v > 5 for v in psnr.values())
@@ -272,3 +280,23 @@ def test_a_cache_without_dense_views_scores_from_r_s_only(tmp_path, prepared, ba
                 assert torch.equal(reference.get_tensor(key), bare_clip.get_tensor(key))
     sheet = Image.open(tmp_path / "cache" / "scene_000" / "contact_sheet.png")
     assert sheet.width == 3 * 48  # R_s, target, ground truth
+
+
+def test_a_training_cache_holds_latents_only(tmp_path, prepared, backbone):
+    """By default a training split's shards keep no frames (training reads latents); everything else, latents and
+    the scene files they index, is the frame-keeping cache's bytes, and the contact sheet is still drawn."""
+    _, synthetic, source, full, _ = prepared
+    lean = replace(full, cache_dir=str(tmp_path / "cache"), store_frames=None)
+    manifest = json.loads(run_prepare(lean, source, backbone, synthetic, progress=False).read_text())
+    assert manifest["frames_stored"] is False
+    for rel in manifest["scenes"]["scene_000"]["clips"]:
+        with safe_open(str(Path(full.cache_dir) / rel), framework="pt") as kept, \
+                safe_open(str(tmp_path / "cache" / rel), framework="pt") as latents_only:
+            assert set(latents_only.keys()) == {k for k in kept.keys() if not k.startswith("frames/")}
+            assert all(torch.equal(kept.get_tensor(k), latents_only.get_tensor(k)) for k in latents_only.keys())
+    scene_files = sorted(p.relative_to(tmp_path / "cache") for p in (tmp_path / "cache").rglob("*/*/*.safetensors"))
+    assert scene_files == sorted(p.relative_to(full.cache_dir) for p in Path(full.cache_dir).rglob("*/*/*.safetensors"))
+    for rel in scene_files:
+        kept, lean_file = load_file(str(Path(full.cache_dir) / rel)), load_file(str(tmp_path / "cache" / rel))
+        assert kept.keys() == lean_file.keys() and all(torch.equal(kept[k], lean_file[k]) for k in kept)
+    assert (tmp_path / "cache" / "scene_000" / "contact_sheet.png").is_file()

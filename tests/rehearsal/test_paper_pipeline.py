@@ -29,6 +29,7 @@ from safetensors import safe_open
 from test_size_keys import SIZE_KEYS
 
 from tracegs.cli.app import CONF_DIR
+from tracegs.data.datamodule import clip_record, read_conditioning
 from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report
@@ -73,7 +74,9 @@ def check_products(root: Path, results: dict, views: list[int], extra: tuple[str
     with safe_open(str(cache / clips[0]), framework="pt") as shard:
         latent = shard.get_tensor("latent/target")
         assert latent.shape == (3, 16, 4, 6)  # 9 frames -> 3 latent frames, 32 x 48 -> 4 x 6 (VAE factor 8)
-        assert shard.get_tensor("text").shape == (16, 32) and shard.get_tensor("ref_3d").shape[-1] == 64
+        assert not [k for k in shard.keys() if k.startswith("frames/")]  # a training cache holds latents only
+    conditioning = read_conditioning(clip_record("scene_000", 0, cache / clips[0]))
+    assert conditioning["text"].shape == (16, 32) and conditioning["ref_3d"].shape[-1] == 64
     experiment = Path(cfg.paths.experiment_dir)
     assert not (experiment / "baseline").exists()  # variant A is loaded, not trained
     # Each stage's product in the folder its run identity names (tracegs.config.identity).

@@ -20,17 +20,17 @@ from training_support import (
     WIDTH,
 )
 
-from tracegs.data.cache_keys import MANIFEST, condition_key
+from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
+from tracegs.data.prepare import EncodedClip, write_clip
 from tracegs.data.splits import view_set_key
 from tracegs.errors import ConfigMismatchError
-from tracegs.io import save_safetensors_atomic
 from tracegs.restorer.adapters import read_adapter
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
 from tracegs.training.run import train_stage
 
-REF_TOKENS = 5
+REF_TOKENS = 6  # two reference views of three tokens
 # The embedded reference encoder with 2x2 patches gives 12 (2D) and 12 + 8 (3D) features per token.
 BACKBONE = BackboneConfig(
     transformer=dataclasses.replace(TINY_TRANSFORMER, ref_2d_dim=12, ref_3d_dim=20),
@@ -43,7 +43,8 @@ BACKBONE = BackboneConfig(
 
 
 def write_cache(root: Path, clips: int = 4) -> Path:
-    """A cache in the prepared layout (manifest + one safetensors shard per clip) with random latents."""
+    """A cache in the prepared layout (manifest, one shard per clip and the scene files it indexes, written by
+    prepare's ``write_clip``) with random latents."""
     g = torch.Generator().manual_seed(0)
     latent = (FRAMES, CHANNELS, HEIGHT, WIDTH)
     paths = []
@@ -53,15 +54,14 @@ def write_cache(root: Path, clips: int = 4) -> Path:
             "latent/target": target,
             f"latent/{condition_key(3, 140)}": target + 0.7 * torch.randn(latent, generator=g),
             f"latent/{condition_key(None)}": target + 0.1 * torch.randn(latent, generator=g),
-            "ref_2d": torch.randn(REF_TOKENS, 12, generator=g),
-            "ref_3d": torch.randn(REF_TOKENS, 20, generator=g),
-            "text": torch.randn(TEXT_LEN, TINY_TRANSFORMER.text_embed_dim, generator=g),
         }
-        rel = f"scene_a/clip_{clip:03d}.safetensors"
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        save_safetensors_atomic({k: v.half() for k, v in tensors.items()}, root / rel)
-        paths.append(rel)
-    manifest = {"teacher_views": [view_set_key(3), view_set_key(None)], "scenes": {"scene_a": {"clips": paths}}}
+        ref_2d = torch.randn(REF_TOKENS, 12, generator=g).half()
+        encoded = EncodedClip({k: v.half() for k, v in tensors.items()}, 3, (clip, clip + 1), f"clip {clip}",
+                              tuple(ref_2d.chunk(2)), torch.randn(REF_TOKENS, 20, generator=g).half(),
+                              torch.randn(TEXT_LEN, TINY_TRANSFORMER.text_embed_dim, generator=g).half())
+        paths.append(str(write_clip(root / "scene_a", clip, encoded, {}, "random").relative_to(root)))
+    manifest = {"version": CACHE_VERSION, "teacher_views": [view_set_key(3), view_set_key(None)],
+                "scenes": {"scene_a": {"clips": paths}}}
     (root / MANIFEST).write_text(json.dumps(manifest))
     return root
 

@@ -122,14 +122,15 @@ class PrepareConfig:
     # None = all training views. Empty: no R_d (a held-out cache that scores restorers from R_s against ground
     # truth, pseudo_target 'gt'; the privileged report needs the teacher's R_d).
     dense_views: list[int | None] = field(default_factory=lambda: [12, 18, None])
-    # Also fit every student set to the final iteration, whose snapshot is the non-privileged teacher of
-    # variant B (teacher.views a student count). False stops each sparse fit at its last student snapshot:
-    # the student conditions are the same bytes, and a sparse fit costs 17k instead of 30k iterations.
+    # Also fit the smallest student set to the final iteration, whose snapshot is the non-privileged teacher of
+    # variant B for every K. False stops each sparse fit at its last student snapshot: the student conditions
+    # are the same bytes, and a sparse fit costs 17k instead of 30k iterations.
     student_final_fits: bool = True
     student_snapshots: list[int] = field(default_factory=lambda: [140, 340])  # paper: 7000, 17000
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
+    # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent).
     clips_per_scene: int = 8  # paper: 150
     frames_per_clip: int = 9  # paper: 49
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
@@ -144,6 +145,9 @@ class PrepareConfig:
     num_shards: int = 1  # shard by scene for Hydra multirun / SLURM arrays
     force: bool = False
     contact_sheet: bool = True
+    # uint8 frames of every condition, the target, references and ground truth in the shards. None = only in a
+    # held-out split's cache (val / test), which evaluation scores in pixels; training reads latents only.
+    store_frames: bool | None = None
     latent_dtype: str = "float16"
     seed: int = 0
 
@@ -153,7 +157,7 @@ class DataModuleConfig:
     """Which cached conditions the PairedClipDataModule serves and how it batches them."""
 
     cache_dir: str = "data/cache"
-    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])  # the clips of these K are served
     student_snapshots: list[int] = field(default_factory=lambda: [140, 340])
     batch_size: int = 2  # paper: 2 per GPU
     num_workers: int = 0

@@ -12,25 +12,27 @@ Sample dict (one clip; the default collate stacks a batch along a new first dim)
 - ``scene`` str, ``clip`` int: provenance
 - ``student_views`` int (K), ``teacher_views`` int (-1 = all training views), ``snapshot`` int
 
-Each training draw picks K and the snapshot uniformly from the configured lists and the dropout flag with
+Every cached clip belongs to one student view count K (``data.prepare``), so the datamodule samples clips of the
+configured K; each draw picks the clip's snapshot uniformly from the configured list and the dropout flag with
 probability ``caption_dropout``, from a generator seeded by (seed, epoch, index): reproducible, yet a clip
-gets a fresh choice every epoch. Validation draws are seeded by the index only.
+gets a fresh choice every epoch. Validation draws are seeded by the index only. A sample opens its clip's
+shard and the scene files it indexes with ``safe_open`` and reads only the tensors it returns.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import lightning as L
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from tracegs.data import cache_keys
-from tracegs.data.cache_keys import MANIFEST, condition_key
+from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.splits import view_set_key
 from tracegs.io import checksum_problem
@@ -41,6 +43,7 @@ def draw_seed_of(seed: int, epoch: int, index: int) -> int:
     the 63 bits ``torch.Generator.manual_seed`` takes for any 31-bit root seed."""
     return ((seed * 1_000_003 + epoch) * 1_000_033 + index) % (2**63 - 1)
 
+
 class CacheError(ValueError):
     """The prepared cache is missing, inconsistent with the request, or damaged."""
 
@@ -50,17 +53,74 @@ def read_manifest(cache_dir: str | Path) -> dict:
     if not path.is_file():
         raise CacheError(f"{path}: no manifest; run prepare first")
     try:
-        return json.loads(path.read_text())
+        manifest = json.loads(path.read_text())
     except ValueError as error:
         raise CacheError(f"{path}: corrupt manifest ({error})") from error
+    if manifest.get("version") != CACHE_VERSION:
+        raise CacheError(f"{path}: cache layout version {manifest.get('version')}, this tracegs reads "
+                         f"{CACHE_VERSION}; run prepare again into a new cache_dir")
+    return manifest
 
 
-def verify_shard(path: Path, required: list[str] | None = None) -> None:
-    """Refuse (``CacheError`` naming the file) a missing or unreadable shard, one that lacks a ``required`` key,
-    and one whose ``required`` tensors (default: all) differ from the checksums written with them: training on
-    changed bytes would silently give another adapter."""
+@dataclass(frozen=True)
+class ClipRecord:
+    """One cached clip as its header describes it: the tensors it holds, its student view count K, its two
+    reference views and the scene files (reference tokens, text embedding) it indexes."""
+
+    scene: str
+    index: int
+    path: Path
+    views: int
+    refs: tuple[int, int]
+    text: str  # the text file of the clip's caption, relative to the scene folder
+    keys: frozenset[str]
+    metadata: dict[str, str]
+
+    @property
+    def scene_dir(self) -> Path:
+        return self.path.parent
+
+    def conditions(self) -> list[str]:
+        """The clip's student conditions ``s{K}_it{snapshot}``, earliest snapshot first."""
+        prefix = cache_keys.latent(cache_keys.student_prefix(self.views))
+        return sorted((k.removeprefix("latent/") for k in self.keys if k.startswith(prefix)),
+                      key=cache_keys.student_order)
+
+    def conditioning_files(self) -> list[tuple[Path, str]]:
+        """(file, tensor key) of the 2D tokens of each reference view, the pair's 3D tokens and the text."""
+        a, b = self.refs
+        return [(self.scene_dir / cache_keys.view_tokens_file(a), cache_keys.REF_2D),
+                (self.scene_dir / cache_keys.view_tokens_file(b), cache_keys.REF_2D),
+                (self.scene_dir / cache_keys.pair_tokens_file(a, b), cache_keys.REF_3D),
+                (self.scene_dir / self.text, cache_keys.TEXT)]
+
+
+def clip_record(scene: str, index: int, path: Path) -> ClipRecord:
+    """The header of a clip shard (no tensor data is read); ``CacheError`` naming a missing or unreadable one."""
     if not path.is_file():
         raise CacheError(f"{path}: shard listed in the manifest is missing")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            keys, metadata = frozenset(f.keys()), f.metadata() or {}
+        a, b = json.loads(metadata[cache_keys.META_REFS])
+        views, text = int(metadata[cache_keys.META_VIEWS]), metadata[cache_keys.META_TEXT]
+    except (SafetensorError, OSError, ValueError, KeyError, TypeError) as error:
+        raise CacheError(f"{path}: corrupt shard ({error})") from error
+    return ClipRecord(scene, index, path, views, (int(a), int(b)), text, keys, metadata)
+
+
+def manifest_clips(cache_dir: str | Path, manifest: dict, scenes: list[str]) -> list[ClipRecord]:
+    """The clip records of ``scenes``, in manifest order."""
+    return [clip_record(scene, i, Path(cache_dir) / rel) for scene in scenes
+            for i, rel in enumerate(manifest["scenes"][scene]["clips"])]
+
+
+def verify_file(path: Path, required: list[str] | None = None) -> None:
+    """Refuse (``CacheError`` naming the file) a missing or unreadable safetensors file, one that lacks a
+    ``required`` key, and one whose ``required`` tensors (default: all) differ from the checksums written with
+    them: training on changed bytes would silently give another adapter."""
+    if not path.is_file():
+        raise CacheError(f"{path}: file of the cache is missing; run prepare again with the same settings")
     try:
         with safe_open(str(path), framework="pt") as f:
             keys = set(f.keys())
@@ -74,54 +134,76 @@ def verify_shard(path: Path, required: list[str] | None = None) -> None:
         raise CacheError(f"{path}: {problem}; run prepare again with the same settings to rebuild it")
 
 
+def verify_clip(record: ClipRecord, required: list[str] | None = None) -> None:
+    """``verify_file`` of a clip's ``required`` tensors (default: all) and of the scene files it indexes."""
+    verify_file(record.path, required)
+    for path, key in record.conditioning_files():
+        verify_file(path, [key])
+
+
+def read_tensors(path: Path, keys: list[str]) -> dict[str, torch.Tensor]:
+    """Only the tensors ``keys`` of one safetensors file (``get_tensor`` reads each one's bytes, nothing else)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return {key: f.get_tensor(key) for key in keys}
+    except (SafetensorError, OSError, ValueError) as error:
+        raise CacheError(f"{path}: corrupt shard ({error})") from error
+
+
+def read_conditioning(record: ClipRecord) -> dict[str, torch.Tensor]:
+    """The clip's reference tokens and text embedding gathered from the scene files: ``ref_2d`` is the two
+    views' tokens concatenated (first reference first, as the encoder returns them for the pair)."""
+    first, second, pair, text = [read_tensors(path, [key])[key] for path, key in record.conditioning_files()]
+    return {cache_keys.REF_2D: torch.cat([first, second]), cache_keys.REF_3D: pair, cache_keys.TEXT: text}
+
+
 class PairedClipDataset(Dataset):
-    """Clips of the given scenes; items are indices or ``(index, draw_seed)`` pairs from ``EpochSampler``."""
+    """Clips of the given scenes whose student view count is listed; items are indices or ``(index,
+    draw_seed)`` pairs from ``EpochSampler``. A sample reads only the tensors it returns."""
 
     def __init__(self, cache_dir: str | Path, scenes: list[str], manifest: dict, student_views: list[int],
                  student_snapshots: list[int], teacher_views: int | None, caption_dropout: float, seed: int):
         self.cache_dir = Path(cache_dir)
-        self.clips = [(scene, i, self.cache_dir / rel) for scene in scenes
-                      for i, rel in enumerate(manifest["scenes"][scene]["clips"])]
-        self.student_views = list(student_views)
+        self.clips = [c for c in manifest_clips(cache_dir, manifest, scenes) if c.views in student_views]
+        if not self.clips:
+            raise CacheError(f"{self.cache_dir}: no clip of {student_views} student views in scenes {scenes}")
         self.student_snapshots = list(student_snapshots)
         self.teacher_views = teacher_views
         self.teacher_key = condition_key(teacher_views)
         self.caption_dropout = caption_dropout
         self.seed = seed
-        required = [cache_keys.latent(condition_key(k, s)) for k in student_views for s in student_snapshots]
-        required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET), cache_keys.REF_2D,
-                     cache_keys.REF_3D, cache_keys.TEXT]
-        for _, _, path in self.clips:
-            verify_shard(path, required)
+        for clip in self.clips:
+            required = [cache_keys.latent(condition_key(clip.views, s)) for s in student_snapshots]
+            required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET)]
+            verify_clip(clip, required)
 
     def __len__(self) -> int:
         return len(self.clips)
 
     def __getitem__(self, item: int | tuple[int, int]) -> dict:
         index, draw_seed = item if isinstance(item, tuple) else (item, draw_seed_of(self.seed, 0, item))
-        scene, clip, path = self.clips[index]
+        clip = self.clips[index]
         generator = torch.Generator().manual_seed(draw_seed)
-        views = self.student_views[int(torch.randint(len(self.student_views), (), generator=generator))]
         snapshot = self.student_snapshots[int(torch.randint(len(self.student_snapshots), (), generator=generator))]
         dropped = bool(torch.rand((), generator=generator) < self.caption_dropout)
-        try:
-            tensors = load_file(str(path))
-        except (SafetensorError, OSError, ValueError) as error:
-            raise CacheError(f"{path}: corrupt shard ({error})") from error
-        text = tensors[cache_keys.TEXT].float()
+        student, teacher, target = (cache_keys.latent(condition_key(clip.views, snapshot)),
+                                    cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET))
+        latents = read_tensors(clip.path, [student, teacher, target])
+        conditioning = read_conditioning(clip)
+        text = conditioning[cache_keys.TEXT].float()
         return {
-            "student_cond": tensors[cache_keys.latent(condition_key(views, snapshot))].float(),
-            "teacher_cond": tensors[cache_keys.latent(self.teacher_key)].float(),
-            "target": tensors[cache_keys.latent(cache_keys.TARGET)].float(),
-            "ref_2d": tensors[cache_keys.REF_2D].float(),
-            "ref_3d": tensors[cache_keys.REF_3D].float(),
+            "student_cond": latents[student].float(),
+            "teacher_cond": latents[teacher].float(),
+            "target": latents[target].float(),
+            "ref_2d": conditioning[cache_keys.REF_2D].float(),
+            "ref_3d": conditioning[cache_keys.REF_3D].float(),
             # Supplement A.2: a dropped caption is an all-zero embedding (not the encoding of ""), and the
             # same embedding goes to both roles.
             "text": torch.zeros_like(text) if dropped else text,
             "text_dropped": torch.tensor(dropped),
-            "scene": scene,
-            "clip": clip,
-            "student_views": views,
+            "scene": clip.scene,
+            "clip": clip.index,
+            "student_views": clip.views,
             "teacher_views": -1 if self.teacher_views is None else int(self.teacher_views),
             "snapshot": snapshot,
         }

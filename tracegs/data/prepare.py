@@ -2,16 +2,19 @@
 
 For every scene and view set V_b (sparse K = 3, 6, 9 and dense 12, 18, all) a 3DGS is fitted with
 snapshots; the student condition R_s comes from the early snapshots (paper 7k / 17k) of the sparse fits,
-the teacher condition R_d from the final snapshot (paper 30k). Both are rendered along the same clip
-trajectory P, which starts and ends at two reference views taken from V_s (so from every sparse set,
-since the sets are nested). Pseudo-targets come from ground truth, the dense rendering, or a frozen
-restorer applied to R_d (the paper's choice). Frozen encoders run once here: the cache holds codec latents,
-reference tokens and the text embedding, so training never loads them.
+the teacher condition R_d from the final snapshot (paper 30k). Each clip belongs to one student view count K
+(the scene's clips divided evenly among K, ``clip_view_counts``) and follows deployment's rule for K captured
+views: its trajectory P is a round of ``round_clips`` on the K-view set, starting and ending at two of its
+views. Along P it renders that K's student snapshots, the teacher conditions (dense sets, and the smallest
+sparse set's final snapshot: variant B's teacher) and the pseudo-target, which comes from ground truth, the
+dense rendering, or a frozen restorer applied to R_d (the paper's choice). Frozen encoders run once here: the
+cache holds codec latents, reference tokens and text embeddings (layout: ``cache_keys``), so training never
+loads them.
 
 Work units and resumability: one PLY per (scene, view set, snapshot) in ``work_dir`` and one safetensors
-shard per (scene, clip) in ``cache_dir``; every file is written atomically, finished units are skipped,
-and ``force`` redoes them. Runs can be sharded by scene (``shard_index`` / ``num_shards``); each shard
-writes its own manifest and ``merge_manifests`` joins them.
+shard per (scene, clip) in ``cache_dir``, written after the scene files it indexes; every file is written
+atomically, finished units are skipped, and ``force`` redoes them. Runs can be sharded by scene
+(``shard_index`` / ``num_shards``); each shard writes its own manifest and ``merge_manifests`` joins them.
 """
 
 from __future__ import annotations
@@ -30,15 +33,16 @@ import numpy as np
 import torch
 from PIL import Image
 from rich.progress import Progress
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.console import PlainProgress
 from tracegs.data import cache_keys
-from tracegs.data.cache_keys import MANIFEST, condition_key
+from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
-from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
+from tracegs.data.datamodule import CacheError, clip_record
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -66,7 +70,7 @@ from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
 from tracegs.splat.render import render_clip, require_available
-from tracegs.splat.trajectory import reference_pairs, round_trajectory
+from tracegs.splat.trajectory import round_clips
 
 MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
 
@@ -89,8 +93,9 @@ def _view_counts(cfg: PrepareConfig) -> list[int | None]:
 
 
 def teacher_view_counts(cfg: PrepareConfig) -> list[int | None]:
-    """View sets fitted to their final snapshot, so usable as a teacher condition ``d{V}``."""
-    return (list(cfg.student_views) if cfg.student_final_fits else []) + list(cfg.dense_views)
+    """View sets fitted to their final snapshot, so usable as a teacher condition ``d{V}``: the dense sets and,
+    with ``student_final_fits``, the smallest sparse set (variant B's teacher for every student K, Table 3)."""
+    return ([min(cfg.student_views)] if cfg.student_final_fits else []) + list(cfg.dense_views)
 
 
 def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> ScenePlan:
@@ -175,28 +180,45 @@ def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig) -> None:
             save_ply(snapshots[iteration], tmp)
 
 
-def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
-    """Clip trajectories by deployment's rule (``round_trajectory`` with ``cfg.trajectory``, which is the
-    deployment's trajectory config): per round a fresh ellipse fitted to the reference views, one clip per
-    chained reference pair, each taking the shorter arc between its two references.
+def clip_view_counts(cfg: PrepareConfig, scene: str) -> list[int]:
+    """The student view count K of each clip of a scene: the clips divided evenly among ``student_views``, in
+    an order seeded by the scene (which K gets one clip more differs between scenes)."""
+    generator = torch.Generator().manual_seed(scene_seed(cfg.seed, f"{scene}/views"))
+    order = [cfg.student_views[i] for i in torch.randperm(len(cfg.student_views), generator=generator).tolist()]
+    return [order[c % len(order)] for c in range(cfg.clips_per_scene)]
 
-    References are the smallest sparse set, so they lie in every V_s (and every V_d); at deployment the
-    references are the captured V_s, so both fit their ellipse to a sparse set of the same size.
-    """
-    scene, split = plan.scene, plan.split
-    anchors = split.views(min(cfg.student_views))
-    if len(anchors) < 2:
-        raise PrepareError(f"{scene.name}: the smallest sparse view set has one view; clips need two references")
-    references = [scene.cameras[i] for i in anchors]
-    generator = torch.Generator().manual_seed(scene_seed(cfg.seed, scene.name))
-    clips: list[dict] = []
-    round_index = 0
-    while len(clips) < cfg.clips_per_scene:
-        pairs = reference_pairs(len(anchors), None, generator)
-        cameras = round_trajectory(references, pairs, round_index, cfg.trajectory, generator)
-        clips += [{"refs": [anchors[a], anchors[b]], "cameras": c} for (a, b), c in zip(pairs, cameras)]
-        round_index += 1
-    return clips[: cfg.clips_per_scene]
+
+def trajectory_seed(cfg: PrepareConfig, scene: str, views: int) -> int:
+    """The seed of the generator that draws the trajectory rounds of a scene's K-view clips."""
+    return scene_seed(cfg.seed, f"{scene}/K{views}")
+
+
+def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
+    """Clip trajectories by deployment's rule: a K-view clip is a clip of ``round_clips`` (with ``cfg.trajectory``,
+    the deployment's trajectory config) on the K-view set, exactly as deployment from those K captured views
+    makes it (every reference pair per round, as the paper scale deploys), rounds 0, 1, ... drawn from one
+    generator per (scene, K) until that K has its share of the clips (``clip_view_counts``)."""
+    scene = plan.scene
+    counts = clip_view_counts(cfg, scene.name)
+    per_count: dict[int, Iterator[dict]] = {}
+    for views in cfg.student_views:
+        indices = plan.split.views(views)
+        references = [scene.cameras[i] for i in indices]
+        generator = torch.Generator().manual_seed(trajectory_seed(cfg, scene.name, views))
+        clips: list[dict] = []
+        round_index = 0
+        while len(clips) < counts.count(views):
+            clips += [{"views": views, "refs": [indices[a], indices[b]], "cameras": cameras}
+                      for (a, b), cameras in round_clips(references, round_index, cfg.trajectory, None, generator)]
+            round_index += 1
+        per_count[views] = iter(clips)
+    return [next(per_count[views]) for views in counts]
+
+
+def frames_stored(cfg: PrepareConfig) -> bool:
+    """Whether shards keep uint8 frames: ``store_frames``, or by default only a held-out split's cache, whose
+    clips evaluation scores in pixels (training reads latents only)."""
+    return cfg.split != Split.train if cfg.store_frames is None else cfg.store_frames
 
 
 def to_uint8(frames: torch.Tensor) -> torch.Tensor:
@@ -208,9 +230,33 @@ def psnr_on_path(frames: torch.Tensor, reference: torch.Tensor) -> float:
     return float(peak_signal_noise_ratio(frames[1:-1], reference[1:-1], data_range=1.0))
 
 
+@dataclass
+class EncodedClip:
+    """What one clip stores: its shard's tensors (latents, poses, frames when kept) and the conditioning it
+    indexes in the scene files (2D tokens per reference view, 3D tokens of the pair, the caption's text)."""
+
+    tensors: dict[str, torch.Tensor]
+    views: int
+    refs: tuple[int, int]
+    caption: str
+    ref_2d: tuple[torch.Tensor, torch.Tensor]
+    ref_3d: torch.Tensor
+    text: torch.Tensor
+
+    def scene_files(self) -> list[tuple[str, str, torch.Tensor]]:
+        """(file relative to the scene folder, tensor key, tensor) of every scene file the clip indexes."""
+        a, b = self.refs
+        return [(cache_keys.view_tokens_file(a), cache_keys.REF_2D, self.ref_2d[0]),
+                (cache_keys.view_tokens_file(b), cache_keys.REF_2D, self.ref_2d[1]),
+                (cache_keys.pair_tokens_file(a, b), cache_keys.REF_3D, self.ref_3d),
+                (cache_keys.text_file(self.caption), cache_keys.TEXT, self.text)]
+
+
 def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target: torch.Tensor,
-                ref_images: torch.Tensor, caption: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
-    """Codec latents of every condition and the target, reference tokens, text embedding (all frozen)."""
+                ref_images: torch.Tensor, caption: str, dtype: torch.dtype
+                ) -> tuple[dict[str, torch.Tensor], tuple[torch.Tensor, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """Codec latents of every condition and the target, the 2D tokens of each reference view, the pair's 3D
+    tokens and the text embedding (all frozen encoders)."""
     keys = list(conditions)
     device = next(backbone.transformer.parameters()).device  # the accelerator the backbone was built on
     with torch.no_grad():
@@ -219,27 +265,57 @@ def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target:
         text = backbone.text_encoder.encode([caption])
     out = {cache_keys.latent(k): latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
     out[cache_keys.latent(cache_keys.TARGET)] = latents[-1].to("cpu", dtype)
-    out[cache_keys.REF_2D], out[cache_keys.REF_3D], out[cache_keys.TEXT] = (
-        ref_2d[0].to("cpu", dtype), ref_3d[0].to("cpu", dtype), text[0].to("cpu", dtype))
-    return out
+    # The encoder returns both views' 2D tokens concatenated, first view first, each computed from its view
+    # alone (DINOv2 per view), so each half is that view's tokens in any pair.
+    first, second = ref_2d[0].to("cpu", dtype).chunk(2)
+    return out, (first.clone(), second.clone()), ref_3d[0].to("cpu", dtype), text[0].to("cpu", dtype)
+
+
+def scene_file_is_valid(path: Path, key: str, settings: str) -> bool:
+    """A scene file exists, holds ``key`` with the bytes its checksum was written for, and was made with
+    ``settings`` (another run's tokens or embeddings are not this run's)."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            if key not in f.keys() or (f.metadata() or {}).get("settings") != settings:
+                return False
+    except (SafetensorError, OSError, ValueError):
+        return False
+    return checksum_problem(path, [key]) is None
+
+
+def write_clip(scene_dir: Path, index: int, clip: EncodedClip, metadata: dict[str, str], settings: str) -> Path:
+    """Write one clip: first the scene files it indexes that are not there yet (reference tokens, text), then
+    its shard, so a finished shard always finds its scene files. Every file atomic, with checksums."""
+    for rel, key, tensor in clip.scene_files():
+        if not scene_file_is_valid(scene_dir / rel, key, settings):
+            save_safetensors_atomic({key: tensor}, scene_dir / rel, {"settings": settings})
+    path = scene_dir / cache_keys.clip_file(index)
+    save_safetensors_atomic(clip.tensors, path, {
+        **metadata, "caption": clip.caption, cache_keys.META_VIEWS: str(clip.views),
+        cache_keys.META_REFS: json.dumps(list(clip.refs)), cache_keys.META_TEXT: cache_keys.text_file(clip.caption),
+        "settings": settings})
+    return path
 
 
 def shard_is_valid(path: Path, settings: str | None = None) -> bool:
-    """A shard exists, is readable, matches the checksum written with it, holds only finite numbers and (if
-    given) was made with ``settings``.
+    """A shard exists, is readable, matches the checksum written with it, holds only finite numbers, (if
+    given) was made with ``settings``, and the scene files it indexes are there and intact.
 
     Atomic writes make partial files impossible, but a disk or a user can still change their bytes, a shard
     made with other settings is not a finished unit of this run, and one with NaN would poison training.
     """
     try:
         tensors, metadata = read_safetensors(path, fix="")
-    except InputFileError:
+        record = clip_record(path.parent.name, 0, path)
+    except (InputFileError, CacheError):
         return False
     if checksum_problem(path):
         return False
     made_with = metadata.get("settings")
-    return (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)
-            and not non_finite_keys(tensors))
+    if not (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)
+            and not non_finite_keys(tensors)):
+        return False
+    return all(scene_file_is_valid(file, key, made_with) for file, key in record.conditioning_files())
 
 
 def restorer_pipeline(backbone: Backbone):
@@ -255,14 +331,16 @@ def restorer_pipeline(backbone: Backbone):
 
 def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
               ground_truth: torch.Tensor | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-              path: Path, settings: str) -> None:
-    """Pseudo-target, encoding and shard of one rendered clip (each condition's PSNR vs GT in its metadata)."""
+              scene_dir: Path, settings: str, sheet: Path | None = None) -> None:
+    """Pseudo-target, encoding and files of one rendered clip (each condition's PSNR vs GT in its metadata);
+    with ``sheet``, the contact sheet of its frames too (before its shard, so a finished shard has its sheet)."""
     cameras: list[Camera] = clip["cameras"]
+    views = clip["views"]
     a, b = clip["refs"]
     ref_images = torch.stack([plan.scene.load_image(a), plan.scene.load_image(b)])
-    # One caption per clip, from the first frame of its sparsest, earliest-snapshot R_s (the paper does not
-    # say which of the several R_s of a clip; the most degraded one is what deployment renders first).
-    student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
+    # One caption per clip, from the first frame of its earliest-snapshot R_s (the paper does not say which of
+    # the clip's R_s; the most degraded one is what deployment from K views renders first).
+    student = condition_key(views, min(cfg.student_snapshots))
     caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
     if cfg.pseudo_target == "gt":
         target = ground_truth
@@ -273,21 +351,24 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
                                   seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"),
                                   guidance_scale=cfg.pseudo_target_guidance)[0]
         target = target.clamp(0, 1).cpu()
-    tensors = encode_clip(backbone, conditions, target, ref_images, caption, getattr(torch, cfg.latent_dtype))
-    for key, frames in conditions.items():
-        tensors[cache_keys.frames(key)] = to_uint8(frames)
-    tensors[cache_keys.frames(cache_keys.TARGET)] = to_uint8(target)
-    tensors[cache_keys.frames(cache_keys.REFERENCE)] = to_uint8(ref_images)
+    tensors, ref_2d, ref_3d, text = encode_clip(backbone, conditions, target, ref_images, caption,
+                                                getattr(torch, cfg.latent_dtype))
+    pixels = {**conditions, cache_keys.TARGET: target, cache_keys.REFERENCE: ref_images}
     if ground_truth is not None:
-        tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)] = to_uint8(ground_truth)
+        pixels[cache_keys.GROUND_TRUTH] = ground_truth
+    if sheet is not None:
+        contact_sheet(pixels, sheet, [k for k in (student, dense_condition(cfg)) if k is not None])
+    if frames_stored(cfg):
+        tensors.update({cache_keys.frames(key): to_uint8(frames) for key, frames in pixels.items()})
     tensors[cache_keys.POSES] = torch.stack([c.world_to_camera for c in cameras]).float()
     tensors[cache_keys.INTRINSICS] = torch.stack([c.K for c in cameras]).float()
     psnr = {}
     if ground_truth is not None:
         psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
-    metadata = {"scene": plan.scene.name, "clip": str(index), "caption": caption, "refs": json.dumps([a, b]),
-                "pseudo_target": cfg.pseudo_target, "psnr_vs_gt": json.dumps(psnr), "settings": settings}
-    save_safetensors_atomic(tensors, path, metadata)
+    metadata = {"scene": plan.scene.name, "clip": str(index), "pseudo_target": cfg.pseudo_target,
+                "psnr_vs_gt": json.dumps(psnr)}
+    write_clip(scene_dir, index, EncodedClip(tensors, views, (a, b), caption, ref_2d, ref_3d, text), metadata,
+               settings)
 
 
 def dense_condition(cfg: PrepareConfig) -> str | None:
@@ -304,13 +385,11 @@ def read_shard_psnr(path: Path) -> dict[str, float]:
         return json.loads(f.metadata().get("psnr_vs_gt", "{}"))
 
 
-def contact_sheet(shard: Path, out: Path, columns: list[str]) -> None:
-    """PNG with one row per frame of a clip: the listed conditions, then the target (and ground truth when known)."""
-    with safe_open(str(shard), framework="pt") as f:
-        keys = [cache_keys.frames(k) for k in (*columns, cache_keys.TARGET)]
-        if cache_keys.frames(cache_keys.GROUND_TRUTH) in f.keys():
-            keys.append(cache_keys.frames(cache_keys.GROUND_TRUTH))
-        frames = [f.get_tensor(k) for k in keys]
+def contact_sheet(pixels: dict[str, torch.Tensor], out: Path, columns: list[str]) -> None:
+    """PNG with one row per frame of a clip: the listed conditions, then the target (and ground truth when
+    known), from the clip's frames in [0, 1] as rendered (so a cache without stored frames has its sheet)."""
+    keys = [*columns, cache_keys.TARGET] + ([cache_keys.GROUND_TRUTH] if cache_keys.GROUND_TRUTH in pixels else [])
+    frames = [to_uint8(pixels[k]) for k in keys]
     rows = torch.cat([torch.cat([c[i] for c in frames], dim=2) for i in range(frames[0].shape[0])], dim=1)
     with atomic_write(out) as tmp:
         Image.fromarray(rows.permute(1, 2, 0).numpy()).save(tmp, format="PNG")
@@ -369,6 +448,12 @@ def condition_paths(plan: ScenePlan, cfg: PrepareConfig) -> dict[str, tuple[Path
     return paths
 
 
+def clip_condition_keys(cfg: PrepareConfig, views: int) -> list[str]:
+    """The conditions a K-view clip holds: its own K's student snapshots and every teacher condition."""
+    return ([condition_key(views, snapshot) for snapshot in cfg.student_snapshots]
+            + [condition_key(count) for count in teacher_view_counts(cfg)])
+
+
 def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, tuple[Path, int]],
                       cfg: PrepareConfig) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
     """Frames [F,3,H,W] (on the CPU) of every condition along one clip, rendered by deployment's clip path
@@ -397,11 +482,13 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
                        pool: ProcessPoolExecutor | None) -> SceneClips:
     """Submit the renders of one scene's unfinished clips (to the worker processes when there are some)."""
     clips = clip_cameras(plan, cfg)
-    shard_paths = [Path(cfg.cache_dir) / plan.scene.name / f"clip_{c:03d}.safetensors" for c in range(len(clips))]
+    shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
     todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
     paths = condition_paths(plan, cfg)
-    rendered = run_units(pool, render_conditions, [(plan, clips[c]["cameras"], paths, cfg) for c in todo])
+    rendered = run_units(pool, render_conditions, [
+        (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg)
+        for c in todo])
     return SceneClips(clips, shard_paths, settings, todo, rendered)
 
 
@@ -425,17 +512,20 @@ def prepare_all_scenes(plans: list[ScenePlan], cfg: PrepareConfig, backbone: Bac
 
 def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipeline, scene_clips: SceneClips,
                   progress: Progress) -> dict:
-    """The clips, scene file and contact sheet of one scene (its renders submitted); returns its manifest entry."""
+    """The clips, scene file and contact sheet (of the first clip, made with it) of one scene (its renders
+    submitted); returns its manifest entry."""
     name = plan.scene.name
     cache_dir = Path(cfg.cache_dir)
     clips, shard_paths, todo = scene_clips.clips, scene_clips.shard_paths, scene_clips.todo
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     plain = PlainProgress(f"{name}: clips", len(todo))
+    sheet = cache_dir / name / "contact_sheet.png" if cfg.contact_sheet else None
     for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, scene_clips.rendered), 1):
-        save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, shard_paths[c],
-                  scene_clips.settings)
+        save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, cache_dir / name,
+                  scene_clips.settings, sheet if c == 0 else None)
         progress.advance(clip_task)
         plain.update(done)
+    remove_unindexed_scene_files(cache_dir / name, shard_paths)
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
@@ -446,12 +536,9 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         "world_to_camera": [c.world_to_camera.tolist() for c in plan.scene.cameras],
         "size": [plan.scene.cameras[0].height, plan.scene.cameras[0].width],
         "clip_refs": [clip["refs"] for clip in clips],
+        "clip_views": [clip["views"] for clip in clips],
     }
     write_if_changed(scene_info, scene_file)
-    student = condition_key(min(cfg.student_views), min(cfg.student_snapshots))
-    sheet = cache_dir / name / "contact_sheet.png"
-    if cfg.contact_sheet and (cfg.force or todo or not sheet.is_file()):
-        contact_sheet(shard_paths[0], sheet, [k for k in (student, dense_condition(cfg)) if k is not None])
     psnr: dict[str, list[float]] = {}
     for path in shard_paths:
         for key, value in read_shard_psnr(path).items():
@@ -462,6 +549,15 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         "clips": [str(p.relative_to(cache_dir)) for p in shard_paths],
         "psnr_vs_gt": {k: float(np.mean(v)) for k, v in psnr.items()},
     }
+
+
+def remove_unindexed_scene_files(scene_dir: Path, shard_paths: list[Path]) -> None:
+    """Delete reference-token and text files no clip indexes any more (left by a run with other settings)."""
+    indexed = {path for shard in shard_paths for path, _ in clip_record(scene_dir.name, 0, shard).conditioning_files()}
+    for folder in {path.parent for path in indexed}:
+        for path in folder.glob("*.safetensors"):
+            if path not in indexed:
+                path.unlink()
 
 
 def write_if_changed(data: dict, path: Path) -> None:
@@ -475,16 +571,17 @@ def write_if_changed(data: dict, path: Path) -> None:
     write_json_atomic(data, path)
 
 
-def manifest_header(cfg: PrepareConfig, backbone: Backbone) -> dict:
+def manifest_header(cfg: PrepareConfig, backbone_name: str) -> dict:
     return {
-        "version": 1,
+        "version": CACHE_VERSION,
         "student_views": list(cfg.student_views),
         "student_snapshots": list(cfg.student_snapshots),
         "teacher_views": sorted({view_set_key(v) for v in teacher_view_counts(cfg)}, key=_view_order),
         "final_snapshot": cfg.fit.iterations,
         "frames_per_clip": cfg.frames_per_clip,
+        "frames_stored": frames_stored(cfg),
         "pseudo_target": cfg.pseudo_target,
-        "backbone": backbone.cfg.name,
+        "backbone": backbone_name,
     }
 
 
@@ -570,7 +667,7 @@ def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, sourc
     with Progress(disable=not progress) as bar:
         fit_all(plans, prepare, pool, bar)
         entries = prepare_all_scenes(plans, prepare, backbone, pipeline, pool, bar)
-    manifest = {**manifest_header(prepare, backbone), "scenes": entries}
+    manifest = {**manifest_header(prepare, backbone.cfg.name), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
     write_if_changed(manifest, path)
     return path

@@ -26,7 +26,7 @@ from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render_clip
-from tracegs.splat.trajectory import reference_pairs, round_trajectory
+from tracegs.splat.trajectory import round_clips
 
 
 def pseudo_weight(j: int, first_repair: int, total: int, lambda_reg: float = 1.0) -> float:
@@ -58,11 +58,9 @@ def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_i
     whose two ends are observed reference views (their captured images become the clip's references).
     Frames come from ``render_clip`` and captions from ``clip_caption`` on each clip's first frame, as in
     prepare; ``caption`` is the scene's own caption (its caption.txt, "" when it has none)."""
-    cameras = [v.camera for v in captured]
-    pairs = reference_pairs(len(captured), cfg.max_clips_per_round, generator)
-    clip_cameras = round_trajectory(cameras, pairs, round_index, cfg.trajectory, generator)
     clips = []
-    for (a, b), cams in zip(pairs, clip_cameras):
+    for (a, b), cams in round_clips([v.camera for v in captured], round_index, cfg.trajectory,
+                                    cfg.max_clips_per_round, generator):
         frames = render_clip(fitter.model, cams, fit_cfg, fitter.iteration)
         clips.append(Clip(frames=frames, cameras=list(cams), references=torch.stack([captured[a].image,
                                                                                         captured[b].image]),

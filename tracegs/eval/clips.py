@@ -1,9 +1,10 @@
 """Restoration quality on held-out paired clips: is a restorer's output closer to ground truth than its input?
 
 The clips come from a cache that ``prepare`` built for scenes no restorer was trained on (the benchmark's
-test scenes). For every student condition R_s (K views, snapshot) of every clip the restorer runs its full
-deployment schedule from the cached latents; the decoded output and the input R_s are both scored against the
-clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
+test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split). Every clip
+belongs to one student view count K; for each of its student conditions R_s (K views, snapshot) the restorer
+runs its full deployment schedule from the cached latents; the decoded output and the input R_s are both
+scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
 evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
 """
 
@@ -15,13 +16,19 @@ from pathlib import Path
 
 import torch
 from rich.progress import track
-from safetensors import safe_open
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.data import cache_keys
-from tracegs.data.cache_keys import condition_key
-from tracegs.data.datamodule import CacheError, read_manifest, verify_shard
+from tracegs.data.datamodule import (
+    CacheError,
+    ClipRecord,
+    manifest_clips,
+    read_conditioning,
+    read_manifest,
+    read_tensors,
+    verify_clip,
+)
 from tracegs.eval.per_step import mean_curves, per_step_psnr
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -48,25 +55,23 @@ def _scene_mean(per_scene: Mapping[str, list[float]]) -> float:
     return sum(sum(v) / len(v) for v in per_scene.values()) / len(per_scene)
 
 
-def held_out_clips(cache_dir: str | Path) -> tuple[list[str], list[tuple[str, Path]]]:
-    """The student condition keys of a prepared cache and its (scene, shard path) list, in manifest order; every
-    shard is verified against its checksum first, so a damaged one stops the evaluation before any work."""
+def held_out_clips(cache_dir: str | Path) -> list[ClipRecord]:
+    """The clips of a prepared cache, in manifest order; every shard and the scene files it indexes are verified
+    against their checksums first, so a damaged one stops the evaluation before any work."""
     manifest = read_manifest(cache_dir)
-    conditions = [condition_key(k, s) for k in manifest["student_views"] for s in manifest["student_snapshots"]]
-    shards = [(scene, Path(cache_dir) / rel) for scene, entry in manifest["scenes"].items() for rel in entry["clips"]]
-    for _, path in shards:
-        verify_shard(path)
-    return conditions, shards
+    clips = manifest_clips(cache_dir, manifest, list(manifest["scenes"]))
+    for clip in clips:
+        verify_clip(clip)
+    return clips
 
 
-def load_clip(path: Path) -> tuple[dict[str, Tensor], dict[str, str]]:
-    """One held-out shard's tensors and metadata, read in one pass; it must carry ground-truth frames."""
-    with safe_open(str(path), framework="pt") as handle:
-        tensors = {key: handle.get_tensor(key) for key in handle.keys()}
-        metadata = handle.metadata() or {}
-    if cache_keys.frames(cache_keys.GROUND_TRUTH) not in tensors:
-        raise CacheError(f"{path}: no ground-truth frames; clip quality needs a scene with known ground truth")
-    return tensors, metadata
+def load_clip(clip: ClipRecord) -> dict[str, Tensor]:
+    """One held-out clip's tensors with its reference tokens and text embedding gathered; it must carry
+    ground-truth frames."""
+    if cache_keys.frames(cache_keys.GROUND_TRUTH) not in clip.keys:
+        raise CacheError(f"{clip.path}: no ground-truth frames; clip quality needs a scene with known ground truth "
+                         "and a cache prepared with frames (data.prepare.store_frames)")
+    return {**read_tensors(clip.path, sorted(clip.keys)), **read_conditioning(clip)}
 
 
 def restore_clip(pipeline: RestorationPipeline, tensors: dict[str, Tensor], keys: list[str], seed: int) -> Tensor:
@@ -91,10 +96,11 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     Returns ``{"conditions": {cond: {label: psnr}}, "mean": {label: psnr}, "clips": n, "scenes": [...]}``
     where ``label`` is ``"input"`` or a key of ``pipelines``; ``mean`` averages over conditions.
     """
-    conditions, shards = held_out_clips(cache_dir)
+    shards = held_out_clips(cache_dir)
     scores: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
-    for index, (scene, path) in enumerate(track(shards, description="held-out clips", disable=not progress)):
-        tensors, _ = load_clip(path)
+    for index, clip in enumerate(track(shards, description="held-out clips", disable=not progress)):
+        scene, conditions = clip.scene, clip.conditions()
+        tensors = load_clip(clip)
         truth = trajectory_frames(tensors, cache_keys.GROUND_TRUTH)
         for cond in conditions:
             scores[cond][INPUT][scene].append(mean_psnr(trajectory_frames(tensors, cond), truth))
@@ -105,7 +111,7 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}
     labels = [INPUT, *pipelines]
-    scenes = sorted({scene for scene, _ in shards})
+    scenes = sorted({clip.scene for clip in shards})
     return {
         "conditions": per_condition,
         "mean": {label: sum(row[label] for row in per_condition.values()) / len(per_condition) for label in labels},
@@ -130,14 +136,15 @@ def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache
 def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
                          seed: int = 0, progress: bool = True) -> list[tuple[str, dict[str, list[float]]]]:
     """(scene, each pipeline's per-step curve averaged over the student conditions) of every held-out clip."""
-    conditions, shards = held_out_clips(cache_dir)
     curves = []
-    for index, (scene, path) in enumerate(track(shards, description="per-step curves", disable=not progress)):
-        tensors, metadata = load_clip(path)
+    for index, clip in enumerate(track(held_out_clips(cache_dir), description="per-step curves",
+                                       disable=not progress)):
+        scene, conditions = clip.scene, clip.conditions()
+        tensors = load_clip(clip)
         frames = torch.stack([_pixels(tensors[cache_keys.frames(c)]) for c in conditions])
         truth = _pixels(tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)]).expand(len(conditions), -1, -1, -1, -1)
         refs = _pixels(tensors[cache_keys.frames(cache_keys.REFERENCE)]).expand(len(conditions), -1, -1, -1, -1)
-        caption = metadata.get("caption", "")
+        caption = clip.metadata.get("caption", "")
         curves.append((scene, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
                                                     seed=seed + index)
                                for label, pipeline in pipelines.items()}))

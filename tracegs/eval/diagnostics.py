@@ -33,6 +33,7 @@ from torch import Tensor
 
 from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
+from tracegs.data.datamodule import ClipRecord
 from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, trajectory_frames
 from tracegs.eval.trajectory import ClipEncodings, Role, trajectory_diagnostics
 from tracegs.processes import die_with_parent, run_units
@@ -60,29 +61,29 @@ class _ClipJob:
 
     backbone: Backbone
     variants: Mapping[str, VariantRoles]
-    conditions: list[str]
     seed: int
     steps: int | None
 
     @torch.no_grad()
-    def __call__(self, index: int, path: Path) -> dict[str, dict]:
-        tensors, _ = load_clip(path)
-        batch = len(self.conditions)
+    def __call__(self, index: int, clip: ClipRecord) -> dict[str, dict]:
+        tensors = load_clip(clip)
+        conditions = clip.conditions()
+        batch = len(conditions)
         truth = trajectory_frames(tensors, cache_keys.GROUND_TRUTH)
         shared = ClipEncodings(
             *(tensors[key].float().expand(batch, -1, -1) for key in (cache_keys.REF_2D, cache_keys.REF_3D,
                                                                       cache_keys.TEXT)),
             truth=truth.unsqueeze(0).expand(batch, -1, -1, -1, -1))
         clean = tensors[cache_keys.latent(cache_keys.TARGET)].float().unsqueeze(0)
-        student_cond = _clip_batch(tensors, self.conditions)
-        input_psnr = sum(mean_psnr(trajectory_frames(tensors, c), truth) for c in self.conditions) / batch
+        student_cond = _clip_batch(tensors, conditions)
+        input_psnr = sum(mean_psnr(trajectory_frames(tensors, c), truth) for c in conditions) / batch
         records = {}
         for name, roles in self.variants.items():
             teacher = None
             if roles.distilled:
                 key = condition_key(roles.teacher_views)
                 if cache_keys.latent(key) not in tensors:
-                    raise KeyError(f"{path}: no teacher condition {key} for variant {name} (prepare the held-out "
+                    raise KeyError(f"{clip.path}: no teacher condition {key} for variant {name} (prepare the held-out "
                                    "cache with data.prepare.dense_views and student_final_fits covering it)")
                 teacher = Role(roles.teacher, _clip_batch(tensors, [key] * batch))
             result = trajectory_diagnostics(self.backbone, Role(roles.student, student_cond), shared,
@@ -102,8 +103,8 @@ def _start_worker(parent_pid: int) -> None:
     torch.set_num_threads(1)
 
 
-def _forked_clip(index: int, path: Path) -> dict[str, dict]:
-    return _FORKED_JOB(index, path)
+def _forked_clip(index: int, clip: ClipRecord) -> dict[str, dict]:
+    return _FORKED_JOB(index, clip)
 
 
 def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles], cache_dir: str | Path,
@@ -119,12 +120,11 @@ def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles
     clips (and conditions), the unit of the report's intervals over scenes.
     """
     global _FORKED_JOB
-    conditions, shards = held_out_clips(cache_dir)
-    prefixes = tuple(cache_keys.student_prefix(k) for k in student_views)
-    conditions = [c for c in conditions if c.startswith(prefixes)]
-    if not conditions:
-        raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
-    job = _ClipJob(backbone, variants, conditions, seed, steps)
+    shards = [clip for clip in held_out_clips(cache_dir) if clip.views in student_views]
+    if not shards:
+        raise ValueError(f"{cache_dir}: no held-out clip at {list(student_views)} views")
+    conditions = sorted({condition for clip in shards for condition in clip.conditions()})
+    job = _ClipJob(backbone, variants, seed, steps)
     # Forked workers must not inherit a CUDA context; GPU runs go one clip at a time.
     workers = 1 if next(backbone.transformer.parameters()).is_cuda else min(workers, len(shards))
     pool = None
@@ -135,11 +135,11 @@ def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles
     sums: dict = defaultdict(lambda: defaultdict(list))  # scene -> variant -> one record per clip
     try:
         results = run_units(pool, job if pool is None else _forked_clip,
-                            [(index, path) for index, (_, path) in enumerate(shards)])
-        for (scene, _), records in zip(shards, track(results, total=len(shards), description="trajectory "
+                            list(enumerate(shards)))
+        for clip, records in zip(shards, track(results, total=len(shards), description="trajectory "
                                                      "diagnostics", disable=not progress)):
             for name, record in records.items():
-                sums[scene][name].append(record)
+                sums[clip.scene][name].append(record)
     finally:
         if pool is not None:
             pool.shutdown()

@@ -40,16 +40,14 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
 
     Returns ``{"per_scene": {scene: {row: {"gt": psnr, "R_d": psnr}}}, "rows": [...], "teacher": key,
     "clips": n}`` where a row is ``"input R_d"``, ``"input R_s"`` or ``"<label> | R_d"`` / ``"<label> | R_s"``;
-    R_s rows average the student conditions of a clip.
+    R_s rows average the student conditions of a clip (those of its own student view count K).
     """
-    conditions, shards = held_out_clips(cache_dir)
+    shards = held_out_clips(cache_dir)
     if student_views is not None:
-        prefixes = tuple(cache_keys.student_prefix(k) for k in student_views)
-        conditions = [c for c in conditions if c.startswith(prefixes)]
-        if not conditions:
+        shards = [clip for clip in shards if clip.views in student_views]
+        if not shards:
             raise ValueError(f"{cache_dir}: no student condition at {list(student_views)} views")
     teacher = condition_key(teacher_views)
-    keys = [teacher, *conditions]
     # scores[row][reference][scene] -> one value per clip
     scores: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
 
@@ -60,11 +58,13 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
             if target is not None:
                 scores[row][reference][scene].append(sum(mean_psnr(f, target) for f in frames) / len(frames))
 
-    for index, (scene, path) in enumerate(track(shards, description="privileged gap", disable=not progress)):
-        tensors, _ = load_clip(path)
-        if cache_keys.latent(teacher) not in tensors:
-            raise KeyError(f"{path}: no teacher condition {teacher} (prepare with data.prepare.dense_views "
+    for index, clip in enumerate(track(shards, description="privileged gap", disable=not progress)):
+        scene, conditions = clip.scene, clip.conditions()
+        keys = [teacher, *conditions]
+        if cache_keys.latent(teacher) not in clip.keys:
+            raise KeyError(f"{clip.path}: no teacher condition {teacher} (prepare with data.prepare.dense_views "
                            "including the teacher's views)")
+        tensors = load_clip(clip)
         truth, dense = trajectory_frames(tensors, cache_keys.GROUND_TRUTH), trajectory_frames(tensors, teacher)
         record(f"input {TEACHER}", scene, [dense], truth, None)
         record(f"input {STUDENT}", scene, [trajectory_frames(tensors, c) for c in conditions], truth, dense)
@@ -72,9 +72,9 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
             restored = restore_clip(pipeline, tensors, keys, seed + index)
             record(f"{label} | {TEACHER}", scene, [restored[0]], truth, dense)
             record(f"{label} | {STUDENT}", scene, list(restored[1:]), truth, dense)
-    scenes = sorted({scene for scene, _ in shards})
+    scenes = sorted({clip.scene for clip in shards})
     return {
-        "conditions": conditions,
+        "conditions": sorted({c for clip in shards for c in clip.conditions()}, key=cache_keys.student_order),
         "per_scene": {scene: {row: {ref: sum(v[scene]) / len(v[scene]) for ref, v in by_ref.items()}
                               for row, by_ref in scores.items()} for scene in scenes},
         "rows": list(scores),

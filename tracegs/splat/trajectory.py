@@ -170,8 +170,8 @@ def round_trajectory(references: Sequence[Camera], pairs: Sequence[tuple[int, in
                      cfg: TrajectoryConfig, generator: torch.Generator | None = None) -> list[list[Camera]]:
     """Clips of repair round ``round_index`` (supplement A.5), the one rule prepare and deployment share.
 
-    The round's ellipse is fitted to the reference views ``references`` (the captured V_s at deployment,
-    the smallest sparse set in prepare), with the round's scale and height variation (``round_shape``) and a
+    The round's ellipse is fitted to the reference views ``references`` (the captured V_s at deployment, a
+    training clip's own K-view set in prepare), with the round's scale and height variation (``round_shape``) and a
     random vertical phase drawn from ``generator``. Per pair (a, b) of indices into ``references``, one clip
     from reference a to reference b whose middle follows the ellipse the shorter way round from the pose
     nearest a to the pose nearest b. Chained pairs (``reference_pairs``) cover the whole 360 degrees.
@@ -186,3 +186,12 @@ def round_trajectory(references: Sequence[Camera], pairs: Sequence[tuple[int, in
         arc = shorter_arc(_nearest(ellipse, references[a]), _nearest(ellipse, references[b]), len(ellipse))
         clips.append(make_clip(references[a], references[b], [ellipse[i] for i in arc], cfg.frames_per_clip))
     return clips
+
+
+def round_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryConfig, max_clips: int | None,
+                generator: torch.Generator) -> list[tuple[tuple[int, int], list[Camera]]]:
+    """(reference pair, cameras) of every clip of round ``round_index`` given the K reference views: the
+    round's pairs (``reference_pairs``) and their clips (``round_trajectory``), drawn in that order from
+    ``generator``. Deployment calls it with the captured views, prepare with a training clip's K-view set."""
+    pairs = reference_pairs(len(references), max_clips, generator)
+    return list(zip(pairs, round_trajectory(references, pairs, round_index, cfg, generator)))

@@ -91,11 +91,12 @@ def _validate_data(cfg: DictConfig) -> None:
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
     _require(
-        prepare.split == "train" or cfg.data.source.preset == "synthetic",
+        prepare.split != "val" or cfg.data.source.preset == "synthetic",
         "data.prepare.split",
-        f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
+        "'val': only the synthetic benchmark has a validation split; a real dataset prepares 'train' or 'test'",
     )
-    if cfg.task == "prepare" and cfg.data.source.preset != "synthetic":  # training data, never benchmark scenes
+    # Training data, never benchmark scenes; the test split is the benchmark's held-out clips.
+    if cfg.task == "prepare" and cfg.data.source.preset != "synthetic" and prepare.split == "train":
         require_training_source(OmegaConf.to_object(cfg.data.source))
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
     snapshots = _check_increasing(fit.snapshot_iters, "data.prepare.fit.snapshot_iters")

@@ -113,9 +113,11 @@ class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
     cache_dir: str = "data/cache"
-    # Synthetic benchmark only: which seed list to prepare. "test" builds a held-out cache that no stage
-    # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``). "val" builds the
-    # validation cache that embedded settings are chosen on.
+    # Which scenes to prepare. "test" builds a held-out cache that no stage trains on; evaluation scores
+    # restorers on its clips (``evaluation.held_out_cache``): the synthetic test seeds, or a real dataset's test
+    # scenes with clips through captured cameras between consecutive sparse views, whose ground truth is the
+    # capture (paper silent; tracegs/data/held_out.py says why). "val" (synthetic only) builds the validation
+    # cache that embedded settings are chosen on.
     split: Split = Split.train
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])

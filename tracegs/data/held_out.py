@@ -8,8 +8,8 @@ replaces the synthesised trajectory by the capture itself:
 - for each student view count K, the K sparse views V_s of the scene's split (``data.splits``), in capture
   order (image file order), are paired as deployment chains them (``reference_pairs``: a closed loop);
 - a clip runs from one reference view to the next through the captured images between them in capture order
-  (around the loop for the closing pair), subsampled evenly to ``frames_per_clip - 2`` interior frames, none
-  of them in V_s;
+  (around the loop for the closing pair), subsampled evenly (``splits.spread_evenly``) to
+  ``frames_per_clip - 2`` interior frames, none of them in V_s;
 - its cameras are those captured cameras, its ground truth their captured images (resized as the dataset's
   images are), its conditions the K-view fits rendered at those cameras, its references the two captured
   reference images.
@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 
 from tracegs.data.colmap import Scene
-from tracegs.data.splits import SceneSplit
+from tracegs.data.splits import SceneSplit, spread_evenly
 from tracegs.splat.trajectory import reference_pairs
 
 
@@ -36,13 +36,6 @@ def between_in_capture_order(first: int, last: int, count: int, excluded: set[in
     loop of ``count`` images (the closing pair wraps past the last image), skipping ``excluded``."""
     steps = (last - first) % count or count
     return [index for index in ((first + k) % count for k in range(1, steps)) if index not in excluded]
-
-
-def spread_evenly(candidates: list[int], count: int) -> list[int]:
-    """``count`` of ``candidates`` (in order), the centres of ``count`` equal shares, as ``splits.grow_evenly``
-    places a first view set."""
-    n = len(candidates)
-    return [candidates[min(n - 1, round((i + 0.5) * n / count - 0.5))] for i in range(count)]
 
 
 def captured_clips(scene: Scene, split: SceneSplit, student_views: list[int], frames_per_clip: int) -> list[dict]:

@@ -640,7 +640,8 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
 
     With ``synthetic`` given, the benchmark is generated first (idempotent) and, unless ``source.scenes``
     names scenes, the seeds of its ``prepare.split`` are prepared (``test``: a held-out cache that only
-    evaluation reads). Every scene of the shard is loaded and split before
+    evaluation reads). A real dataset prepares its training scenes, or with ``split=test`` its test scenes'
+    held-out clips through captured cameras (``data.held_out``). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
     require_inputs(prepare)

@@ -1,11 +1,12 @@
 """Restoration quality on held-out paired clips: is a restorer's output closer to ground truth than its input?
 
 The clips come from a cache that ``prepare`` built for scenes no restorer was trained on (the benchmark's
-test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split). Every clip
+test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split): the synthetic
+test scenes, or a real dataset's test scenes through captured cameras (``data.held_out``). Every clip
 belongs to one student view count K; for each of its student conditions R_s (K views, snapshot) the restorer
 runs its full deployment schedule from the cached latents; the decoded output and the input R_s are both
-scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
-evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
+scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded,
+as everywhere in the evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
 """
 
 from __future__ import annotations

@@ -64,6 +64,17 @@ def test_scene_with_too_few_images_between_references_is_refused_before_any_work
     assert not list((tmp_path / "cache").rglob("*.safetensors")) and not list((tmp_path / "work").rglob("*.ply"))
 
 
+def test_repeating_frames_fills_a_clip_the_capture_is_too_short_for(tmp_path):
+    source, prepare = held_out_configs(tmp_path, frames_per_clip=9, views=(9,))
+    plan = plan_scene(source, replace(prepare, held_out_repeat_frames=True), "ring")
+    sparse = sorted(split_scene(load_scene(source, "ring"), source, [9]).views(9))
+    for clip in plan.captured:
+        first, *interior, last = clip["images"]
+        between = between_in_capture_order(first, last, 40, set(sparse))
+        assert len(interior) == 7 and set(interior) == set(between)  # every captured image, some repeated
+        assert [between.index(i) for i in interior] == sorted(between.index(i) for i in interior)
+
+
 def test_held_out_cache_holds_the_captured_images_as_ground_truth_and_gives_per_step_curves(tmp_path, backbone):
     source, prepare = held_out_configs(tmp_path, views=(3,))
     run_prepare(prepare, source, backbone, progress=False)

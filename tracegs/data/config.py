@@ -133,8 +133,13 @@ class PrepareConfig:
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
     # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent).
-    clips_per_scene: int = 8  # paper: 150
+    clips_per_scene: int = 8  # paper: 150 (a real dataset's held-out split: one clip per reference pair of each K)
     frames_per_clip: int = 9  # paper: 49
+    # A real dataset's held-out clip whose two reference views have fewer captured images between them than
+    # frames_per_clip - 2: False refuses the scene; True repeats captured frames evenly to fill the clip (each
+    # frame keeps its own ground truth). Paper silent; Mip-NeRF 360 captures hold 125-311 images, fewer than 47
+    # per gap at K = 6 and 9, and 49 is the frame count GSFixer's learned positional embeddings were trained at.
+    held_out_repeat_frames: bool = False
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)

@@ -38,12 +38,14 @@ def between_in_capture_order(first: int, last: int, count: int, excluded: set[in
     return [index for index in ((first + k) % count for k in range(1, steps)) if index not in excluded]
 
 
-def captured_clips(scene: Scene, split: SceneSplit, student_views: list[int], frames_per_clip: int) -> list[dict]:
+def captured_clips(scene: Scene, split: SceneSplit, student_views: list[int], frames_per_clip: int,
+                   repeat_frames: bool = False) -> list[dict]:
     """Every held-out clip of ``scene`` (construction: module docstring), K by K in ``student_views`` order:
     ``{"views": K, "refs": [a, b], "images": [a, ..., b], "cameras": [...]}``.
 
     Raises :class:`CaptureTooShortError` naming ``data.prepare.frames_per_clip`` when two consecutive reference
-    views have fewer than ``frames_per_clip - 2`` captured images between them."""
+    views have fewer than ``frames_per_clip - 2`` captured images between them, unless ``repeat_frames``, which
+    fills such a clip by repeating its captured images evenly (at least one is needed)."""
     interior = frames_per_clip - 2
     clips = []
     for views in student_views:
@@ -52,11 +54,11 @@ def captured_clips(scene: Scene, split: SceneSplit, student_views: list[int], fr
         for a, b in reference_pairs(len(references), None, torch.Generator()):
             first, last = references[a], references[b]
             candidates = between_in_capture_order(first, last, len(scene), sparse)
-            if len(candidates) < interior:
+            if len(candidates) < (1 if repeat_frames else interior):
                 raise CaptureTooShortError(
                     f"data.prepare.frames_per_clip={frames_per_clip} needs {interior} captured images between "
                     f"reference views {scene.image_names[first]} and {scene.image_names[last]} of the {views}-view "
-                    f"set, the capture has {len(candidates)}")
+                    f"set, the capture has {len(candidates)} (data.prepare.held_out_repeat_frames=true repeats them)")
             images = [first, *spread_evenly(candidates, interior), last]
             clips.append({"views": views, "refs": [first, last], "images": images,
                           "cameras": [scene.cameras[i] for i in images]})

@@ -120,7 +120,7 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
         if count in cfg.student_views:
             snapshots |= set(cfg.student_snapshots)
         fits[view_set_key(count)] = sorted(snapshots)
-    captured = (captured_clips(scene, split, list(cfg.student_views), cfg.frames_per_clip)
+    captured = (captured_clips(scene, split, list(cfg.student_views), cfg.frames_per_clip, cfg.held_out_repeat_frames)
                 if captures_held_out(source, cfg) else None)
     if cfg.pseudo_target == "gt" and captured is None and not (scene.root / GT_PLY).is_file():
         raise PrepareError(f"{scene.root / GT_PLY}: prepare.pseudo_target='gt' needs a ground-truth scene "

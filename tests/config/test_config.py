@@ -174,7 +174,7 @@ def test_wrong_type_names_the_field():
         (["data.prepare.frames_per_clip=10"], "data.prepare.frames_per_clip"),
         (["deploy.repair_iters=[140,340,700]"], "deploy.repair_iters"),
         (["data.synthetic.test_seeds=[3,100]"], "data.synthetic.test_seeds"),
-        (["data=dl3dv", "data.prepare.split=test"], "data.prepare.split"),
+        (["data=dl3dv", "data.prepare.split=val"], "data.prepare.split"),  # test: captured held-out clips
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
         (["backbone.schedule.deploy_time_power=-1"], "backbone.schedule.deploy_time_power"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),

@@ -94,9 +94,9 @@ def _validate_data(cfg: DictConfig) -> None:
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
     _require(
-        prepare.split == "train" or cfg.data.source.preset == "synthetic",
+        prepare.split != "val" or cfg.data.source.preset == "synthetic",
         "data.prepare.split",
-        f"'{prepare.split}': only the synthetic benchmark has a held-out split with ground truth",
+        "'val': only the synthetic benchmark has a validation split; a real dataset prepares 'train' or 'test'",
     )
     _validate_training_data(cfg)
     fit = prepare.fit  # the one 3DGS optimiser config (splat group), used by preparation and deployment
@@ -148,11 +148,13 @@ def _validate_training_data(cfg: DictConfig) -> None:
         _require(cfg.data.name == cfg.training_data, "training_data",
                  f"{cfg.training_data!r}, but this run trains on data={cfg.data.name}: the restorers train on "
                  f"the training data; set training_data={cfg.data.name} here and for the commands that use them")
-    # Never benchmark scenes: prepare reads the scene lists; training, which reads the cache, refuses from the
-    # config alone a dataset with no training list (a benchmark's every scene).
+    # Never benchmark scenes: preparing training clips reads the scene lists (the test split is the benchmark's
+    # held-out clips); training, which reads the cache, refuses from the config alone a dataset with no training
+    # list (a benchmark's every scene).
     source = cfg.data.source
     unlisted = source.scenes is None and source.train_list is None
-    if source.preset != "synthetic" and (cfg.task == "prepare" or (cfg.task == "train" and unlisted)):
+    preparing_training = cfg.task == "prepare" and cfg.data.prepare.split == "train"
+    if source.preset != "synthetic" and (preparing_training or (cfg.task == "train" and unlisted)):
         require_training_source(OmegaConf.to_object(source))
 
 

@@ -113,9 +113,11 @@ class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
     cache_dir: str = "data/cache"
-    # Synthetic benchmark only: which seed list to prepare. "test" builds a held-out cache that no stage
-    # trains on; evaluation scores restorers on its clips (``evaluation.held_out_cache``). "val" builds the
-    # validation cache that embedded settings are chosen on.
+    # Which scenes to prepare. "test" builds a held-out cache that no stage trains on; evaluation scores
+    # restorers on its clips (``evaluation.held_out_cache``): the synthetic test seeds, or a real dataset's test
+    # scenes with clips through captured cameras between consecutive sparse views, whose ground truth is the
+    # capture (paper silent; tracegs/data/held_out.py says why). "val" (synthetic only) builds the validation
+    # cache that embedded settings are chosen on.
     split: Split = Split.train
     work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
@@ -131,8 +133,13 @@ class PrepareConfig:
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
     # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent).
-    clips_per_scene: int = 8  # paper: 150
+    clips_per_scene: int = 8  # paper: 150 (a real dataset's held-out split: one clip per reference pair of each K)
     frames_per_clip: int = 9  # paper: 49
+    # A real dataset's held-out clip whose two reference views have fewer captured images between them than
+    # frames_per_clip - 2: False refuses the scene; True repeats captured frames evenly to fill the clip (each
+    # frame keeps its own ground truth). Paper silent; Mip-NeRF 360 captures hold 125-311 images, fewer than 47
+    # per gap at K = 6 and 9, and 49 is the frame count GSFixer's learned positional embeddings were trained at.
+    held_out_repeat_frames: bool = False
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)

@@ -43,6 +43,7 @@ from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
 from tracegs.data.datamodule import CacheError, clip_record
+from tracegs.data.held_out import captured_clips
 from tracegs.data.splits import SceneSplit, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -81,11 +82,19 @@ class PrepareError(ValueError):
 
 @dataclass
 class ScenePlan:
-    """A validated scene: its data, split and the fits it needs (view-set key -> snapshot iterations)."""
+    """A validated scene: its data, split and the fits it needs (view-set key -> snapshot iterations); for a
+    captured scene's held-out split, its clips through captured cameras (``data.held_out``)."""
 
     scene: Scene
     split: SceneSplit
     fits: dict[str, list[int]]
+    captured: list[dict] | None = None
+
+
+def captures_held_out(source: SceneSourceConfig, cfg: PrepareConfig) -> bool:
+    """Whether a scene's clips run through its captured cameras (the held-out split of a real dataset, whose only
+    ground truth is the capture) rather than along deployment's synthesised trajectory."""
+    return cfg.split == Split.test and source.preset != "synthetic"
 
 
 def _view_counts(cfg: PrepareConfig) -> list[int | None]:
@@ -111,10 +120,12 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
         if count in cfg.student_views:
             snapshots |= set(cfg.student_snapshots)
         fits[view_set_key(count)] = sorted(snapshots)
-    if cfg.pseudo_target == "gt" and not (scene.root / GT_PLY).is_file():
+    captured = (captured_clips(scene, split, list(cfg.student_views), cfg.frames_per_clip, cfg.held_out_repeat_frames)
+                if captures_held_out(source, cfg) else None)
+    if cfg.pseudo_target == "gt" and captured is None and not (scene.root / GT_PLY).is_file():
         raise PrepareError(f"{scene.root / GT_PLY}: prepare.pseudo_target='gt' needs a ground-truth scene "
-                           "(only synthetic scenes have one); use 'restorer' or 'dense'")
-    return ScenePlan(scene, split, fits)
+                           "(synthetic scenes, or a real dataset's held-out split); use 'restorer' or 'dense'")
+    return ScenePlan(scene, split, fits, captured)
 
 
 def require_inputs(cfg: PrepareConfig) -> None:
@@ -197,7 +208,10 @@ def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
     """Clip trajectories by deployment's rule: a K-view clip is a clip of ``round_clips`` (with ``cfg.trajectory``,
     the deployment's trajectory config) on the K-view set, exactly as deployment from those K captured views
     makes it (every reference pair per round, as the paper scale deploys), rounds 0, 1, ... drawn from one
-    generator per (scene, K) until that K has its share of the clips (``clip_view_counts``)."""
+    generator per (scene, K) until that K has its share of the clips (``clip_view_counts``). A captured scene's
+    held-out clips are its planned clips through captured cameras instead (every reference pair of every K)."""
+    if plan.captured is not None:
+        return plan.captured
     scene = plan.scene
     counts = clip_view_counts(cfg, scene.name)
     per_count: dict[int, Iterator[dict]] = {}
@@ -455,13 +469,17 @@ def clip_condition_keys(cfg: PrepareConfig, views: int) -> list[str]:
 
 
 def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, tuple[Path, int]],
-                      cfg: PrepareConfig) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+                      cfg: PrepareConfig, images: list[int] | None = None
+                      ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
     """Frames [F,3,H,W] (on the CPU) of every condition along one clip, rendered by deployment's clip path
-    (``render_clip``), and of ground truth when the scene has it (on the background it was made with)."""
+    (``render_clip``), and of ground truth when the scene has it: the captured ``images`` the cameras are those
+    of, or the ground-truth scene rendered on the background it was made with."""
     conditions = {key: render_clip(load_ply(path), cameras, cfg.fit, iteration).cpu()
                   for key, (path, iteration) in paths.items()}
     ground_truth = None
-    if (plan.scene.root / GT_PLY).is_file():
+    if images is not None:
+        ground_truth = torch.stack([plan.scene.load_image(i) for i in images])
+    elif (plan.scene.root / GT_PLY).is_file():
         ground_truth = torch.stack(render_images(ground_truth_model(plan.scene), cameras,
                                                  scene_background(plan.scene)))
     return conditions, ground_truth
@@ -487,8 +505,8 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
     todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [
-        (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg)
-        for c in todo])
+        (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg,
+         clips[c].get("images")) for c in todo])
     return SceneClips(clips, shard_paths, settings, todo, rendered)
 
 
@@ -622,7 +640,8 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
 
     With ``synthetic`` given, the benchmark is generated first (idempotent) and, unless ``source.scenes``
     names scenes, the seeds of its ``prepare.split`` are prepared (``test``: a held-out cache that only
-    evaluation reads). Every scene of the shard is loaded and split before
+    evaluation reads). A real dataset prepares its training scenes, or with ``split=test`` its test scenes'
+    held-out clips through captured cameras (``data.held_out``). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
     require_inputs(prepare)
@@ -649,7 +668,7 @@ def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, sourc
         generate_benchmark(synthetic, splits=(prepare.split,), progress=progress, pool=pool)
         names = list(source.scenes) if source.scenes is not None else benchmark_scene_names(synthetic, prepare.split)
     else:
-        names = list_scenes(source, "train")
+        names = list_scenes(source, "test" if captures_held_out(source, prepare) else "train")
     names = shard_scenes(names, prepare.shard_index, prepare.num_shards)
     if not names:
         raise PrepareError(f"{source.root}: no scenes for shard {prepare.shard_index}/{prepare.num_shards}")

@@ -65,6 +65,18 @@ def every_nth_test(num_images: int, test_every: int) -> list[int]:
     return list(range(0, num_images, test_every))
 
 
+def even_centres(n: int, count: int) -> list[float]:
+    """Positions ``(i + 1/2) n / count - 1/2`` of the centres of ``count`` equal shares of ``n`` items."""
+    return [(i + 0.5) * n / count - 0.5 for i in range(count)]
+
+
+def spread_evenly(candidates: Sequence[int], count: int) -> list[int]:
+    """The ``count`` of ``candidates`` nearest the centres of ``count`` equal shares, in candidate order
+    (distinct when ``count <= len(candidates)``: the centres are at least one item apart)."""
+    n = len(candidates)
+    return [candidates[min(n - 1, round(c))] for c in even_centres(n, count)]
+
+
 def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> list[int]:
     """Extend ``keep`` to ``count`` indices drawn from ``candidates``, spread evenly around the capture.
 
@@ -78,9 +90,9 @@ def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> l
     if count > n:
         raise SplitError(f"asked for {count} training views but the scene has only {n}")
     position = {c: i for i, c in enumerate(candidates)}
-    centres = [(i + 0.5) * n / count - 0.5 for i in range(count)]
+    centres = even_centres(n, count)
     if not keep:
-        return sorted(candidates[min(n - 1, round(c))] for c in centres)
+        return sorted(spread_evenly(candidates, count))
 
     def loop_distance(a: float, b: float) -> float:
         return min(abs(a - b), n - abs(a - b))

@@ -1,11 +1,12 @@
 """Restoration quality on held-out paired clips: is a restorer's output closer to ground truth than its input?
 
 The clips come from a cache that ``prepare`` built for scenes no restorer was trained on (the benchmark's
-test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split). Every clip
+test scenes), with frames (``data.prepare.store_frames``, on by default for a held-out split): the synthetic
+test scenes, or a real dataset's test scenes through captured cameras (``data.held_out``). Every clip
 belongs to one student view count K; for each of its student conditions R_s (K views, snapshot) the restorer
 runs its full deployment schedule from the cached latents; the decoded output and the input R_s are both
-scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded, as everywhere in the
-evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
+scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded,
+as everywhere in the evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
 """
 
 from __future__ import annotations
@@ -127,15 +128,32 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
 @torch.no_grad()
 def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
                              seed: int = 0, progress: bool = True) -> dict[str, list[float]]:
-    """Fig. 6 on the held-out clips: each pipeline's per-step PSNR curve (``eval.per_step``), averaged over
-    every clip and student condition. The same clips, conditions and noise seeds go to every pipeline."""
-    return mean_curves([curves for _, curves in held_out_clip_curves(pipelines, cache_dir, seed, progress)])
+    """Fig. 6 on the held-out clips: each pipeline's per-step PSNR curve (``eval.per_step``), averaged across
+    view settings (``view_averaged_curves``). The same clips, conditions and noise seeds go to every pipeline."""
+    return view_averaged_curves(unit_curves(held_out_clip_curves(pipelines, cache_dir, seed, progress)))
+
+
+def unit_curves(clip_curves: list[tuple[str, int, dict[str, list[float]]]]
+                ) -> dict[tuple[str, str], dict[str, list[float]]]:
+    """Each (scene, K)'s per-step curves, the mean over its clips: the units of the intervals over scenes."""
+    units: dict[tuple[str, str], list[dict[str, list[float]]]] = defaultdict(list)
+    for scene, views, curves in clip_curves:
+        units[(scene, str(views))].append(curves)
+    return {unit: mean_curves(curves) for unit, curves in units.items()}
+
+
+def view_averaged_curves(units: Mapping[tuple[str, str], Mapping[str, list[float]]]) -> dict[str, list[float]]:
+    """Fig. 6's curve: per view setting K the mean over scenes, then the mean over the K (the caption's "averaged
+    across view settings"), so a K with more clips per scene (one per reference pair) weighs no more."""
+    views = dict.fromkeys(k for _, k in units)
+    return mean_curves([mean_curves([c for (_, k), c in units.items() if k == view]) for view in views])
 
 
 @torch.no_grad()
 def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
-                         seed: int = 0, progress: bool = True) -> list[tuple[str, dict[str, list[float]]]]:
-    """(scene, each pipeline's per-step curve averaged over the student conditions) of every held-out clip."""
+                         seed: int = 0, progress: bool = True) -> list[tuple[str, int, dict[str, list[float]]]]:
+    """(scene, student view count K, each pipeline's per-step curve averaged over the student conditions) of
+    every held-out clip."""
     curves = []
     for index, clip in enumerate(track(held_out_clips(cache_dir), description="per-step curves",
                                        disable=not progress)):
@@ -145,7 +163,7 @@ def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir
         truth = _pixels(tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)]).expand(len(conditions), -1, -1, -1, -1)
         refs = _pixels(tensors[cache_keys.frames(cache_keys.REFERENCE)]).expand(len(conditions), -1, -1, -1, -1)
         caption = clip.metadata.get("caption", "")
-        curves.append((scene, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions), truth,
-                                                    seed=seed + index)
-                               for label, pipeline in pipelines.items()}))
+        curves.append((scene, clip.views, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions),
+                                                                truth, seed=seed + index)
+                                           for label, pipeline in pipelines.items()}))
     return curves

@@ -9,11 +9,10 @@ from omegaconf import DictConfig
 from tracegs.console import show
 from tracegs.data.prepare import merge_manifests
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
-from tracegs.eval.clips import clip_restoration_psnr, held_out_clip_curves
+from tracegs.eval.clips import clip_restoration_psnr, held_out_clip_curves, unit_curves, view_averaged_curves
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 from tracegs.eval.interval_tables import write_per_step_intervals
 from tracegs.eval.merge import merge_results
-from tracegs.eval.per_step import mean_curves
 from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
 from tracegs.eval.report import plot_per_step_quality, write_ablation_report, write_held_out_report
 from tracegs.eval.seeds import seed_spread_markdown
@@ -124,14 +123,12 @@ def per_step_report(cfg: DictConfig) -> Path:
         variant_cfg = compose_run("report", [f"ablation={variant}"])
         method = variant_cfg.ablation.method
         pipelines[variant] = restorers_for_run(variant_cfg, [method])[method].pipeline
-    clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
-                                       progress=cfg.evaluation.progress)
-    curves = mean_curves([c for _, c in clip_curves])
-    by_scene = {(scene, "all"): mean_curves([c for s, c in clip_curves if s == scene])
-                for scene in dict.fromkeys(s for s, _ in clip_curves)}
+    units = unit_curves(held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                             progress=cfg.evaluation.progress))
+    curves = view_averaged_curves(units)  # Fig. 6: averaged across view settings
     out = Path(cfg.report.output_dir)
     write_json_atomic(curves, out / "per_step_variants.json")
-    bands = write_per_step_intervals(by_scene, out, "per_step_variants", pairs=list(PER_STEP_PAIRS))
+    bands = write_per_step_intervals(units, out, "per_step_variants", pairs=list(PER_STEP_PAIRS))
     figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
     for variant, curve in curves.items():
         show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))

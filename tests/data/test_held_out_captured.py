@@ -1,0 +1,94 @@
+"""Held-out clips of a captured (COLMAP) scene: captured cameras between consecutive sparse views, the captured
+images as ground truth (tracegs/data/held_out.py)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+from scene_builders import tiny_configs, write_scene
+
+from tracegs.data.colmap import load_scene
+from tracegs.data.config import SceneSourceConfig, Split
+from tracegs.data.held_out import between_in_capture_order
+from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, to_uint8
+from tracegs.data.splits import split_scene
+from tracegs.eval.clips import held_out_clips, held_out_per_step_curves, load_clip
+from tracegs.io import read_safetensors
+from tracegs.restorer.sampler import RestorationPipeline
+
+
+def held_out_configs(tmp_path, frames_per_clip: int = 5, views: tuple[int, ...] = (3, 6)):
+    root, _ = write_scene(tmp_path / "scenes" / "ring", n=40)
+    # Frames resized from the captured 36 x 24 to the configured 48 x 32, as a dataset's images are.
+    source = SceneSourceConfig(root=str(root.parent), preset="custom", scenes=["ring"], height=32, width=48)
+    _, _, tiny = tiny_configs(tmp_path)
+    prepare = replace(tiny, split=Split.test, student_views=list(views), dense_views=[], student_final_fits=False,
+                      pseudo_target="gt", frames_per_clip=frames_per_clip, store_frames=None)
+    return source, prepare
+
+
+def test_between_in_capture_order_wraps_around_for_the_closing_pair():
+    assert between_in_capture_order(2, 6, 10, {4}) == [3, 5]
+    assert between_in_capture_order(8, 1, 10, set()) == [9, 0]
+
+
+def test_clips_run_through_captured_cameras_between_consecutive_sparse_views(tmp_path):
+    source, prepare = held_out_configs(tmp_path)
+    plan = plan_scene(source, prepare, "ring")
+    scene = load_scene(source, "ring")
+    assert [clip["views"] for clip in plan.captured] == [3] * 3 + [6] * 6  # every reference pair of every K
+    for views in (3, 6):
+        sparse = sorted(split_scene(scene, source, [views]).views(views))
+        clips = [clip for clip in plan.captured if clip["views"] == views]
+        # Pairs as deployment chains them: consecutive views in capture order, closed into a loop.
+        assert [clip["refs"] for clip in clips] == [[sparse[i], sparse[(i + 1) % views]] for i in range(views)]
+        for clip in clips:
+            first, *interior, last = clip["images"]
+            assert [first, last] == clip["refs"] and len(interior) == prepare.frames_per_clip - 2
+            assert not set(interior) & set(sparse)
+            # Capture order: each interior image lies after the previous one, going forward from the first view.
+            offsets = [(i - first) % len(scene) for i in clip["images"]]
+            assert offsets == sorted(set(offsets))
+            for camera, index in zip(clip["cameras"], clip["images"]):
+                assert torch.equal(camera.world_to_camera, scene.cameras[index].world_to_camera)
+                assert torch.equal(camera.K, scene.cameras[index].K)
+
+
+def test_scene_with_too_few_images_between_references_is_refused_before_any_work(tmp_path, backbone):
+    source, prepare = held_out_configs(tmp_path, frames_per_clip=9, views=(9,))
+    with pytest.raises(PrepareError, match=r"^scene ring: data\.prepare\.frames_per_clip=9 needs 7 captured images"):
+        run_prepare(prepare, source, backbone, progress=False)
+    assert not list((tmp_path / "cache").rglob("*.safetensors")) and not list((tmp_path / "work").rglob("*.ply"))
+
+
+def test_repeating_frames_fills_a_clip_the_capture_is_too_short_for(tmp_path):
+    source, prepare = held_out_configs(tmp_path, frames_per_clip=9, views=(9,))
+    plan = plan_scene(source, replace(prepare, held_out_repeat_frames=True), "ring")
+    sparse = sorted(split_scene(load_scene(source, "ring"), source, [9]).views(9))
+    for clip in plan.captured:
+        first, *interior, last = clip["images"]
+        between = between_in_capture_order(first, last, 40, set(sparse))
+        assert len(interior) == 7 and set(interior) == set(between)  # every captured image, some repeated
+        assert [between.index(i) for i in interior] == sorted(between.index(i) for i in interior)
+
+
+def test_held_out_cache_holds_the_captured_images_as_ground_truth_and_gives_per_step_curves(tmp_path, backbone):
+    source, prepare = held_out_configs(tmp_path, views=(3,))
+    run_prepare(prepare, source, backbone, progress=False)
+    scene = load_scene(source, "ring")
+    clips = held_out_clips(prepare.cache_dir)
+    assert len(clips) == 3 and {clip.views for clip in clips} == {3}
+    plan = plan_scene(source, prepare, "ring")
+    for clip, planned in zip(clips, plan.captured):
+        tensors = load_clip(clip)
+        captured = torch.stack([scene.load_image(i) for i in planned["images"]])
+        assert torch.equal(tensors["frames/gt"], to_uint8(captured))
+        assert torch.equal(tensors["frames/ref"], to_uint8(captured[[0, -1]]))
+        assert list(clip.refs) == planned["refs"]
+        stored, _ = read_safetensors(clip.path, "")
+        assert torch.equal(stored["poses"], torch.stack([c.world_to_camera for c in planned["cameras"]]))
+    curves = held_out_per_step_curves({"E": RestorationPipeline(backbone)}, prepare.cache_dir, progress=False)
+    assert len(curves["E"]) == backbone.cfg.schedule.deploy_steps and all(map(math.isfinite, curves["E"]))

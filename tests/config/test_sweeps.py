@@ -100,10 +100,16 @@ def test_every_step_of_the_sweep_is_a_multirun_through_the_launcher(launcher):
     stage2, evaluate = embedded[3].overrides, embedded[4].overrides
     assert "ablation=B,F" in stage2 and "ablation=A,B,F" in evaluate
     assert "evaluation.methods=[${ablation.method}]" in evaluate
-    # another scale or dataset: no embedded cache, no held-out clips (Fig. 6 needs the synthetic ground truth)
-    paper = sweep_steps(variants, trained, ["experiment=paper"])
-    assert [step.app for step in paper] == ["train", "train", "train", "evaluate", "report"]
+    # another scale: no embedded cache; the other datasets are evaluated with the students of the training data,
+    # and Fig. 6 comes from their held-out clips of captured images
+    paper = sweep_steps(variants, trained, ["experiment=paper"], ["mipnerf360"])
+    assert [step.app for step in paper] == ["train", "train", "train", "evaluate", "evaluate", "report", "prepare",
+                                            "report"]
     assert all(not set(SWEEP_TEACHERS) & set(step.overrides) for step in paper)
+    out_of_domain, held_out, fig6 = paper[4].overrides, paper[6].overrides, paper[7].overrides
+    assert "data=mipnerf360" in out_of_domain and "ablation=A,B,F" in out_of_domain
+    assert {"data=mipnerf360", "data.prepare.split=test", "data.prepare.pseudo_target=gt"} <= set(held_out)
+    assert set(held_out) < set(fig6) and "report.kind=per_step" in fig6
 
 
 def test_the_sweep_script_launches_the_declared_steps_over_the_config_variants():
@@ -114,5 +120,6 @@ def test_the_sweep_script_launches_the_declared_steps_over_the_config_variants()
     run = subprocess.run(["bash", str(REPO / "launch" / "sweep_ablation.sh"), "slurm", "--dry-run", "experiment=paper"],
                          capture_output=True, text=True, timeout=300, check=True)
     lines = run.stdout.splitlines()
-    assert len(lines) == 5 and all("-m hydra/launcher=slurm experiment=paper" in line for line in lines)
+    assert len(lines) == 8 and all("-m hydra/launcher=slurm experiment=paper" in line for line in lines)
     assert "ablation=B,C,D,E,F-,F" in lines[2] and "ablation=A,B,C,D,E,F-,F" in lines[3]
+    assert "data=mipnerf360" in lines[4] and "Fig. 6 on mipnerf360" in lines[7]  # paper: report.datasets

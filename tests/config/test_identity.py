@@ -130,6 +130,8 @@ def test_a_test_scene_list_never_renames_a_trained_product(kind):
     assert run_dir([*stage, *TEST_ONLY]) == run_dir(stage)
     assert run_dir([*stage, "data.synthetic.val_seeds=[60]"]) == run_dir(stage)
     assert run_dir([*stage, "data.synthetic.train_seeds=[0,2,3]"]) != run_dir(stage)
+    # Training reads latents: frames kept in its cache for inspection leave the trained product as it is.
+    assert run_dir([*stage, "data.prepare.store_frames=true"]) == run_dir(stage)
 
 
 def test_each_cache_is_named_by_the_scenes_of_its_split():

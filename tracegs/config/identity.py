@@ -103,7 +103,10 @@ def other_splits(*splits: str) -> frozenset[str]:
 _TRAINING_KINDS = ("baseline", "stage1", "stage2", "deploy", "evaluate", "restore")
 _READ_SPLITS = {"baseline": ("train",), "stage1": ("train",), "stage2": ("train",), "deploy": ("train", "test"),
                 "evaluate": ("train", "test"), "restore": ("train",)}
-_IGNORED_PER_KIND = {kind: {"data.prepare.split", *other_splits(*_READ_SPLITS[kind])} for kind in _TRAINING_KINDS}
+# Training reads latents only: whether a cache keeps frames for inspection, or how held-out clips of short
+# captures are filled, leaves the trained restorers as they are.
+_NOT_READ_BY_TRAINING = {"data.prepare.split", "data.prepare.store_frames", "data.prepare.held_out_repeat_frames"}
+_IGNORED_PER_KIND = {kind: {*_NOT_READ_BY_TRAINING, *other_splits(*_READ_SPLITS[kind])} for kind in _TRAINING_KINDS}
 # What only Stage 2 reads: its budget, its rollout, and the deployment grid and sampler it resamples and rolls out
 # with. A and Stage 1 never read them, so a Stage-2 sweep reuses one A and one Stage-1 adapter. (Keys of *earlier*
 # stages stay in a later stage's scope: its folder is named before the earlier products are located.)

@@ -202,8 +202,8 @@ def rasterize_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, features
         anchor = 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + features.sum())
         return anchor + means2d.new_zeros(height, width, features.shape[1]), anchor + means2d.new_ones(height, width)
     power = _pair_power(means2d, conics, bins, tiles_x, tile_size)
-    out, final = _TileComposite.apply(power, opacities.index_select(0, bins.splat), features.index_select(0, bins.splat),
-                                      bins)
+    out, final = _TileComposite.apply(power, opacities.index_select(0, bins.splat),
+                                      features.index_select(0, bins.splat), bins)
 
     def untile(x: Tensor) -> Tensor:
         x = x.reshape(tiles_y, tiles_x, tile_size, tile_size, -1).permute(0, 2, 1, 3, 4)

@@ -63,7 +63,7 @@ def _label(method: str) -> str:
 
 def difference_label(a: str, b: str) -> str:
     """``TRACE-GS − A``: how a paired difference is named in every table."""
-    short = {"baseline": "A", INPUT: "input R_s"}
+    short = {"baseline": REFERENCE_VARIANT, INPUT: "input R_s"}
     return f"{short.get(a, _label(a))} − {short.get(b, _label(b))}"
 
 

@@ -16,7 +16,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tracegs.eval.conclusions import MIN_SCENES, PER_STEP_PAIRS, TABLE3_ORDERINGS, verdict
+from tracegs.eval.conclusions import (
+    METHOD_VARIANTS,
+    MIN_SCENES,
+    PER_STEP_PAIRS,
+    REFERENCE_VARIANT,
+    TABLE3_ORDERINGS,
+    verdict,
+)
 from tracegs.eval.interval_tables import (
     measured_metrics,
     per_step_intervals,
@@ -32,7 +39,8 @@ from tracegs.io import atomic_write
 # The instrument's target: the 95% interval of F - A at 3 views no wider than +-0.2 dB PSNR.
 TARGET_HALF_WIDTH_DB = 0.2
 PLAIN = "3dgs"  # plain 3DGS, the row under every variant
-REFERENCE, TRACEGS = "A", "F"  # the frozen baseline restorer and the full method (Table 3's first and last rows)
+# The frozen baseline restorer and the full method (Table 3's first and last rows).
+REFERENCE, TRACEGS = REFERENCE_VARIANT, METHOD_VARIANTS["tracegs"]
 
 
 def label(name: str) -> str:

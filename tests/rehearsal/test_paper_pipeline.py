@@ -33,7 +33,7 @@ from tracegs.data.datamodule import clip_record, read_conditioning
 from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report
-from tracegs.pipeline.steps import Step, out_of_domain_steps, restorer_steps
+from tracegs.pipeline.steps import HELD_OUT_CAPTURED, PER_STEP, Step, out_of_domain_steps, restorer_steps
 from tracegs.pipeline.train import train
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
@@ -232,10 +232,12 @@ def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data
     multirun launching its own second rank)."""
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     run_rehearsal_task(prepare, root, "prepare", BUDGET)
-    # The rehearsal's Mip-NeRF 360 root holds one of the nine published scenes, so the script runs the DL3DV
-    # column here; the out-of-domain column and Fig. 6 on captured clips are rehearsed from the same step
-    # declarations by the Table 3 test above and tests/rehearsal/test_paper_fig6.py.
-    overrides = (*TWO_PROCESSES.get(trainer, ()), *BUDGET, "report.datasets=[dl3dv]")
+    # Table 3's out-of-domain column and Fig. 6 on Mip-NeRF 360: its rehearsal root holds one scene, scene_100,
+    # which is also the DL3DV root's benchmark scene, so one test list serves both datasets.
+    (root / "data" / "mipnerf360").symlink_to(paper_data["mipnerf360"])  # where data=mipnerf360 looks
+    test_list = tmp_path / "benchmark_scenes.txt"
+    test_list.write_text("scene_100\n")
+    overrides = (*TWO_PROCESSES.get(trainer, ()), *BUDGET, f"data.source.test_list={test_list}")
     script = Path(__file__).parents[2] / "launch" / "sweep_ablation.sh"
     run = subprocess.run(["bash", str(script), "local", "experiment=rehearsal", f"paths.root_dir={root}", *overrides],
                          env=two_process_env(tmp_path), capture_output=True, text=True, timeout=5400)
@@ -243,9 +245,13 @@ def test_ablation_sweep_script_reaches_table_3_at_rehearsal(tmp_path, paper_data
     if trainer in TWO_PROCESSES:
         assert (run.stdout + run.stderr).count("Starting with 2 processes") >= 1 + 6  # Stage 1, Stage 2 B..F
     table = rehearsal_run_dir(root, "report", ("report.kind=ablation", *overrides), key="report.output_dir")
-    rows = [line.split("|")[1].strip() for line in (table / "table3.md").read_text().splitlines()[2:]
-            if line.startswith("|")]
+    lines = (table / "table3.md").read_text().splitlines()
+    rows = [line.split("|")[1].strip() for line in lines[2:] if line.startswith("|")]
     assert {"A", "B", "C", "D", "E", "F-", "F"} <= {row.split()[0].strip("()") for row in rows if row}
+    assert "DL3DV PSNR↑" in lines[0] and "Mip-NeRF 360 PSNR↑" in lines[0]
+    fig6 = rehearsal_run_dir(root, "report", ("data=mipnerf360", *HELD_OUT_CAPTURED, *PER_STEP, *overrides),
+                             key="report.output_dir")
+    assert (fig6 / "per_step_variants.json").is_file() and (fig6 / "fig6_per_step_variants.png").is_file()
 
 
 @pytest.mark.gpu

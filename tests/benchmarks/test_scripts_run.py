@@ -22,6 +22,8 @@ RUNS = {
     "restorer.py": [],
     "stage2.py": ["--rollouts", "2", "--steps", "1"],
     "cache_verify.py": ["--scenes", "1", "--repeats", "1", "--out", "{tmp}/cache"],
+    "cache_size.py": ["--out", "{tmp}"],
+    "paper_gpu_hours.py": [],
 }
 
 

@@ -115,16 +115,23 @@ def test_a_unit_scored_without_lpips_is_scored_again_once_it_can_be(scene_root, 
 
 
 def test_sharded_and_parallel_evaluation_agree(scene_root, tmp_path):
+    """Evaluation jobs of one GPU each (paper scale: ``evaluation.workers=1``) shard the units; their merged table
+    is the one-process table bit for bit, and the forked two-worker run agrees to float rounding."""
     source = SceneSourceConfig(root=str(scene_root))
     fit_cfg, refine_cfg = _configs()
     name = scene_name(SEED)
     for shard in (0, 1):
-        cfg = EvaluationConfig(out_dir=str(tmp_path / "sharded"), methods=["3dgs"], views=[3, 4],
+        cfg = EvaluationConfig(out_dir=str(tmp_path / "sharded"), methods=["3dgs"], views=[3, 4], workers=1,
                                shard_index=shard, num_shards=2, save_media=False, progress=False)
         units = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
         assert list(units) == [f"{name}/views_{3 + shard}"]
     assert not (tmp_path / "sharded" / "results.json").exists()
     merged = merge_results(tmp_path / "sharded", views=[3, 4], methods=["3dgs"])
+    one = EvaluationConfig(out_dir=str(tmp_path / "one"), methods=["3dgs"], views=[3, 4], workers=1,
+                           save_media=False, progress=False)
+    evaluate(one, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
+    whole = merge_results(tmp_path / "one", views=[3, 4], methods=["3dgs"])
+    assert {k: merged["3dgs"][k] for k in ("3", "4")} == {k: whole["3dgs"][k] for k in ("3", "4")}
     # the same two units in one run, evaluated by two forked worker processes
     cfg = EvaluationConfig(out_dir=str(tmp_path / "parallel"), methods=["3dgs"], views=[3, 4], workers=2,
                            save_media=False, progress=False)

@@ -1,0 +1,239 @@
+"""Estimated A100 hours of each paper-scale command that makes Tables 1-3 and Fig. 6, in the order a group runs them.
+
+Usage: ``.venv/bin/python benchmarks/paper_gpu_hours.py [--train-scenes 112] [--dl3dv-test-scenes 28]
+[extra overrides for every command, e.g. trainer.devices=8]``
+
+The commands are the pipeline's own: ``tracegs-prepare experiment=paper`` (the training cache with every teacher of
+Table 3), then the Table 3 sweep (``tracegs.pipeline.steps.sweep_steps``, as ``launch/sweep_ablation.sh slurm
+experiment=paper`` runs it), whose evaluations at ``evaluation.views`` (3/6/9) on DL3DV and Mip-NeRF 360 also hold
+Tables 1 and 2's A and TRACE-GS (F); plain 3DGS for Tables 1/2 is one more evaluation per dataset. Each job's config
+is composed as its command line composes it, and the work it does is counted from that config with the functions
+the code runs (``clip_view_counts``, ``clip_condition_keys``, ``reference_pairs``): 3DGS iterations, rendered frames,
+captions, VAE encodes and decodes, transformer forwards (no gradient) and training forwards (with gradient). The
+rehearsal (``experiment=rehearsal``) runs these same code paths at shrunk sizes; its Stage-2 test counts the N
+student forwards with gradient and N teacher forwards per step that this estimate counts.
+
+Seconds per unit on one A100 are estimates, not measurements (no GPU here); each names its source below. The
+GPU hours are therefore an estimate of the order of magnitude, to plan a cluster allocation and to compare with
+the paper's "approximately five days end to end" on four A100s for the training-data preprocessing and the
+2,000 Stage-2 iterations (supplement, computational cost: 480 GPU hours).
+
+The last line is one JSON object: ``gpu_hours`` per command label, ``gpu_hours_total``, and
+``gpu_hours_paper_scope`` (preparation + Stage 1 + one Stage-2 student, the scope of the paper's five days).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass, fields
+
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
+
+from tracegs.config.location import CONF_DIR
+from tracegs.config.schema import register_configs
+from tracegs.data.colmap import read_scene_list
+from tracegs.data.config import PrepareConfig
+from tracegs.data.prepare import clip_condition_keys, clip_view_counts
+from tracegs.pipeline.steps import Step, sweep_steps
+from tracegs.pipeline.variants import per_step_variants, table3_variants
+from tracegs.splat.trajectory import reference_pairs
+
+# Seconds per unit on one A100 80 GB (estimates; see the module docstring).
+# CogVideoX-5B-I2V's model card: ~180 s for 50 steps at 49x480x720 in bf16 on one A100, classifier-free guidance on
+# (100 clip forwards, VAE decoding included): at most 1.8 s per clip forward; GSFixer's cross-attention adds little.
+TRANSFORMER_FORWARD_S = 1.8
+# A forward with gradient plus its backward (twice a forward), plus the recomputation of gradient checkpointing
+# (backbone.transformer.gradient_checkpointing at paper scale): four forwards.
+TRAINING_FORWARD_FACTOR = 4.0
+VAE_ENCODE_S = 3.0  # assumed: CogVideoX's 3D VAE, one 49-frame clip
+VAE_DECODE_S = 6.0  # assumed: decoding is tiled and the slower direction
+CAPTION_S = 0.3  # assumed: BLIP-2 OPT-2.7B, one caption
+RENDER_FRAME_S = 0.01  # assumed: gsplat render of one 480x720 frame of a few million Gaussians
+# 3DGS: NerfBaselines' Mip-Splatting runs on Mip-NeRF 360 took 1,200-1,800 s for 30k iterations; gsplat reports up
+# to 2x less time than the original rasterizer: ~20 min per 30k.
+FIT_ITERATION_S = 0.04
+REFINE_ITERATION_FACTOR = 2.0  # a refinement iteration with pseudo views renders and back-propagates a second view
+
+HOUR = 3600.0
+
+
+@dataclass
+class Work:
+    """What one job does, in units of the per-unit costs above."""
+
+    fit_iterations: float = 0.0
+    refine_iterations: float = 0.0
+    rendered_frames: float = 0.0
+    captions: float = 0.0
+    encodes: float = 0.0
+    decodes: float = 0.0
+    forwards: float = 0.0
+    training_forwards: float = 0.0
+
+    def __add__(self, other: Work) -> Work:
+        return Work(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
+
+    def scaled(self, factor: float) -> Work:
+        return Work(*(getattr(self, f.name) * factor for f in fields(self)))
+
+    def gpu_hours(self) -> float:
+        seconds = (self.fit_iterations * FIT_ITERATION_S
+                   + self.refine_iterations * FIT_ITERATION_S * REFINE_ITERATION_FACTOR
+                   + self.rendered_frames * RENDER_FRAME_S + self.captions * CAPTION_S
+                   + self.encodes * VAE_ENCODE_S + self.decodes * VAE_DECODE_S
+                   + (self.forwards + self.training_forwards * TRAINING_FORWARD_FACTOR) * TRANSFORMER_FORWARD_S)
+        return seconds / HOUR
+
+
+def guided(scale: float) -> int:
+    """Clip forwards per denoising step: classifier-free guidance evaluates the unconditional branch too."""
+    return 2 if scale > 1.0 else 1
+
+
+def clip_views(prepare: PrepareConfig) -> list[int]:
+    """The student view count K of each clip of one scene: the training clips divided among the K, or the held-out
+    clips through captured cameras (every reference pair of every K)."""
+    if prepare.split == "test" and prepare.pseudo_target == "gt":
+        return [k for k in prepare.student_views for _ in reference_pairs(k, None, torch.Generator())]
+    return clip_view_counts(prepare, "scene")
+
+
+def prepare_work(cfg: DictConfig, scenes: int) -> Work:
+    """``tracegs-prepare``: the 3DGS fits of each scene, then each clip's renders, caption, pseudo-target and latents."""
+    prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
+    fit = cfg.data.prepare.fit
+    steps = cfg.backbone.schedule.deploy_steps
+    sparse = fit.iterations if prepare.student_final_fits else max(prepare.student_snapshots)
+    per_scene = Work(fit_iterations=len(prepare.student_views) * sparse + len(prepare.dense_views) * fit.iterations)
+    frames = prepare.frames_per_clip
+    for views in clip_views(prepare):
+        conditions = len(clip_condition_keys(prepare, views))
+        per_scene += Work(rendered_frames=conditions * frames, captions=1, encodes=conditions + 1)
+        if prepare.pseudo_target == "restorer":
+            # The pseudo-target: R_d encoded, denoised over the M-step schedule, decoded.
+            per_scene += Work(encodes=1, decodes=1, forwards=steps * guided(prepare.pseudo_target_guidance))
+    return per_scene.scaled(scenes)
+
+
+def train_work(cfg: DictConfig) -> Work:
+    """``tracegs-train``: every rank's samples times the forwards each sample costs (Stage 1: both roles with
+    gradient, Eq. supp-stage1; Stage 2: N student forwards with gradient and N teacher forwards without)."""
+    exp, stage = cfg.experiment, cfg.stage.name
+    samples_per_step = cfg.stage.batch_size * int(cfg.trainer.devices) * cfg.trainer.num_nodes
+    if stage == "baseline":
+        return Work(training_forwards=exp.baseline_steps * samples_per_step)
+    if stage == "stage1":
+        return Work(training_forwards=2 * exp.stage1_steps * samples_per_step)
+    rollout = cfg.stage.rollout_steps * guided(cfg.stage.guidance_scale)
+    return Work(training_forwards=exp.stage2_steps * samples_per_step * rollout,
+                forwards=exp.stage2_steps * samples_per_step * rollout)
+
+
+def evaluate_work(cfg: DictConfig, scenes: int) -> Work:
+    """``tracegs-evaluate``: per scene and view count, the shared cold start, then per method the refinement
+    (with N_r repair rounds of restored clips for a restorer)."""
+    deploy, views = cfg.deploy, list(cfg.evaluation.views)
+    steps = deploy.steps or cfg.backbone.schedule.deploy_steps
+    after_cold = deploy.total_iters - deploy.repair_iters[0]
+    work = Work()
+    for k in views:
+        work += Work(fit_iterations=deploy.repair_iters[0])
+        for method in cfg.evaluation.methods:
+            if method == "3dgs":
+                work += Work(fit_iterations=after_cold)
+                continue
+            pairs = reference_pairs(k, deploy.max_clips_per_round, torch.Generator())
+            clips = len(deploy.repair_iters) * len(pairs)
+            work += Work(refine_iterations=after_cold, rendered_frames=clips * deploy.trajectory.frames_per_clip,
+                         captions=clips, encodes=clips, decodes=clips,
+                         forwards=clips * steps * guided(cfg.backbone.sampler.guidance_scale))
+    return work.scaled(scenes)
+
+
+def per_step_work(cfg: DictConfig, scenes: int) -> Work:
+    """``report.kind=per_step`` (Fig. 6): per held-out clip, condition and variant, the rollout with the clean
+    prediction decoded at every step, and the final restoration scored against the input."""
+    prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
+    steps = cfg.backbone.schedule.deploy_steps
+    clips = len(clip_views(prepare)) * scenes
+    rollouts = clips * len(prepare.student_snapshots) * len(per_step_variants())
+    forwards = steps * guided(cfg.backbone.sampler.guidance_scale)
+    return Work(encodes=rollouts, forwards=2 * rollouts * forwards, decodes=rollouts * (steps + 1))
+
+
+def expand(step: Step) -> list[list[str]]:
+    """The jobs of a multirun step: one override list per value of its swept ``ablation``."""
+    overrides = list(step.overrides)
+    swept = [o for o in overrides if o.startswith("ablation=") and "," in o]
+    if not swept:
+        return [overrides]
+    rest = [o for o in overrides if o not in swept]
+    return [[*rest, f"ablation={name}"] for name in swept[0].split("=", 1)[1].split(",")]
+
+
+def test_scenes(cfg: DictConfig, dl3dv: int) -> int:
+    """Benchmark scenes of the job's dataset: DL3DV-Benchmark's 28 (paper Sec. 4.2; its list is the user's), else
+    the published list that ships with the configs."""
+    if cfg.data.name == "dl3dv":
+        return dl3dv
+    return len(read_scene_list(cfg.data.source.test_list, "data.source.test_list"))
+
+
+def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[list[tuple[str, str, Work]], int]:
+    """(label, command, work) of every command, in order, and how many variants train a Stage-2 student."""
+    common = ["experiment=paper", "trainer=ddp", *overrides]
+    variants = table3_variants()
+    steps = [Step("prepare", tuple(common), "prepare DL3DV training cache (every teacher)")]
+    report = compose(config_name="report", overrides=common)
+    others = [d for d in report.report.datasets if d != report.training_data]
+    steps += sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], common, others)
+    # Tables 1 and 2: plain 3DGS, A and TRACE-GS (F) in one evaluation per dataset, merged by report.kind=main.
+    for dataset in report.report.datasets:
+        data = () if dataset == report.training_data else (f"data={dataset}",)
+        steps += [Step("evaluate", (*common, *data), f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
+                  Step("report", (*common, *data, "report.kind=main"), f"Tables 1/2 on {dataset}")]
+    rows = []
+    for step in steps:
+        work = Work()
+        for job in expand(step):
+            cfg = compose(config_name=step.app, overrides=job)
+            if step.app == "prepare":
+                scenes = train_scenes if cfg.data.prepare.split == "train" else test_scenes(cfg, dl3dv_scenes)
+                work += prepare_work(cfg, scenes)
+            elif step.app == "train":
+                work += train_work(cfg)
+            elif step.app == "evaluate":
+                work += evaluate_work(cfg, test_scenes(cfg, dl3dv_scenes))
+            elif cfg.report.kind == "per_step":
+                work += per_step_work(cfg, test_scenes(cfg, dl3dv_scenes))
+        command = f"tracegs-{step.app} " + " ".join(step.overrides)
+        rows.append((step.label, command, work))
+    return rows, sum(v.train_stage2 for v in variants)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--train-scenes", type=int, default=112, help="DL3DV training scenes (paper Sec. 4.1: 112)")
+    parser.add_argument("--dl3dv-test-scenes", type=int, default=28, help="DL3DV-Benchmark scenes (paper: 28)")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every command")
+    args = parser.parse_args()
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        rows, students = plan(args.overrides, args.train_scenes, args.dl3dv_test_scenes)
+    hours = {label: round(work.gpu_hours(), 1) for label, _, work in rows}
+    print(f"{'A100 hours':>10}  command (estimate: counts from the config, seconds per unit assumed; see the source)")
+    for label, command, work in rows:
+        print(f"{work.gpu_hours():10.1f}  {label}: {command}")
+    total = sum(hours.values())
+    paper_scope = (hours[rows[0][0]] + hours["train Stage 1"] + hours["train Stage 2"] / students)
+    print(f"{total:10.1f}  in all ({total / 24 / 4:.1f} days on four A100s)")
+    print(f"{paper_scope:10.1f}  preparation + Stage 1 + one student (paper: about five days on four A100s = 480)")
+    print(json.dumps({"gpu_hours": hours, "gpu_hours_total": round(total, 1),
+                      "gpu_hours_paper_scope": round(paper_scope, 1)}))
+
+
+if __name__ == "__main__":
+    main()

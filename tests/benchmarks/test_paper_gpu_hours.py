@@ -1,0 +1,44 @@
+"""benchmarks/paper_gpu_hours.py: the work of each paper-scale command, counted from the config the command
+composes (the GPU hours are these counts times seconds per unit that the script states as estimates)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from hydra import compose
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import paper_gpu_hours as gpu  # noqa: E402  (a script directory, not a package)
+
+PAPER = ["experiment=paper", "trainer=ddp"]
+
+
+def test_stage2_counts_every_rank_and_rollout_state(hydra_context):
+    """Supplement: 2,000 iterations, batch 2 on each of 4 GPUs, N = 10 student forwards with gradient and 10
+    teacher forwards per sample (unguided in training)."""
+    work = gpu.train_work(compose(config_name="train", overrides=[*PAPER, "stage=stage2", "ablation=F"]))
+    assert work.training_forwards == work.forwards == 2000 * 2 * 4 * 10
+    stage1 = gpu.train_work(compose(config_name="train", overrides=[*PAPER, "stage=stage1"]))
+    assert stage1.training_forwards == 2 * 500 * 2 * 4 and stage1.forwards == 0  # both roles carry gradient
+    assert gpu.train_work(compose(config_name="train", overrides=[*PAPER, "stage=baseline"])).gpu_hours() == 0
+
+
+def test_evaluation_counts_guided_restorations_of_every_reference_pair(hydra_context):
+    """Mip-NeRF 360's nine published scenes at 3/6/9 views: per scene and K, N_r = 3 rounds of K clips (the closed
+    loop of reference pairs), each M = 50 guided steps (two forwards), and the J = 30k 3DGS iterations."""
+    cfg = compose(config_name="evaluate", overrides=[*PAPER, "data=mipnerf360", "evaluation.methods=[baseline]"])
+    scenes = gpu.test_scenes(cfg, dl3dv=28)
+    assert scenes == 9
+    work = gpu.evaluate_work(cfg, scenes)
+    assert work.forwards == 9 * 3 * (3 + 6 + 9) * 50 * 2
+    assert work.fit_iterations + work.refine_iterations == 9 * 3 * 30_000
+
+
+def test_training_cache_counts_every_teacher_fit_and_pseudo_target(hydra_context):
+    """Per training scene: the 3/6/9-view fits and the 12/18/all-view teachers at 30k iterations, and 150 clips each
+    restored once from R_d (the pseudo-target) over M = 50 guided steps."""
+    cfg = compose(config_name="prepare", overrides=PAPER)
+    work = gpu.prepare_work(cfg, scenes=1)
+    assert work.fit_iterations == 6 * 30_000
+    assert work.forwards == 150 * 50 * 2 and work.decodes == 150 and work.captions == 150

@@ -102,7 +102,8 @@ def clip_views(prepare: PrepareConfig) -> list[int]:
 
 
 def prepare_work(cfg: DictConfig, scenes: int) -> Work:
-    """``tracegs-prepare``: the 3DGS fits of each scene, then each clip's renders, caption, pseudo-target and latents."""
+    """``tracegs-prepare``: the 3DGS fits of each scene, then each clip's renders, caption, pseudo-target and
+    latents."""
     prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
     fit = cfg.data.prepare.fit
     steps = cfg.backbone.schedule.deploy_steps

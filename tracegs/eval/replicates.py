@@ -44,7 +44,8 @@ REFERENCE, TRACEGS = REFERENCE_VARIANT, METHOD_VARIANTS["tracegs"]
 
 
 def label(name: str) -> str:
-    """A variant as the paper names it: ``(A)`` ... ``(F⁻)``, ``(F)``; plain 3DGS as ``3DGS``."""
+    """A variant as the paper names it: its name in parentheses, a trailing ``-`` written ``⁻``; plain 3DGS as
+    ``3DGS``."""
     return "3DGS" if name == PLAIN else f"({name.replace('-', '⁻')})"
 
 
@@ -128,7 +129,7 @@ def table3_markdown(per_seed: Sequence[Mapping], seeds: Sequence[int], averaged:
         for v in views:
             lines += [f"{METRIC_LABELS[metric]} at {v} views:", "",
                       "| variant | mean [95% CI over scenes] | " + " / ".join(f"seed {seed}" for seed in seeds)
-                      + " | sd over seeds | − (A) [95% CI] |", "|---|---|---|---|---|"]
+                      + f" | sd over seeds | − {label(REFERENCE)} [95% CI] |", "|---|---|---|---|---|"]
             for name in rows:
                 means = _seed_means(per_seed, name, None, metric, v)
                 overall = mean_interval(list(unit_scores(averaged, name, metric, [v]).values()))
@@ -174,13 +175,14 @@ def instrument(averaged: Mapping, views: str) -> tuple[str, Interval | None]:
     """The target: is the 95% interval of F - A at ``views`` views within +-0.2 dB?"""
     gap = difference(averaged, TRACEGS, REFERENCE, "psnr", views)
     if gap is None:
-        return f"Instrument: (F) − (A) at {views} views was not measured.", None
+        return f"Instrument: {label(TRACEGS)} − {label(REFERENCE)} at {views} views was not measured.", None
     if gap.n < MIN_SCENES:
         met = f"not assessable from {gap.n} scenes, fewer than {MIN_SCENES}"
     else:
         met = "met" if gap.half_width <= TARGET_HALF_WIDTH_DB else "not met"
-    return (f"Instrument: the 95% interval of (F) − (A) at {views} views is {gap.format(signed=True)} dB, half-width "
-            f"±{gap.half_width:.2f} dB (target ≤ ±{TARGET_HALF_WIDTH_DB} dB: {met}).", gap)
+    return (f"Instrument: the 95% interval of {label(TRACEGS)} − {label(REFERENCE)} at {views} views is "
+            f"{gap.format(signed=True)} dB, half-width ±{gap.half_width:.2f} dB "
+            f"(target ≤ ±{TARGET_HALF_WIDTH_DB} dB: {met}).", gap)
 
 
 # ------------------------------------------------------------------------------------ held-out diagnostics
@@ -191,8 +193,9 @@ def _scene_values(diagnostics: Mapping, variant: str, field: str) -> dict[str, A
 
 
 def held_out_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
-    """Each variant's final sample on the held-out clips, against its input R_s and against (A)."""
-    lines = ["| variant | restored [95% CI over scenes] | − input R_s | − (A) |", "|---|---|---|---|"]
+    """Each variant's final sample on the held-out clips, against its input R_s and against the reference."""
+    lines = [f"| variant | restored [95% CI over scenes] | − input R_s | − {label(REFERENCE)} |",
+             "|---|---|---|---|"]
     inputs = {scene: rows[variants[0]]["input"] for scene, rows in diagnostics["per_scene"].items()}
     lines.append(f"| input R_s | {mean_interval(list(inputs.values())).format()} | | |")
     for name in variants:
@@ -283,6 +286,7 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
             figures[f"f_minus_a_{v}views_half_width_db"] = round(gap.half_width, 4)
     orderings, verdicts = orderings_markdown(per_seed, averaged, set(rows), views, metrics)
     figures["orderings"] = verdicts
+    chains = ", ".join(" < ".join(label(name) for name in ordering.chain) for ordering in TABLE3_ORDERINGS)
     sections = [header, f"{len(scenes)} test scenes ({', '.join(scenes)}), training seeds {list(inputs.seeds)}, "
                 f"variants {', '.join(label(n) for n in inputs.variants)} (conf/ablation/). Each scene's value is "
                 "averaged over the seeds first; intervals are 95% percentile bootstraps over scenes.", "",
@@ -290,7 +294,7 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
                 "; ".join(f"{label(n)} {inputs.descriptions[n]}" for n in inputs.variants) + ".", "",
                 table3_markdown(per_seed, inputs.seeds, averaged, rows, views, metrics),
                 "## The paper's orderings", "",
-                "Each adjacent pair of B < A < C < D, E < F⁻ < F and 3DGS < A < F (Tables 1-3), marked by the 95% "
+                f"Each adjacent pair of {chains} (Tables 1-3), marked by the 95% "
                 f"interval of its paired difference over scenes (holds: above zero; reversed: below; else not "
                 f"resolved; fewer than {MIN_SCENES} scenes resolve nothing); read each mark with its spread over "
                 "training seeds.", "", orderings]
@@ -310,8 +314,8 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
     sections += ["## Exposure gap", "",
                  "PSNR of the clean prediction at the variant's own visited state minus at the forward-noised state "
                  "of the same clip at the same t, from the same noise draw (step 1: the same state, so 0). Near zero "
-                 "at every step, the states on-policy training supervises (F) are those off-policy training "
-                 "supervises (E): the two cannot differ for the reason the paper gives.", "", gap_table,
+                 "at every step, the states on-policy training supervises are those off-policy training "
+                 "supervises: the two cannot differ for the reason the paper gives.", "", gap_table,
                  _extreme(gap_bands), ""]
     if advantage_table:
         sections += ["## Teacher advantage at the student's states", "",

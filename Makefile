@@ -1,5 +1,5 @@
 # Two set-up commands (README): `make demo` and `make test`; `make benchmark` runs the measuring
-# instrument (8 test scenes x 3 training seeds, 40 to 55 min on two cores). Each creates or reuses .venv,
+# instrument (Table 3: 8 test scenes x 3 training seeds, about 47 min on two idle cores). Each creates or reuses .venv,
 # installs torch==2.13.0 only when no torch is importable (a plain `torch` requirement would pull
 # a multi-GB CUDA build), installs the package with its dev extras once, then runs.
 PY ?= python3

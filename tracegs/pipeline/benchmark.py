@@ -41,17 +41,18 @@ from tracegs.provenance import describe, peak_rss_gib
 log = logging.getLogger("tracegs")
 
 # Rates behind the wall-time estimate printed before the run, on an idle 2-core machine of the README's kind
-# (AMD EPYC, torch 2.13 CPU, the compiled rasterizer); the estimate multiplies them by this config's sizes.
-# Machines of this kind, and one VM from hour to hour, differ by up to 2x.
-FIT_ITERATION_S = 0.0055  # one 3DGS iteration at 48x72, one core
-REFINE_ITERATION_S = 0.010  # one deployment iteration with restored pseudo views (a second render), one core
-RESTORER_FORWARD_S = 0.026  # one tiny-restorer forward of one 9-frame 48x72 clip, one core
-PREPARED_CONDITION_S = 0.023  # rendering and encoding one condition of one prepared clip
+# (AMD EPYC, torch 2.13 CPU, the compiled rasterizer), fitted to the parts of a measured clean-clone run (the
+# README's); the estimate multiplies them by this config's sizes. Machines of this kind, and one VM from hour to
+# hour, differ by up to 2x.
+FIT_ITERATION_S = 0.0068  # one 3DGS iteration at 48x72, one core
+REFINE_ITERATION_S = 0.013  # one deployment iteration with restored pseudo views (a second render), one core
+RESTORER_FORWARD_S = 0.034  # one tiny-restorer forward of one 9-frame 48x72 clip, one core
+PREPARED_CONDITION_S = 0.029  # rendering and encoding one condition of one prepared clip
 # Training wall time per sample (both cores) of the demo's batch of 4 at 48x72: A's step, Stage 1's step,
 # and one state of Stage 2's rollout (student forward and backward, teacher forward).
-BASELINE_SAMPLE_S = 0.056
-STAGE1_SAMPLE_S = 0.082
-STAGE2_SAMPLE_STATE_S = 0.056
+BASELINE_SAMPLE_S = 0.062
+STAGE1_SAMPLE_S = 0.090
+STAGE2_SAMPLE_STATE_S = 0.062
 PROCESS_START_S = 7.0  # a child command: interpreter, torch, Hydra, the restorer
 JOB_START_S = 3.0  # one more job of a multirun in a running process (composition, restorer weights, lookups)
 CORES = 2

@@ -92,16 +92,18 @@ def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(c
     listed = [subprocess.run([sys.executable, "-m", "tracegs.pipeline.variants", *flag], env=env, check=True,
                              capture_output=True, text=True).stdout.strip() for flag in ((), ("--trained",))]
     assert listed == [",".join(names), ",".join(names[1:])]
-    # reported: Table 3 reads every variant's evaluation folder, the new one's last
-    report = as_hydra_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
-                               f"report.output_dir={tmp_path / 'report'}"])
-    inputs = ablation_inputs(report)
-    assert len(set(inputs)) == len(names) and inputs[-1].parent.name == "G"
-    for variant, folder in zip(names, inputs):
-        method = "baseline" if variant == "A" else "tracegs"
+    # reported: Table 3 reads the evaluation folder that `tracegs-evaluate ablation=<name>` writes, the new one's last
+    for variant in names:
+        evaluation = as_hydra_job("evaluate", [f"ablation={variant}", f"paths.root_dir={tmp_path}"])
+        folder = Path(str(evaluation.evaluation.out_dir))
         folder.mkdir(parents=True)
         row = {"psnr": 20.0, "ssim": 0.5, "lpips": 0.2}
-        (folder / "results.json").write_text(json.dumps({method: {"3": row}, "meta": {"variant": variant}}))
+        results = {evaluation.ablation.method: {"3": row}, "meta": {"variant": variant}}
+        (folder / "results.json").write_text(json.dumps(results))
+    report = as_hydra_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
+                                     f"report.output_dir={tmp_path / 'report'}"])
+    (inputs,) = ablation_inputs(report).values()
+    assert len(set(inputs)) == len(names) and inputs[-1].parent.name == "G"
     table = ablation_report(report).read_text()
     assert [line.split("|")[1].strip() for line in table.splitlines()[2:] if line.startswith("|")][-1] == "G"
 

@@ -198,6 +198,12 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
+def describes_the_dataset(override: str) -> bool:
+    """Whether a command-line override sets the ``data`` group or a key inside it: a setting of the command's own
+    dataset, which a step or lookup on another dataset (``data=mipnerf360``) leaves out."""
+    return re.split(r"[./]", override_key(override), maxsplit=1)[0] == "data"
+
+
 def _in_scope(key: str, kind: str, unread: frozenset[str]) -> bool:
     root = re.split(r"[./]", key, maxsplit=1)[0]
     if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+from tracegs.config.identity import describes_the_dataset
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.pipeline.variants import table3_variants
@@ -107,13 +108,16 @@ def sweep_steps(variants: Sequence[str], trained: Sequence[str], overrides: Sequ
     evaluation = ("evaluation.methods=[${ablation.method}]", f"job_name=evaluate-{variants[0]}-{variants[-1]}")
     steps += restorer_steps(",".join(trained), common, evaluated=",".join(variants),
                             stage2=(f"job_name=train-stage2-{trained[0]}-{trained[-1]}",), evaluation=evaluation)
-    steps += out_of_domain_steps(",".join(variants), other_datasets, common, evaluation)
+    # Steps on another dataset leave out the command line's data settings: they describe the training data (a
+    # DL3DV root or scene list must not become Mip-NeRF 360's), as the report's lookup of those steps leaves them out.
+    foreign = tuple(o for o in common if not describes_the_dataset(o))
+    steps += out_of_domain_steps(",".join(variants), other_datasets, foreign, evaluation)
     steps.append(Step("report", (*common, "report.kind=ablation"), "Table 3"))
     if embedded:
         steps += [Step("prepare", (*common, HELD_OUT_SPLIT), "prepare (held-out test scenes)"),
                   Step("report", (*common, HELD_OUT_SPLIT, *PER_STEP), "Fig. 6")]
     for dataset in other_datasets:
-        held_out = (*common, f"data={dataset}", *HELD_OUT_CAPTURED)
+        held_out = (*foreign, f"data={dataset}", *HELD_OUT_CAPTURED)
         steps += [Step("prepare", held_out, f"prepare (held-out {dataset} clips)"),
                   Step("report", (*held_out, *PER_STEP), f"Fig. 6 on {dataset}")]
     return steps

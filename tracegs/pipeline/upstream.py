@@ -14,7 +14,7 @@ from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.identity import command_line_overrides, override_key
+from tracegs.config.identity import command_line_overrides, describes_the_dataset, override_key
 from tracegs.config.schema import AUTO
 from tracegs.config.validate import validate
 from tracegs.training.run import PRODUCTS
@@ -37,7 +37,7 @@ TRAINED = ("baseline", "stage1", "stage2")
 
 def _carried(override: str, upstream: str, from_training: bool, other_data: bool) -> bool:
     root = override_key(override).split(".")[0].split("/")[0]
-    if root == "hydra" or (other_data and root == "data"):  # the run's data settings are of its own dataset
+    if root == "hydra" or (other_data and describes_the_dataset(override)):  # settings of the run's own dataset
         return False
     if from_training and root in _STAGE_OWN:
         return False

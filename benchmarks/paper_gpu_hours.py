@@ -36,7 +36,7 @@ from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
-from tracegs.data.prepare import clip_condition_keys, clip_view_counts
+from tracegs.data.prepare import captures_held_out, clip_condition_keys, clip_view_counts
 from tracegs.pipeline.steps import Step, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 from tracegs.splat.trajectory import reference_pairs
@@ -93,10 +93,11 @@ def guided(scale: float) -> int:
     return 2 if scale > 1.0 else 1
 
 
-def clip_views(prepare: PrepareConfig) -> list[int]:
+def clip_views(cfg: DictConfig) -> list[int]:
     """The student view count K of each clip of one scene: the training clips divided among the K, or the held-out
     clips through captured cameras (every reference pair of every K)."""
-    if prepare.split == "test" and prepare.pseudo_target == "gt":
+    prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
+    if captures_held_out(OmegaConf.to_object(cfg.data.source), prepare):
         return [k for k in prepare.student_views for _ in reference_pairs(k, None, torch.Generator())]
     return clip_view_counts(prepare, "scene")
 
@@ -110,7 +111,7 @@ def prepare_work(cfg: DictConfig, scenes: int) -> Work:
     sparse = fit.iterations if prepare.student_final_fits else max(prepare.student_snapshots)
     per_scene = Work(fit_iterations=len(prepare.student_views) * sparse + len(prepare.dense_views) * fit.iterations)
     frames = prepare.frames_per_clip
-    for views in clip_views(prepare):
+    for views in clip_views(cfg):
         conditions = len(clip_condition_keys(prepare, views))
         per_scene += Work(rendered_frames=conditions * frames, captions=1, encodes=conditions + 1)
         if prepare.pseudo_target == "restorer":
@@ -159,7 +160,7 @@ def per_step_work(cfg: DictConfig, scenes: int) -> Work:
     prediction decoded at every step, and the final restoration scored against the input."""
     prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
     steps = cfg.backbone.schedule.deploy_steps
-    clips = len(clip_views(prepare)) * scenes
+    clips = len(clip_views(cfg)) * scenes
     rollouts = clips * len(prepare.student_snapshots) * len(per_step_variants())
     forwards = steps * guided(cfg.backbone.sampler.guidance_scale)
     return Work(encodes=rollouts, forwards=2 * rollouts * forwards, decodes=rollouts * (steps + 1))

@@ -133,7 +133,8 @@ def test_load_transformer_lists_missing_keys(tmp_path):
     kwargs = {
         k: v
         for k, v in transformer_kwargs(cfg).items()
-        if k not in ("ref_2d_dim", "ref_3d_dim", "reference_norms", "timestep_scale", "prediction", "clean_min_time")
+        if k not in ("ref_2d_dim", "ref_3d_dim", "reference_norms", "timestep_scale", "prediction", "clean_min_time",
+                     "sigma_data")
     }
     CogVideoXTransformer3DModel(**kwargs).save_pretrained(cfg.pretrained_path)
     first_missing = r"model weight 'projector_dino.proj.bias' is not in the folder \(0 unused, 24 missing"
@@ -212,3 +213,57 @@ def test_fresh_residual_restorer_returns_its_input_rendering(make_inputs):
         velocity = model(**inputs).velocity
     t = inputs["timestep"].clamp_min(0.05).reshape(-1, 1, 1, 1, 1)
     torch.testing.assert_close(inputs["noisy"] - t * velocity, inputs["cond"])  # x0 = R before training
+
+
+def _randomised(model):
+    """The model with a non-zero output head: any network output, not the zero-initialised one."""
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        model.proj_out.weight.copy_(torch.randn(model.proj_out.weight.shape, generator=g))
+        model.proj_out.bias.copy_(torch.randn(model.proj_out.bias.shape, generator=g))
+    return model
+
+
+@pytest.mark.parametrize("sigma_data", [0.2, 1.0])
+def test_preconditioned_clean_prediction_tends_to_the_state_at_low_noise(make_inputs, sigma_data):
+    """EDM's c_skip -> 1 and c_out -> 0 as t -> 0: x0_hat = z_t - t v -> z_t whatever the network outputs, and
+    the velocity stays finite at t = 0 (no division by t)."""
+    model = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma_data)))
+    inputs = make_inputs()
+    gaps = []
+    with torch.no_grad():
+        for t in (0.1, 1e-2, 1e-3, 0.0):
+            inputs["timestep"] = torch.full((2,), t)
+            velocity = model(**inputs).velocity
+            assert torch.isfinite(velocity).all()
+            gaps.append(float((inputs["noisy"] - t * velocity - inputs["noisy"]).abs().max()))
+    assert gaps[0] > gaps[1] > gaps[2] > gaps[3] == 0.0
+    assert gaps[2] < 0.15 * gaps[1]  # |x0_hat - z_t| = t |v| with v bounded: linear in t near the clean end
+
+
+def test_preconditioned_velocity_is_that_of_edms_clean_prediction(make_inputs):
+    """v = (z_t - x0_hat) / t with x0_hat = R + c_skip s + c_out F(c_in s), s = z_t - (1 - t) R (Karras et al.
+    2022, Table 1), written out here from the network output F read through a velocity-head twin."""
+    sigma = 0.3
+    precond = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma)))
+    head = create_transformer(TransformerConfig())
+    head.load_state_dict(precond.state_dict())
+    inputs = make_inputs()
+    t = torch.tensor([0.7, 0.2]).reshape(2, 1, 1, 1, 1)
+    inputs["timestep"] = t.flatten()
+    shifted = inputs["noisy"] - (1 - t) * inputs["cond"]
+    variance = (1 - t) ** 2 * sigma**2 + t**2
+    with torch.no_grad():
+        velocity = precond(**inputs).velocity
+        network = head(**{**inputs, "noisy": shifted / variance.sqrt()}).velocity
+    x0 = inputs["cond"] + (1 - t) * sigma**2 / variance * shifted + t * sigma / variance.sqrt() * network
+    torch.testing.assert_close(velocity, (inputs["noisy"] - x0) / t, rtol=1e-4, atol=1e-4)
+
+
+def test_fresh_preconditioned_restorer_predicts_its_rendering_from_pure_noise(make_inputs):
+    model = create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=0.2))
+    inputs = make_inputs()
+    inputs["timestep"] = torch.ones(2)
+    with torch.no_grad():
+        velocity = model(**inputs).velocity
+    torch.testing.assert_close(inputs["noisy"] - velocity, inputs["cond"])  # x0_hat = R at t = 1

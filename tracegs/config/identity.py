@@ -72,7 +72,7 @@ EXECUTION_KEYS = frozenset({
     "data.prepare.num_shards", "data.prepare.force", "data.prepare.contact_sheet",
     "data.datamodule.cache_dir", "data.datamodule.num_workers",
     "stage.resume_from", "stage.checkpoint_every_n_steps", "stage.keep_checkpoints", "stage.base_weights",
-    "stage.init_adapter", "stage.deployment_eval",  # (deployment on its own random streams: same weights)
+    "stage.init_adapter", "stage.deployment_eval", "stage.held_out_eval",  # (own random streams: same weights)
     "trainer.log_every_n_steps", "trainer.loggers", "trainer.enable_progress_bar", "trainer.cpu_threads",
     "trainer.slurm_requeue_signal", "trainer.cluster",
     "experiment.description",

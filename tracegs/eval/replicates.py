@@ -216,24 +216,34 @@ def _per_step(diagnostics: Mapping, variant: str, a: str, b: str) -> dict[str, l
             for scene, rows in diagnostics["per_scene"].items()}
 
 
-def per_step_table(diagnostics: Mapping, variants: Sequence[str], a: str, b: str) -> tuple[str, dict[str, list]]:
+def late_half(curve: Sequence[float]) -> float:
+    """The mean of a per-step curve over the later half of the reverse trajectory (steps M/2 + 1 .. M), where
+    the paper places exposure bias ("the variants remain close in early steps but separate in the later half")."""
+    return statistics.fmean(curve[len(curve) // 2:])
+
+
+def per_step_table(diagnostics: Mapping, variants: Sequence[str], a: str, b: str
+                   ) -> tuple[str, dict[str, list], dict[str, Interval]]:
     """Per reverse step (rows) and variant (columns): the mean of ``a - b`` [95% CI over scenes], then each
-    variant's mean over the steps after the first (per scene first). Returns the table and, per variant, its
-    per-step intervals."""
+    variant's mean over the steps after the first and over the later half (per scene first). Returns the table,
+    per variant its per-step intervals, and per variant the interval of its later-half mean."""
     curves = {name: c for name in variants if (c := _per_step(diagnostics, name, a, b)) is not None}
     if not curves:
-        return "", {}
+        return "", {}, {}
     steps = len(next(iter(next(iter(curves.values())).values())))
     bands = {name: [mean_interval([curve[i] for curve in by_scene.values()]) for i in range(steps)]
              for name, by_scene in curves.items()}
+    late = {n: mean_interval([late_half(curve) for curve in by_scene.values()]) for n, by_scene in curves.items()}
     lines = ["| step | " + " | ".join(label(n) for n in curves) + " |", "|---|" + "---|" * len(curves)]
     for i in range(steps):
         lines.append(f"| {i + 1} | " + " | ".join(bands[n][i].format(signed=True) for n in curves) + " |")
-    later = {n: mean_interval([statistics.fmean(curve[1:]) for curve in by_scene.values()]).format(signed=True)
-             for n, by_scene in curves.items()} if steps > 1 else {}
-    if later:
+    if steps > 1:
+        later = {n: mean_interval([statistics.fmean(curve[1:]) for curve in by_scene.values()]).format(signed=True)
+                 for n, by_scene in curves.items()}
         lines.append("| mean of steps 2+ | " + " | ".join(later[n] for n in curves) + " |")
-    return "\n".join(lines) + "\n", bands
+        lines.append(f"| mean of steps {steps // 2 + 1}-{steps} (later half) | "
+                     + " | ".join(late[n].format(signed=True) for n in curves) + " |")
+    return "\n".join(lines) + "\n", bands, late
 
 
 def _extreme(bands: Mapping[str, Sequence[Interval]]) -> str:
@@ -259,6 +269,38 @@ def fig6(diagnostics: Mapping, variants: Sequence[str], out_dir: Path) -> str:
     mean = {name: [i.mean for i in steps] for name, steps in per_step_intervals(by_scene).items()}
     plot_per_step_quality(mean, out_dir / "fig6_per_step.png", bands=bands)
     return (out_dir / "per_step_intervals.md").read_text()
+
+
+def _triple(interval: Interval) -> list[float]:
+    return [round(x, 4) for x in (interval.mean, interval.low, interval.high)]
+
+
+def mechanism_figures(held_out: Mapping, per_seed: Sequence[Mapping], variants: Sequence[str], views: Sequence[str],
+                      gap_late: Mapping[str, Interval]) -> dict:
+    """The run record's figures of whether this scale carries the mechanism, each [mean, 95% low, high] over
+    scenes: A's restoration of the held-out clips against its input (``a_minus_input_db``), A's final sample
+    against its first clean prediction (``trajectory_final_minus_first_db``: no collapse on the way), the
+    exposure gap over the later half of each variant's trajectory (``exposure_gap_late_db``), and per view count
+    the largest difference between two distilled students' means with the largest spread (sd) of a variant's
+    mean over training seeds (``students_spread_db``)."""
+    figures: dict[str, Any] = {"exposure_gap_late_db": {n: _triple(i) for n, i in gap_late.items()}}
+    if REFERENCE in variants:
+        final = _scene_values(held_out, REFERENCE, "final")
+        inputs = _scene_values(held_out, REFERENCE, "input")
+        first = {scene: curve[0] for scene, curve in _scene_values(held_out, REFERENCE, "visited").items()}
+        figures["a_minus_input_db"] = _triple(paired_interval(final, inputs))
+        figures["trajectory_final_minus_first_db"] = _triple(paired_interval(final, first))
+    students = [n for n in variants if n != REFERENCE]
+    if len(per_seed) > 1 and len(students) > 1:
+        spread = {}
+        for v in views:
+            means = {n: statistics.fmean(_seed_means(per_seed, n, None, "psnr", v)) for n in students}
+            seed_sd = max(statistics.stdev(_seed_means(per_seed, n, None, "psnr", v)) for n in students)
+            high, low = max(means, key=means.get), min(means, key=means.get)
+            spread[v] = {"largest_difference": round(means[high] - means[low], 4), "between": [high, low],
+                         "seed_sd": round(seed_sd, 4)}
+        figures["students_spread_db"] = spread
+    return figures
 
 
 # ------------------------------------------------------------------------------------------------ report
@@ -304,8 +346,8 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
                 f"conditions {', '.join(held_out['conditions'])}, the deployment's {held_out['steps']} reverse "
                 "steps; PSNR (dB) against ground truth, reference frames excluded; seeds averaged per scene, "
                 "95% intervals over scenes.")
-    gap_table, gap_bands = per_step_table(held_out, inputs.variants, "visited", "noised")
-    advantage_table, advantage_bands = per_step_table(held_out, inputs.variants, "teacher", "visited")
+    gap_table, gap_bands, gap_late = per_step_table(held_out, inputs.variants, "visited", "noised")
+    advantage_table, advantage_bands, _ = per_step_table(held_out, inputs.variants, "teacher", "visited")
     sections += ["## Held-out clips", "", describe, "", held_out_markdown(held_out, inputs.variants)]
     plot = fig6(held_out, inputs.variants, out_dir)
     if plot:
@@ -323,6 +365,7 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
                      "student's (on R_s), both at the student's own states: what distillation can transfer there.",
                      "", advantage_table, _extreme(advantage_bands), ""]
     figures["exposure_gap_largest_db"] = round(max(abs(i.mean) for b in gap_bands.values() for i in b), 4)
+    figures.update(mechanism_figures(held_out, per_seed, inputs.variants, views, gap_late))
     path = out_dir / "benchmark.md"
     with atomic_write(path) as tmp:
         tmp.write_text("\n".join(sections))

@@ -353,9 +353,12 @@ def save_comparison_video(frames: Mapping[str, Tensor], path_stem: str | Path, f
 def plot_per_step_quality(curves: Mapping[str, Sequence[float]], path: str | Path,
                           ylabel: str = "PSNR (dB) of predicted clean frames",
                           title: str = "Per-step restoration quality along the reverse trajectory",
-                          bands: Mapping[str, tuple[Sequence[float], Sequence[float]]] | None = None) -> Path:
-    """Fig. 6: one line per variant (e.g. on-policy F vs off-policy E), x = denoising step 1..M; ``bands[label]``
-    = (low, high) per step shades that curve's 95% interval over scenes."""
+                          bands: Mapping[str, tuple[Sequence[float], Sequence[float]]] | None = None,
+                          steps: Sequence[int] | None = None,
+                          xlabel: str = "denoising step (reverse trajectory)") -> Path:
+    """Fig. 6: one line per variant (e.g. on-policy F vs off-policy E), x = denoising step 1..M (or ``steps``, e.g.
+    optimiser steps of a learning curve); ``bands[label]`` = (low, high) per step shades that curve's 95%
+    interval over scenes."""
     # A bare Figure renders through Agg without touching pyplot's global backend state.
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
@@ -365,12 +368,12 @@ def plot_per_step_quality(curves: Mapping[str, Sequence[float]], path: str | Pat
     fig = Figure(figsize=(5.5, 3.5), dpi=120)
     ax = fig.add_subplot()
     for label, values in curves.items():
-        steps = range(1, len(values) + 1)
-        (line,) = ax.plot(steps, list(values), marker="o", markersize=3, label=label)
+        x = list(steps) if steps is not None else range(1, len(values) + 1)
+        (line,) = ax.plot(x, list(values), marker="o", markersize=3, label=label)
         if bands and label in bands:
-            ax.fill_between(steps, *bands[label], color=line.get_color(), alpha=0.2, linewidth=0)
+            ax.fill_between(x, *bands[label], color=line.get_color(), alpha=0.2, linewidth=0)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("denoising step (reverse trajectory)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)

@@ -252,6 +252,7 @@ def benchmark(cfg: DictConfig) -> Path:
     run = {**describe(cfg.seed), "training_seeds": seeds, "variants": [v.name for v in variants],
            "wall_s": round(wall_s, 1), "table3_minutes": round(wall_s / 60, 1),
            "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "estimate_min": round(estimate, 1),
+           "stage2_steps": cfg.experiment.stage2_steps,
            "estimate_parts_min": {part: round(minutes, 1) for part, minutes in parts.items()}}
     machine = run["machine"]
     header = (f"# Embedded benchmark: Table 3\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "

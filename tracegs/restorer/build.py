@@ -45,6 +45,7 @@ def transformer_kwargs(cfg: TransformerConfig) -> dict:
         timestep_scale=cfg.timestep_scale,
         prediction=cfg.prediction,
         clean_min_time=cfg.clean_min_time,
+        sigma_data=cfg.sigma_data,
     )
 
 

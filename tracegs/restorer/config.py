@@ -23,6 +23,9 @@ class Prediction(Mode):
     velocity = "velocity"  # v, as CogVideoX
     clean = "clean"  # x0; the model returns v = (z_t - x0) / max(t, clean_min_time) (rectified flow only)
     residual = "residual"  # x0 as the condition plus a predicted residual (rectified flow only)
+    # EDM's preconditioning centred on the condition: x0 = R + c_skip s + c_out F(c_in s), s = z_t - (1 - t) R
+    # (rectified flow only; transformer.Preconditioning)
+    preconditioned = "preconditioned"
 
 
 class CodecKind(Mode):
@@ -81,6 +84,8 @@ class TransformerConfig:
     # v = (z_t - x0) / max(t, clean_min_time); rectified flow only). See transformer.velocity_from_clean.
     prediction: Prediction = Prediction.velocity
     clean_min_time: float = 0.05
+    # prediction=preconditioned: the standard deviation of the residual x0 - R in latent units, EDM's sigma_data.
+    sigma_data: float = 1.0
     pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
     dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
     gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
@@ -151,6 +156,9 @@ class ScheduleConfig:
     # proportional to t^p, p >= 0 (0 = uniform). A large p trains mostly at high noise, where the restorer reads
     # the clip from its condition; conf/backbone/tiny.yaml records the measured choice.
     train_time_power: float = 0.0
+    # rectified_flow: with a value, training times are logit-normal instead, t = sigmoid(m + s n), n ~ N(0, 1)
+    # (Esser et al. 2024, Sec. 3.1): [m, s]. Takes the place of train_time_power.
+    train_time_logit_normal: list[float] | None = None
     # rectified_flow: the deployment grid (and so Stage 2's resampled grids, drawn from it) puts its M + 1 points
     # at equal steps of t^(q + 1), q >= 0; q = 0 is the uniform grid. With q = p every solver step spans an equal
     # share of the training times, so the solver stays where the training times are (with p = 12 and q = 0

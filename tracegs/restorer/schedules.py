@@ -82,6 +82,9 @@ class RectifiedFlowSchedule(NoiseSchedule):
         return torch.linspace(1.0, 0.0, m + 1) ** (1.0 / (1.0 + self.cfg.deploy_time_power))
 
     def sample_train_t(self, batch, generator=None):
+        if self.cfg.train_time_logit_normal is not None:
+            mean, std = self.cfg.train_time_logit_normal
+            return torch.sigmoid(mean + std * torch.randn(batch, generator=generator))
         # Density (p + 1) t^p on [0, 1] by inverse CDF (p = train_time_power; 0 = uniform).
         return torch.rand(batch, generator=generator) ** (1.0 / (1.0 + self.cfg.train_time_power))
 

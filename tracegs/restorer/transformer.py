@@ -31,7 +31,47 @@ from torch import nn
 # What the output head predicts. "velocity": v directly (CogVideoX). "clean": the clean latent x0;
 # "residual": x0 minus the conditioning latent (the correction to the rendering). The last two are turned
 # into the rectified-flow velocity v = (z_t - x0) / t inside ``forward`` (see ``velocity_from_clean``).
-PREDICTIONS = ("velocity", "clean", "residual")
+# "preconditioned": EDM's preconditioning around the rendering (see ``Preconditioning``).
+PREDICTIONS = ("velocity", "clean", "residual", "preconditioned")
+
+
+@dataclass
+class Preconditioning:
+    """EDM's preconditioning (Karras et al. 2022, Sec. 5 and Table 1) of a rectified-flow restorer, centred on
+    its rendering R: the network learns only what neither R nor the state z_t already says.
+
+    With z_t = (1 - t) x0 + t eps, the shifted state s = z_t - (1 - t) R = (1 - t)(x0 - R) + t eps is a scaled
+    variance-exploding state of the residual x0 - R, whose standard deviation is ``sigma_data``. With
+    D = (1 - t)^2 sigma_data^2 + t^2 (the variance of s):
+
+        x0_hat = R + c_skip s + c_out F(c_in s),   c_skip = (1 - t) sigma_data^2 / D,
+        c_out = t sigma_data / sqrt(D),           c_in = 1 / sqrt(D),
+
+    so the network's input has unit variance at every t, and its output is scaled by what z_t cannot tell.
+    At t = 1 x0_hat = R + sigma_data F (the prediction from R alone); as t -> 0, c_skip -> 1 and c_out -> 0, so
+    x0_hat -> z_t for any network output: the last steps only refine, and no error is divided by t.
+    The velocity v = (z_t - x0_hat) / t is written without the division (``velocity``):
+    v = (t - (1 - t) sigma_data^2) / D s - R - sigma_data / sqrt(D) F, finite at every t in [0, 1].
+    """
+
+    sigma_data: float
+
+    def variance(self, t: torch.Tensor) -> torch.Tensor:
+        return (1.0 - t) ** 2 * self.sigma_data**2 + t**2
+
+    def shifted(self, noisy: torch.Tensor, cond: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """s = z_t - (1 - t) R, the state of the residual x0 - R."""
+        return noisy - (1.0 - t) * cond
+
+    def c_in(self, t: torch.Tensor) -> torch.Tensor:
+        return self.variance(t).rsqrt()
+
+    def velocity(self, shifted: torch.Tensor, cond: torch.Tensor, output: torch.Tensor,
+                 t: torch.Tensor) -> torch.Tensor:
+        """v = (z_t - x0_hat) / t of the network output F, in the form without 1 / t."""
+        variance = self.variance(t)
+        skip = (t - (1.0 - t) * self.sigma_data**2) / variance
+        return skip * shifted - cond - self.sigma_data * variance.rsqrt() * output
 
 
 def velocity_from_clean(noisy: torch.Tensor, clean: torch.Tensor, t: torch.Tensor, min_time: float) -> torch.Tensor:
@@ -219,6 +259,7 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         timestep_scale: float = 1.0,
         prediction: str = "velocity",
         clean_min_time: float = 0.05,
+        sigma_data: float = 1.0,
     ):
         if prediction not in PREDICTIONS:
             raise ValueError(f"transformer prediction={prediction!r} must be one of {PREDICTIONS}")
@@ -281,9 +322,9 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         self.projector_dino = ReferenceProjector(ref_2d_dim, inner_dim, reference_norms)  # Proj_2D (DINOv2)
         self.projector_vggt = ReferenceProjector(ref_3d_dim, inner_dim, reference_norms)  # Proj_3D (VGGT)
         self._rotary_cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
-        if prediction == "residual":
-            # A fresh residual restorer starts as the identity on its input rendering (x0 = cond), like
-            # DiT's zero-initialised output layer; training then learns corrections.
+        if prediction in ("residual", "preconditioned"):
+            # A fresh residual restorer starts as the identity on its input rendering (x0 = cond; preconditioned:
+            # x0 = cond + c_skip s), like DiT's zero-initialised output layer; training then learns corrections.
             nn.init.zeros_(self.proj_out.weight)
             nn.init.zeros_(self.proj_out.bias)
 
@@ -353,8 +394,14 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         )
         sink: dict[str, torch.Tensor] | None = {} if return_retrieval else None
         weights = self.patch_embed.proj.weight.dtype  # e.g. a bf16 base fed float32 cached latents
+        network_input = noisy
+        if self.config.prediction == "preconditioned":
+            precond = Preconditioning(self.config.sigma_data)
+            t = timestep.to(noisy.dtype).reshape(-1, *([1] * (noisy.dim() - 1)))
+            shifted = precond.shifted(noisy, cond.to(noisy.dtype), t)
+            network_input = precond.c_in(t) * shifted
         velocity = super().forward(
-            hidden_states=torch.cat([noisy, cond], dim=2).to(weights),
+            hidden_states=torch.cat([network_input, cond.to(network_input.dtype)], dim=2).to(weights),
             encoder_hidden_states=text.to(weights),
             timestep=timestep * self.config.timestep_scale,
             image_rotary_emb=rotary,
@@ -365,7 +412,9 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
             return_dict=False,
         )[0]
         velocity = velocity.to(noisy.dtype)
-        if self.config.prediction != "velocity":
+        if self.config.prediction == "preconditioned":
+            velocity = precond.velocity(shifted, cond.to(noisy.dtype), velocity, t)
+        elif self.config.prediction != "velocity":
             clean = velocity + cond.to(velocity.dtype) if self.config.prediction == "residual" else velocity
             velocity = velocity_from_clean(noisy, clean, timestep, self.config.clean_min_time)
         retrieval = sink["retrieval"].to(noisy.dtype) if sink is not None else None

@@ -83,6 +83,21 @@ class DeploymentEvalConfig:
 
 
 @dataclass
+class HeldOutEvalConfig:
+    """The trained adapter's restoration of held-out clips, scored before the first step (with variant A beside
+    it), every ``every_n_steps`` steps and at the end: the stage's learning curve, ``held_out_curve.{json,png}``
+    in the run folder (tracegs/eval/held_out_curve.py). Off by default: no cache."""
+
+    # A prepared held-out cache, e.g. the validation scenes' (tracegs-prepare data.prepare.split=val); None = off.
+    cache: str | None = None
+    every_n_steps: int = 25
+
+    def __post_init__(self) -> None:
+        if self.every_n_steps < 1:
+            raise ValueError(f"stage.held_out_eval.every_n_steps must be >= 1, got {self.every_n_steps}")
+
+
+@dataclass
 class StageConfig:
     """Which stage runs and its loop-level settings.
 
@@ -123,6 +138,8 @@ class StageConfig:
     ema_decay: float | None = None
     # Deploy the in-training restorer on validation scenes and log its scores (off unless scenes are named).
     deployment_eval: DeploymentEvalConfig = field(default_factory=DeploymentEvalConfig)
+    # Stage 1 / 2: score the adapter on held-out clips while it trains (off unless a cache is named).
+    held_out_eval: HeldOutEvalConfig = field(default_factory=HeldOutEvalConfig)
 
     def __post_init__(self) -> None:
         self.name = StageName.parse(self.name, "stage.name")

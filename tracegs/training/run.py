@@ -26,9 +26,10 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.console import interactive
-from tracegs.data.datamodule import PairedClipDataModule
-from tracegs.errors import require_writable_dir
+from tracegs.data.datamodule import MANIFEST, PairedClipDataModule
+from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
+from tracegs.eval.held_out_curve import HeldOutClipQuality
 from tracegs.io import atomic_directory
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
@@ -136,6 +137,22 @@ def deployment_eval(cfg: TrainConfig, backbone) -> list[Callback]:
     factory = ModuleRestorerFactory(backbone, deployed_adapter(cfg.stage), cfg.deploy.clip_batch, cfg.deploy.steps)
     return [DeploymentRefinement(settings.scenes, cfg.source, factory, cfg.deploy, cfg.fit, views=settings.views,
                                  every_n_steps=settings.every_n_steps, lpips=settings.lpips)]
+
+
+def held_out_eval(cfg: TrainConfig, backbone, output_dir: Path) -> list[Callback]:
+    """The held-out learning-curve callback when ``stage.held_out_eval.cache`` names a prepared cache."""
+    settings = cfg.stage.held_out_eval
+    if settings.cache is None:
+        return []
+    adapter = deployed_adapter(cfg.stage)
+    if adapter is None:
+        raise ValueError("stage.held_out_eval: scores a trained adapter (stage=stage1 or stage=stage2); "
+                         "set it to null for stage=baseline")
+    if not (Path(settings.cache) / MANIFEST).is_file():
+        raise ConfigError("stage.held_out_eval.cache", f"no prepared cache at {settings.cache} (tracegs-prepare "
+                                                       "data.prepare.split=val prints the folder it writes)")
+    return [HeldOutClipQuality(backbone, adapter, settings.cache, output_dir, settings.every_n_steps,
+                               seed=cfg.deploy.seed)]
 
 
 def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingModule,
@@ -247,7 +264,8 @@ def train_stage(cfg) -> Path:
     with one_job_of_processes():
         if cfg.trainer.cpu_threads is not None:
             torch.set_num_threads(cfg.trainer.cpu_threads)
-        trainer = build_trainer(cfg, output_dir, module, deployment_eval(cfg, backbone))
+        trainer = build_trainer(cfg, output_dir, module,
+                                [*deployment_eval(cfg, backbone), *held_out_eval(cfg, backbone, output_dir)])
         finished = finished_checkpoint_state(resume, cfg.stage.max_steps) if resume else None
         if finished is not None:
             # Killed after its last checkpoint and before its export: export what that checkpoint holds.

@@ -14,7 +14,13 @@ from tracegs.eval.clips import clip_restoration_psnr
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
-from tracegs.training.config import HeldOutEvalConfig, OptimizerConfig, StageConfig, TrainConfig, TrainerConfig
+from tracegs.training.config import (
+    HeldOutEvalConfig,
+    OptimizerConfig,
+    StageConfig,
+    TrainConfig,
+    TrainerConfig,
+)
 from tracegs.training.run import train_stage
 
 

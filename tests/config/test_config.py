@@ -240,3 +240,19 @@ def test_cli_reports_bad_combination_in_one_line(tmp_path):
     # Nothing but Hydra's own run log was written: no checkpoint, adapter or cache.
     written = [p for p in tmp_path.rglob("*") if p.is_file() and ".hydra" not in p.parts and p.suffix != ".log"]
     assert written == []
+
+
+def test_the_multistep_embedded_restorer_keeps_tinys_encoders_and_ends_its_grid_near_clean():
+    """backbone=tiny_diffusion: the tiny restorer's class, codec and encoders (the same caches), EDM-preconditioned,
+    on a deployment grid whose last state before the clean end is at t <= 0.1."""
+    from tracegs.pipeline.upstream import section
+    from tracegs.restorer.schedules import build_schedule
+
+    tiny, diffusion = (section(compose(config_name="train", overrides=[f"backbone={name}"]).backbone)
+                       for name in ("tiny", "tiny_diffusion"))
+    for part in ("name", "codec", "reference_encoder", "text_encoder", "lora"):
+        assert getattr(tiny, part) == getattr(diffusion, part)
+    assert diffusion.transformer.prediction == "preconditioned"
+    grid = build_schedule(diffusion.schedule).timesteps()
+    assert grid[0] == 1.0 and grid[-1] == 0.0 and float(grid[-2]) == pytest.approx(0.1)  # M = 10 uniform steps
+    assert float(build_schedule(tiny.schedule).timesteps()[-2]) > 0.5  # the one-step default's last state

@@ -255,3 +255,21 @@ def test_paper_stage2_rollout_is_unguided_ten_student_and_ten_teacher_forwards(s
     # unguided: one conditional batch per forward, the clip's own text (no all-zero unconditional half)
     assert all(c["noisy"].shape[0] == batch["target"].shape[0] for c in calls)
     assert all(torch.equal(c["text"], batch["text"]) for c in calls)
+
+
+def test_clean_space_trajectory_term_weighs_each_state_by_t_squared(stage1_adapter):
+    """loss.trajectory_space=clean compares the clean predictions the two velocities imply at the state: for
+    rectified flow x0 = z - t v, so the term is t^2 times the velocity-space term of Eq. 6, state by state."""
+    batch = make_batch()
+    velocity, clean = (make_module(stage1_adapter, lambda_ret=0.0, trajectory_space=space) for space in
+                       ("velocity", "clean"))
+    clean.load_state_dict(velocity.state_dict())
+    state = torch.randn_like(batch["target"].float())
+    for t_value in (0.9, 0.2):
+        t = torch.full((state.shape[0],), t_value)
+        in_velocity = velocity.state_loss(batch, state, t)[0]["traj"]
+        in_clean = clean.state_loss(batch, state, t)[0]["traj"]
+        assert in_velocity > 0
+        torch.testing.assert_close(in_clean, t_value**2 * in_velocity, rtol=1e-4, atol=1e-8)
+    with pytest.raises(ValueError, match="loss.trajectory_space"):
+        make_module(stage1_adapter, trajectory_space="noise")

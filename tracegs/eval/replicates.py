@@ -303,6 +303,26 @@ def mechanism_figures(held_out: Mapping, per_seed: Sequence[Mapping], variants: 
     return figures
 
 
+def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
+    """One training seed's diagnostics (``tracegs-report report.kind=diagnostics``): the held-out clip table, each
+    variant's first clean prediction and final sample, the exposure gap per step with its later-half mean, and the
+    mechanism figures of the benchmark's run record (intervals over scenes)."""
+    _, _, gap_late = per_step_table(diagnostics, variants, "visited", "noised")
+    first = {n: mean_interval([curve[0] for curve in _scene_values(diagnostics, n, "visited").values()])
+             for n in variants}
+    trajectory = {n: paired_interval(_scene_values(diagnostics, n, "final"),
+                                     {s: c[0] for s, c in _scene_values(diagnostics, n, "visited").items()})
+                  for n in variants}
+    lines = [f"{diagnostics['clips']} held-out clips of {len(diagnostics['per_scene'])} scenes, conditions "
+             f"{', '.join(diagnostics['conditions'])}, {diagnostics['steps']} reverse steps; PSNR (dB) against "
+             "ground truth, 95% intervals over scenes.", "", held_out_markdown(diagnostics, variants),
+             "| variant | first clean prediction | final − first | exposure gap, later half |", "|---|---|---|---|"]
+    lines += [f"| {label(n)} | {first[n].format()} | {trajectory[n].format(signed=True)} | "
+              f"{gap_late[n].format(signed=True)} |" for n in variants]
+    figures = mechanism_figures(diagnostics, [], variants, [], gap_late)
+    return "\n".join(lines) + "\n\n" + json.dumps(figures) + "\n"
+
+
 # ------------------------------------------------------------------------------------------------ report
 
 

@@ -19,10 +19,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from tracegs.console import show
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
 from tracegs.errors import ConfigError
 from tracegs.eval.diagnostics import VariantRoles, held_out_diagnostics
-from tracegs.io import write_json_atomic
+from tracegs.eval.replicates import diagnostics_markdown
+from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.upstream import compose_run, locate_artifacts, section
 from tracegs.pipeline.variants import in_table_order, table3_variants
 
@@ -38,15 +40,19 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     unknown = sorted(set(cfg.report.inputs) - set(names))
     if unknown:
         raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")
-    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
-    if not Path(cfg.artifacts.stage1_adapter).exists():
-        raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
-                                "(run tracegs-train stage=stage1 with the same settings)")
-    files: dict[str, AdapterFile | None] = {
-        TEACHER: AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", TEACHER, "stage1")}
+    variants = {name: compose_run("report", [f"ablation={name}"]) for name in names}
+    distilled = any(variant.ablation.train_stage2 for variant in variants.values())
+    # A alone needs A's weights only: a restorer design is judged on its trajectory before any adapter exists.
+    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"] if distilled else ["baseline_weights"])
+    files: dict[str, AdapterFile | None] = {TEACHER: None}
+    if distilled:
+        if not Path(cfg.artifacts.stage1_adapter).exists():
+            raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
+                                    "(run tracegs-train stage=stage1 with the same settings)")
+        files[TEACHER] = AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", TEACHER,
+                                     "stage1")
     roles = {}
-    for name in names:
-        variant = compose_run("report", [f"ablation={name}"])
+    for name, variant in variants.items():
         if not variant.ablation.train_stage2:
             roles[name] = VariantRoles(student=None)
             continue
@@ -65,4 +71,8 @@ def diagnostics_report(cfg: DictConfig) -> Path:
                                   workers=cfg.evaluation.workers)
     path = Path(cfg.report.output_dir) / "diagnostics.json"
     write_json_atomic(result, path)
+    summary = diagnostics_markdown(result, list(roles))
+    with atomic_write(path.with_suffix(".md")) as tmp:
+        tmp.write_text(summary)
+    show(summary)
     return path

@@ -30,6 +30,15 @@ class MemoryMode(Mode):
     retain = "retain"
 
 
+class TrajectorySpace(Mode):
+    """Where Stage 2 compares the student with the teacher at each visited state (``LossConfig``)."""
+
+    velocity = "velocity"  # ||u_S - u_T||^2, main paper Eq. 6
+    # ||x0_S - x0_T||^2 of the clean predictions the two velocities imply at the state: Eq. 6 with each state's
+    # term weighted by t^2 (rectified flow), so the nearly clean states do not dominate the average.
+    clean = "clean"
+
+
 class LrDecay(Mode):
     """The learning rate after warm-up (``OptimizerConfig``)."""
 
@@ -183,6 +192,7 @@ class LossConfig:
 
     lambda_align: float = 1.0
     lambda_ret: float = 0.15
+    trajectory_space: TrajectorySpace = TrajectorySpace.velocity
     # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
     retrieval_eps: float = 1e-6
 

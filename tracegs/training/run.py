@@ -89,6 +89,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         deploy_steps=cfg.backbone.schedule.deploy_steps,
         lambda_ret=cfg.loss.lambda_ret,
         retrieval_eps=cfg.loss.retrieval_eps,
+        trajectory_space=cfg.loss.trajectory_space,
         on_policy=cfg.policy.on_policy,
         memory_mode=stage.memory_mode,
         seed=stage.seed,

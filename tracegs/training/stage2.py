@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.restorer.sampler import guided_prediction, initial_noise, solve
-from tracegs.training.config import MemoryMode, OptimizerConfig
+from tracegs.training.config import MemoryMode, OptimizerConfig, TrajectorySpace
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
 
@@ -56,6 +56,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         seed: int = 0,
         lora: LoraConfig | None = None,
         guidance_scale: float = 1.0,
+        trajectory_space: TrajectorySpace | str = TrajectorySpace.velocity,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
         if not 1 <= rollout_steps <= deploy_steps:
@@ -67,6 +68,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.on_policy = on_policy
         self.memory_mode = MemoryMode.parse(memory_mode, "stage.memory_mode")
         self.guidance_scale = guidance_scale
+        self.trajectory_space = TrajectorySpace.parse(trajectory_space, "loss.trajectory_space")
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
@@ -142,9 +144,11 @@ class Stage2DistillationModule(RestorerTrainingModule):
             teacher = self.guided(state, self.latent(batch, "teacher_cond"), t, batch, read_retrieval)
         activate(self.transformer, STUDENT)
         student = self.guided(state, self.latent(batch, "student_cond"), t, batch, read_retrieval)
+        compared = (student.velocity, teacher.velocity)
+        if self.trajectory_space is TrajectorySpace.clean:
+            compared = tuple(self.schedule.predict_clean(state, v, t.to(state.device)) for v in compared)
         terms = distillation_state_loss(
-            student.velocity,
-            teacher.velocity,
+            *compared,
             student.retrieval,
             teacher.retrieval,
             self.lambda_ret,

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from tracegs.eval.replicates import BenchmarkInputs, instrument, label, mean_tree, write_benchmark_report
+from tracegs.eval.replicates import (
+    BenchmarkInputs,
+    diagnostics_markdown,
+    instrument,
+    label,
+    mean_tree,
+    write_benchmark_report,
+)
 from tracegs.io import write_json_atomic
 
 SCENES = [f"scene_{100 + i}" for i in range(8)]
@@ -106,6 +113,15 @@ def test_report_assembles_table3_from_three_seeds(tmp_path):
     assert _cells(gap, "| mean of steps 2+ |")[1:] == [none, half, none, half, half]
     assert "(B) step 2" in gap and "(E) step 2" not in gap
     assert figures["exposure_gap_largest_db"] == 0.5
+    # The later half of the trajectory (steps 2-3 of 3): the gap of each variant with its interval over scenes.
+    assert _cells(gap, "| mean of steps 2-3 (later half) |")[1:] == [none, half, none, half, half]
+    assert figures["exposure_gap_late_db"]["F"] == [0.5, 0.5, 0.5]
+    assert figures["exposure_gap_late_db"]["E"] == [0.0, 0.0, 0.0]
+    # A on the held-out clips: final 17 + c against input 16.5 + c and against its first prediction 15 + c.
+    assert figures["a_minus_input_db"] == [0.5, 0.5, 0.5]
+    assert figures["trajectory_final_minus_first_db"] == [2.0, 2.0, 2.0]
+    # The students F (+0.3) and B (-0.2) lie 0.5 dB apart; each student's seed means move by 0.1 per seed.
+    assert figures["students_spread_db"]["3"] == {"largest_difference": 0.5, "between": ["F", "B"], "seed_sd": 0.1}
     advantage = text[text.index("## Teacher advantage"):]
     assert _cells(advantage, "| step |") == ["step", "(B)", "(E)", "(F⁻)", "(F)"]
     assert _cells(advantage, "| 2 |")[1:] == ["+1.00 [+1.00, +1.00]"] * 4
@@ -126,3 +142,15 @@ def test_a_missing_seed_result_is_named(tmp_path):
         write_benchmark_report(tmp_path / "report", inputs)
     assert not (tmp_path / "report" / "benchmark.md").exists()
     assert json.loads((tmp_path / "eval" / "seed0" / "F" / "per_scene.json").read_text())
+
+
+def test_one_seeds_diagnostics_are_summarised_with_the_mechanism_figures():
+    """``tracegs-report report.kind=diagnostics``: each variant's first prediction, final - first and later-half
+    exposure gap with intervals over scenes, then the run record's figures as one JSON line."""
+    diagnostics = {"per_scene": {s: {v: _diagnostics(v, c, 0) for v in ("A", "F")} for s, c in zip(SCENES, CONTENT)},
+                   "conditions": ["s3_it140"], "clips": 8, "steps": STEPS}
+    text = diagnostics_markdown(diagnostics, ["A", "F"])
+    assert _cells(text, "| (A) | 15")[2:] == ["+2.00 [+2.00, +2.00]", "+0.00 [+0.00, +0.00]"]
+    assert _cells(text, "| (F) | 15")[2:] == ["+2.30 [+2.30, +2.30]", "+0.50 [+0.50, +0.50]"]  # F learned +0.3
+    figures = json.loads(text.strip().splitlines()[-1])
+    assert figures["a_minus_input_db"] == [0.5, 0.5, 0.5] and figures["exposure_gap_late_db"]["F"] == [0.5, 0.5, 0.5]

@@ -126,3 +126,14 @@ def test_deployment_grid_follows_its_own_power_law():
     assert torch.allclose(grid**13, torch.linspace(1.0, 0.0, 21), atol=1e-6)
     assert float(grid[-2]) == pytest.approx(0.05 ** (1 / 13), abs=1e-6)  # 0.794; the uniform grid's is 0.05
     assert torch.equal(RectifiedFlowSchedule(ScheduleConfig()).timesteps(20), torch.linspace(1.0, 0.0, 21))
+
+
+def test_training_times_can_be_logit_normal():
+    """train_time_logit_normal [m, s]: t = sigmoid(m + s n), n ~ N(0, 1) (Esser et al. 2024): median sigmoid(m),
+    every draw inside (0, 1), and it takes the place of the power law."""
+    cfg = ScheduleConfig(train_time_power=6.0, train_time_logit_normal=[1.0, 1.2])
+    t = RectifiedFlowSchedule(cfg).sample_train_t(8192, torch.Generator().manual_seed(0))
+    assert float(t.median()) == pytest.approx(torch.sigmoid(torch.tensor(1.0)).item(), abs=0.01)
+    assert float(t.min()) > 0.0 and float(t.max()) < 1.0
+    logits = torch.logit(t.double())
+    assert float(logits.std()) == pytest.approx(1.2, abs=0.03)

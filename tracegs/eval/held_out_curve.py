@@ -91,7 +91,7 @@ class HeldOutClipQuality(L.Callback):
                   **{label: [ref["mean"]] * len(steps) for label, ref in self.references.items()}}
         plot_per_step_quality(curves, self.output_dir / "held_out_curve.png", steps=steps,
                               xlabel="optimiser step", ylabel="PSNR (dB) of restored held-out clips",
-                              title=f"{self.adapter} on the held-out clips of {self.cache_dir.name}",
+                              title=f"{self.adapter} on {len(self.points[-1]['per_scene'])} held-out scenes' clips",
                               bands={self.adapter: ([i.low for i in intervals], [i.high for i in intervals])})
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

@@ -44,6 +44,7 @@ class HeldOutClipQuality(L.Callback):
         self.every_n_steps, self.seed = every_n_steps, seed
         self.points: list[dict] = []  # {"step", "mean", "per_scene"}
         self.references: dict[str, dict] = {}  # BASE / INPUT / INITIAL -> {"mean", "per_scene"}
+        self._recorded_step: int | None = None  # on every rank, so all reach the barrier equally often
 
     def _score(self, pl_module: L.LightningModule, adapters: dict[str, str | None]) -> dict[str, dict]:
         self.backbone = with_encoders(self.backbone, pl_module.device)
@@ -63,8 +64,9 @@ class HeldOutClipQuality(L.Callback):
 
     def _record(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         step = trainer.global_step
-        if self.points and self.points[-1]["step"] == step:
+        if step == self._recorded_step:
             return
+        self._recorded_step = step
         if trainer.is_global_zero:
             first = not self.points and step == 0
             labels = {BASE: None, INITIAL: self.adapter} if first else {self.adapter: self.adapter}

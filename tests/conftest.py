@@ -8,11 +8,11 @@ and autouse, so it is in force before any session fixture (e.g. the prepared cac
 import contextlib
 import dataclasses
 import importlib
+import multiprocessing
 import os
 import shutil
 import subprocess
 import sys
-import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.training.strategy import LAUNCH_ENV
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -31,6 +32,29 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture(autouse=True)
+def process_state_left_as_found():
+    """Every test leaves this process's distributed state as it found it: the later tests fork demos and start
+    worker pools from this process. A leak fails the test that left it (and is undone for the ones after)."""
+    excepthook, launch_env = sys.excepthook, {key: os.environ.get(key) for key in LAUNCH_ENV}
+    yield
+    leaked = []
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
+        leaked.append("a process group")
+    if sys.excepthook is not excepthook:
+        sys.excepthook = excepthook
+        leaked.append("sys.excepthook (init_process_group's rank prefix)")
+    for key, value in launch_env.items():
+        if os.environ.get(key) != value:
+            leaked.append(f"${key}")
+            if value is None:
+                os.environ.pop(key)
+            else:
+                os.environ[key] = value
+    assert not leaked, f"the test left {', '.join(leaked)} behind in the pytest process"
 
 
 @pytest.fixture(scope="module")
@@ -65,33 +89,27 @@ class EntryPointRun:
         return [line for line in self.stderr.splitlines() if line.strip()]
 
 
-def fork_child(work: Callable[[], None], stdout: Path, stderr: Path) -> int:
-    """Run ``work()`` in a forked child of this process with stdout / stderr going to the given files; returns
-    the child's pid. The child exits 0 when ``work`` returns, with its ``SystemExit`` code, else 1 (traceback
-    on its stderr); it never returns into pytest.
+def fork_child(work: Callable[[], None], stdout: Path, stderr: Path) -> multiprocessing.process.BaseProcess:
+    """Start ``work()`` in a forked child of this process with stdout / stderr going to the given files; returns
+    the started process (``join()`` it, then read ``exitcode``). The child exits 0 when ``work`` returns, with its
+    ``SystemExit`` code, else 1 (traceback on its stderr); it never returns into pytest.
 
     Forking skips the ~7 s of imports a fresh interpreter would spend, and the child runs the real code with
-    real file descriptors and exit code.
+    real file descriptors and exit code. The fork is multiprocessing's, not a bare ``os.fork``: it runs the
+    after-fork hooks, so the child gets its own resource sharer (a bare fork inherits pytest's, whose socket
+    then answers the child's worker processes for file descriptors it never registered: a broken pool).
     """
-    pid = os.fork()
-    if pid:
-        return pid
-    code = 1
-    try:
+
+    def child() -> None:
         for fd, path in ((1, stdout), (2, stderr)):
             os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
         sys.stdout = open(1, "w", buffering=1, closefd=False)
         sys.stderr = open(2, "w", buffering=1, closefd=False)
         work()
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code if isinstance(exit_.code, int) else 1
-    except BaseException:
-        traceback.print_exc()
-    finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+
+    process = multiprocessing.get_context("fork").Process(target=child)
+    process.start()
+    return process
 
 
 @pytest.fixture
@@ -117,8 +135,9 @@ def run_entry_point(app: str, args: list[str], cwd: Path, in_child: Callable[[],
         sys.argv = [f"tracegs-{app}", *args]
         importlib.import_module(f"tracegs.cli.{app}").main()
 
-    _, status = os.waitpid(fork_child(main, out, err), 0)
-    run = EntryPointRun(os.waitstatus_to_exitcode(status), out.read_text(), err.read_text())
+    process = fork_child(main, out, err)
+    process.join()
+    run = EntryPointRun(process.exitcode, out.read_text(), err.read_text())
     out.unlink()
     err.unlink()
     return run

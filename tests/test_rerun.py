@@ -102,8 +102,10 @@ def test_two_identical_jobs_at_once_do_the_work_once(finished, forked, tmp_path)
         train.main()
 
     before = trained_versions(root)
-    pids = [forked(job, tmp_path / f"{n}.out", tmp_path / f"{n}.err") for n in range(2)]
-    codes = [os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]) for pid in pids]
+    processes = [forked(job, tmp_path / f"{n}.out", tmp_path / f"{n}.err") for n in range(2)]
+    for process in processes:
+        process.join()
+    codes = [process.exitcode for process in processes]
     logs = [(tmp_path / f"{n}.out").read_text() + (tmp_path / f"{n}.err").read_text() for n in range(2)]
     assert codes == [0, 0], logs
     assert trained_versions(root) == before + 1

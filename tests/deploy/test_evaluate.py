@@ -29,6 +29,7 @@ from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig, TrajectoryConfig
+from tracegs.training.strategy import one_job_of_processes
 
 SEED = 100
 
@@ -214,7 +215,8 @@ def test_callback_under_ddp_deploys_on_rank_zero_and_training_continues(scene_ro
     trainer = L.Trainer(max_steps=2, devices=2, strategy="ddp_spawn", callbacks=[callback],
                         logger=L.pytorch.loggers.CSVLogger(tmp_path), enable_progress_bar=False,
                         enable_model_summary=False, enable_checkpointing=False, accelerator="cpu")
-    trainer.fit(_TinyRestorerModule(backbone.transformer), data)
+    with one_job_of_processes():  # the spawn launcher's port, released afterwards
+        trainer.fit(_TinyRestorerModule(backbone.transformer), data)
     (metrics,) = tmp_path.rglob("metrics.csv")  # written by rank 0 only
     with open(metrics) as handle:
         rows = [row for row in csv.DictReader(handle) if row.get("deploy/psnr_k3")]

@@ -10,6 +10,7 @@ from training_support import make_batch, make_schedule, make_transformer
 
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.stage2 import STUDENT, Stage2DistillationModule
+from tracegs.training.strategy import one_job_of_processes
 
 
 def train_ddp(adapter, mode: str) -> dict[str, torch.Tensor]:
@@ -18,8 +19,9 @@ def train_ddp(adapter, mode: str) -> dict[str, torch.Tensor]:
                                       memory_mode=mode)
     trainer = L.Trainer(accelerator="cpu", devices=2, strategy="ddp_spawn", max_steps=2, logger=False,
                         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False)
-    # two different batches: one per rank
-    trainer.fit(module, train_dataloaders=DataLoader([make_batch(seed=0), make_batch(seed=1)], batch_size=None))
+    with one_job_of_processes():  # the spawn launcher's port and process state, released afterwards
+        # two different batches: one per rank
+        trainer.fit(module, train_dataloaders=DataLoader([make_batch(seed=0), make_batch(seed=1)], batch_size=None))
     return {n: p.detach().clone() for n, p in module.transformer.named_parameters() if f".{STUDENT}." in n}
 
 
@@ -44,7 +46,8 @@ def test_ddp_trains_fp32_adapters_on_a_bf16_base_with_guidance(stage1_adapter):
     trainer = L.Trainer(accelerator="cpu", devices=2, strategy="ddp_spawn", precision="bf16-mixed", max_steps=2,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False)
-    trainer.fit(module, train_dataloaders=DataLoader([make_batch(seed=0), make_batch(seed=1)], batch_size=None))
+    with one_job_of_processes():
+        trainer.fit(module, train_dataloaders=DataLoader([make_batch(seed=0), make_batch(seed=1)], batch_size=None))
     after = {n: p.detach() for n, p in module.transformer.named_parameters() if f".{STUDENT}." in n}
     assert all(p.dtype == torch.float32 for p in after.values())
     moved = torch.cat([(after[n] != before[n]).flatten() for n in before]).float().mean()

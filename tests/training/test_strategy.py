@@ -13,17 +13,21 @@ from training_support import TINY_LORA, make_transformer
 from tracegs.restorer.adapters import add_adapter
 from tracegs.restorer.transformer import ReferenceGuidedBlock
 from tracegs.training.config import FsdpConfig, TrainerConfig
-from tracegs.training.strategy import ShardedRestorerStrategy, build_strategy, full_lora_state, shard_restorer
+from tracegs.training.strategy import (
+    ShardedRestorerStrategy,
+    build_strategy,
+    full_lora_state,
+    one_job_of_processes,
+    shard_restorer,
+)
 
 
 @pytest.fixture
 def cpu_mesh(tmp_path):
     """A one-rank gloo process group on this process's CPU (what each rank of a two-process run holds)."""
-    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'rendezvous'}", rank=0, world_size=1)
-    try:
+    with one_job_of_processes():  # releases the group and what init_process_group changed in this process
+        dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'rendezvous'}", rank=0, world_size=1)
         yield init_device_mesh("cpu", (1,))
-    finally:
-        dist.destroy_process_group()
 
 
 def test_fsdp_shards_blocks_and_factors_and_exports_whole_adapters(cpu_mesh):

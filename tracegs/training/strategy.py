@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 from collections.abc import Iterator
 
 import torch
@@ -79,14 +80,17 @@ def one_job_of_processes() -> Iterator[None]:
     """One training job's ranks: in the process that launches them (no LOCAL_RANK before), the process group is
     closed and the launcher's variables and thread count restored afterwards, so the next job of a multirun in
     this process launches its own ranks and computes with the threads it was given (a different count changes
-    the float results). Ranks started by Lightning, torchrun or SLURM are left alone (they end with the job)."""
+    the float results). ``init_process_group`` also wraps ``sys.excepthook`` to prefix every line with the rank
+    and ``destroy_process_group`` leaves the wrapper: it is restored too, else each job would add one more prefix.
+    Ranks started by Lightning, torchrun or SLURM are left alone (they end with the job)."""
     before = {key: os.environ.get(key) for key in LAUNCH_ENV}
-    threads = torch.get_num_threads()
+    threads, excepthook = torch.get_num_threads(), sys.excepthook
     try:
         yield
     finally:
         if before["LOCAL_RANK"] is None:
             torch.set_num_threads(threads)
+            sys.excepthook = excepthook
             if dist.is_available() and dist.is_initialized():
                 dist.destroy_process_group()
             for key, value in before.items():

@@ -1,7 +1,7 @@
-"""Estimated A100 hours of each paper-scale command that makes Tables 1-3 and Fig. 6, in the order a group runs them.
+"""Estimated GPU hours of each paper-scale command that makes Tables 1-3 and Fig. 6, in the order a group runs them.
 
 Usage: ``.venv/bin/python benchmarks/paper_gpu_hours.py [--train-scenes 112] [--dl3dv-test-scenes 28]
-[extra overrides for every command, e.g. trainer.devices=8]``
+[--measured outputs/gpu_check/gpu_check.json] [extra overrides for every command, e.g. trainer.devices=8]``
 
 The commands are the pipeline's own: ``tracegs-prepare experiment=paper`` (the training cache with every teacher of
 Table 3), then the Table 3 sweep (``tracegs.pipeline.steps.sweep_steps``, as ``launch/sweep_ablation.sh slurm
@@ -13,20 +13,25 @@ captions, VAE encodes and decodes, transformer forwards (no gradient) and traini
 rehearsal (``experiment=rehearsal``) runs these same code paths at shrunk sizes; its Stage-2 test counts the N
 student forwards with gradient and N teacher forwards per step that this estimate counts.
 
-Seconds per unit on one A100 are estimates, not measurements (no GPU here); each names its source below. The
-GPU hours are therefore an estimate of the order of magnitude, to plan a cluster allocation and to compare with
+Seconds per unit (``UnitSeconds``) are estimates for one A100, each naming its source, unless ``--measured`` gives
+the JSON of ``benchmarks/gpu_check.py`` run on a GPU: then every unit it measured (transformer forward, training
+factor, VAE encode and decode) is that GPU's, and the printout says which units are measured on which device and
+which are still assumed. Even measured, the GPU hours are an estimate of the order of magnitude, to plan a cluster allocation and to compare with
 the paper's "approximately five days end to end" on four A100s for the training-data preprocessing and the
 2,000 Stage-2 iterations (supplement, computational cost: 480 GPU hours).
 
-The last line is one JSON object: ``gpu_hours`` per command label, ``gpu_hours_total``, and
-``gpu_hours_paper_scope`` (preparation + Stage 1 + one Stage-2 student, the scope of the paper's five days).
+The last line is one JSON object: ``gpu_hours`` per command label, ``gpu_hours_total``,
+``gpu_hours_paper_scope`` (preparation + Stage 1 + one Stage-2 student, the scope of the paper's five days), and
+``unit_seconds`` with their ``unit_sources``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass, fields
+import sys
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
@@ -41,23 +46,51 @@ from tracegs.pipeline.steps import Step, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 from tracegs.splat.trajectory import reference_pairs
 
-# Seconds per unit on one A100 80 GB (estimates; see the module docstring).
-# CogVideoX-5B-I2V's model card: ~180 s for 50 steps at 49x480x720 in bf16 on one A100, classifier-free guidance on
-# (100 clip forwards, VAE decoding included): at most 1.8 s per clip forward; GSFixer's cross-attention adds little.
-TRANSFORMER_FORWARD_S = 1.8
-# A forward with gradient plus its backward (twice a forward), plus the recomputation of gradient checkpointing
-# (backbone.transformer.gradient_checkpointing at paper scale): four forwards.
-TRAINING_FORWARD_FACTOR = 4.0
-VAE_ENCODE_S = 3.0  # assumed: CogVideoX's 3D VAE, one 49-frame clip
-VAE_DECODE_S = 6.0  # assumed: decoding is tiled and the slower direction
-CAPTION_S = 0.3  # assumed: BLIP-2 OPT-2.7B, one caption
-RENDER_FRAME_S = 0.01  # assumed: gsplat render of one 480x720 frame of a few million Gaussians
-# 3DGS: NerfBaselines' Mip-Splatting runs on Mip-NeRF 360 took 1,200-1,800 s for 30k iterations; gsplat reports up
-# to 2x less time than the original rasterizer: ~20 min per 30k.
-FIT_ITERATION_S = 0.04
-REFINE_ITERATION_FACTOR = 2.0  # a refinement iteration with pseudo views renders and back-propagates a second view
-
 HOUR = 3600.0
+
+
+@dataclass(frozen=True)
+class UnitSeconds:
+    """Seconds per unit of work on one GPU. The defaults are estimates for one A100 80 GB, each with its source;
+    ``measured`` replaces those that ``benchmarks/gpu_check.py`` measured."""
+
+    # CogVideoX-5B-I2V's model card: ~180 s for 50 steps at 49x480x720 in bf16 on one A100, classifier-free
+    # guidance on (100 clip forwards, VAE decoding included): at most 1.8 s per clip forward; GSFixer's
+    # cross-attention adds little.
+    transformer_forward: float = 1.8
+    # A forward with gradient plus its backward (twice a forward), plus the recomputation of gradient checkpointing
+    # (backbone.transformer.gradient_checkpointing at paper scale): four forwards.
+    training_forward_factor: float = 4.0
+    vae_encode: float = 3.0  # assumed: CogVideoX's 3D VAE, one 49-frame clip
+    vae_decode: float = 6.0  # assumed: decoding is tiled and the slower direction
+    caption: float = 0.3  # assumed: BLIP-2 OPT-2.7B, one caption
+    render_frame: float = 0.01  # assumed: gsplat render of one 480x720 frame of a few million Gaussians
+    # 3DGS: NerfBaselines' Mip-Splatting runs on Mip-NeRF 360 took 1,200-1,800 s for 30k iterations; gsplat reports
+    # up to 2x less time than the original rasterizer: ~20 min per 30k. The GPU check's fit runs on a small
+    # procedural scene, whose speed says nothing of a dense capture's: this one stays an estimate.
+    fit_iteration: float = 0.04
+    refine_iteration_factor: float = 2.0  # a refinement iteration renders and back-propagates a second (pseudo) view
+
+    @classmethod
+    def measured(cls, record: dict) -> tuple[UnitSeconds, dict[str, str]]:
+        """The units ``gpu_check.json`` (``record``) measured replace the estimates; returns them and, per unit,
+        where its value comes from."""
+        restorer, vae = record.get("restorer", {}), record.get("vae", {})
+        device = record.get("device", {}).get("name", "unknown device")
+        values: dict[str, float] = {}
+        if "rollout_step" in restorer:  # one clip forward, no gradient
+            values["transformer_forward"] = restorer["rollout_step"]["seconds"]
+        if "stage2_iteration" in restorer and "rollout_step" in restorer:
+            # One iteration = batch x N x (a student forward with gradient and its backward + a teacher forward).
+            per_state = restorer["stage2_iteration"]["seconds"] / (restorer["batch_size"] * restorer["rollout_steps"])
+            forward = restorer["rollout_step"]["seconds"]
+            values["training_forward_factor"] = max(per_state - forward, forward) / forward
+        for unit in ("vae_encode", "vae_decode"):
+            if unit in vae:
+                values[unit] = vae[unit]["seconds"]
+        sources = {f.name: (f"measured on {device}" if f.name in values else "assumed (one A100)")
+                   for f in fields(cls)}
+        return replace(cls(), **values), sources
 
 
 @dataclass
@@ -79,12 +112,12 @@ class Work:
     def scaled(self, factor: float) -> Work:
         return Work(*(getattr(self, f.name) * factor for f in fields(self)))
 
-    def gpu_hours(self) -> float:
-        seconds = (self.fit_iterations * FIT_ITERATION_S
-                   + self.refine_iterations * FIT_ITERATION_S * REFINE_ITERATION_FACTOR
-                   + self.rendered_frames * RENDER_FRAME_S + self.captions * CAPTION_S
-                   + self.encodes * VAE_ENCODE_S + self.decodes * VAE_DECODE_S
-                   + (self.forwards + self.training_forwards * TRAINING_FORWARD_FACTOR) * TRANSFORMER_FORWARD_S)
+    def gpu_hours(self, unit: UnitSeconds = UnitSeconds()) -> float:
+        seconds = (self.fit_iterations * unit.fit_iteration
+                   + self.refine_iterations * unit.fit_iteration * unit.refine_iteration_factor
+                   + self.rendered_frames * unit.render_frame + self.captions * unit.caption
+                   + self.encodes * unit.vae_encode + self.decodes * unit.vae_decode
+                   + (self.forwards + self.training_forwards * unit.training_forward_factor) * unit.transformer_forward)
         return seconds / HOUR
 
 
@@ -216,25 +249,37 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
     return rows, sum(v.train_stage2 for v in variants)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--train-scenes", type=int, default=112, help="DL3DV training scenes (paper Sec. 4.1: 112)")
     parser.add_argument("--dl3dv-test-scenes", type=int, default=28, help="DL3DV-Benchmark scenes (paper: 28)")
+    parser.add_argument("--measured", type=Path, help="gpu_check.json (benchmarks/gpu_check.py): its measured "
+                        "seconds replace the estimates")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every command")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    unit, sources = UnitSeconds(), {f.name: "assumed (one A100)" for f in fields(UnitSeconds)}
+    if args.measured is not None:
+        try:
+            unit, sources = UnitSeconds.measured(json.loads(args.measured.read_text()))
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            sys.exit(f"--measured {args.measured}: not a readable gpu_check.json ({type(error).__name__}: {error})")
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         rows, students = plan(args.overrides, args.train_scenes, args.dl3dv_test_scenes)
-    hours = {label: round(work.gpu_hours(), 1) for label, _, work in rows}
-    print(f"{'A100 hours':>10}  command (estimate: counts from the config, seconds per unit assumed; see the source)")
+    hours = {label: round(work.gpu_hours(unit), 1) for label, _, work in rows}
+    for name, source in sources.items():
+        print(f"{getattr(unit, name):10.3f}  {name}: {source}")
+    print(f"{'GPU hours':>10}  command (counts from the config, seconds per unit as above)")
     for label, command, work in rows:
-        print(f"{work.gpu_hours():10.1f}  {label}: {command}")
+        print(f"{work.gpu_hours(unit):10.1f}  {label}: {command}")
     total = sum(hours.values())
     paper_scope = (hours[rows[0][0]] + hours["train Stage 1"] + hours["train Stage 2"] / students)
-    print(f"{total:10.1f}  in all ({total / 24 / 4:.1f} days on four A100s)")
+    print(f"{total:10.1f}  in all ({total / 24 / 4:.1f} days on four GPUs)")
     print(f"{paper_scope:10.1f}  preparation + Stage 1 + one student (paper: about five days on four A100s = 480)")
-    print(json.dumps({"gpu_hours": hours, "gpu_hours_total": round(total, 1),
-                      "gpu_hours_paper_scope": round(paper_scope, 1)}))
+    summary = {"gpu_hours": hours, "gpu_hours_total": round(total, 1), "gpu_hours_paper_scope": round(paper_scope, 1),
+               "unit_seconds": asdict(unit), "unit_sources": sources}
+    print(json.dumps(summary))
+    return summary
 
 
 if __name__ == "__main__":

@@ -76,6 +76,7 @@ EXECUTION_KEYS = frozenset({
     "trainer.log_every_n_steps", "trainer.loggers", "trainer.enable_progress_bar", "trainer.cpu_threads",
     "trainer.slurm_requeue_signal", "trainer.cluster",
     "experiment.description",
+    "backbone.transformer.skip_stored_keys",  # stored tensors never loaded: the same model with or without them
     "evaluation.out_dir", "evaluation.shard_index", "evaluation.num_shards", "evaluation.workers",
     "evaluation.force", "evaluation.progress", "evaluation.held_out_cache", "evaluation.variant",
     # Which (scene, views, method) units to compute: each unit is its own file, recorded with its own

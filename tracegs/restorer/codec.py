@@ -116,14 +116,18 @@ class CogVideoXCodec:
     """
 
     def __init__(
-        self, cfg: CodecConfig, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+        self, cfg: CodecConfig, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+        vae: torch.nn.Module | None = None,
     ):
+        """Loads ``cfg.pretrained_path``, or wraps ``vae`` as given (a GPU check times random weights)."""
         from diffusers import AutoencoderKLCogVideoX
 
-        if cfg.pretrained_path is None:
-            raise ValueError("codec.pretrained_path must name a local AutoencoderKLCogVideoX directory")
-        path = require_local_dir(cfg.pretrained_path, "codec.pretrained_path")
-        self.vae = AutoencoderKLCogVideoX.from_pretrained(path, torch_dtype=dtype).to(device).eval()
+        if vae is None:
+            if cfg.pretrained_path is None:
+                raise ValueError("codec.pretrained_path must name a local AutoencoderKLCogVideoX directory")
+            path = require_local_dir(cfg.pretrained_path, "codec.pretrained_path")
+            vae = AutoencoderKLCogVideoX.from_pretrained(path, torch_dtype=dtype)
+        self.vae = vae.to(device).eval()
         self.vae.requires_grad_(False)
         if cfg.tiling:
             self.vae.enable_tiling()

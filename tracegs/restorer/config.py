@@ -86,7 +86,11 @@ class TransformerConfig:
     clean_min_time: float = 0.05
     # prediction=preconditioned: the standard deviation of the residual x0 - R in latent units, EDM's sigma_data.
     sigma_data: float = 1.0
-    pretrained_path: str | None = None  # local diffusers directory (config.json + safetensors)
+    # Local folder holding config.json and the weights (build.load_transformer), or whose transformer/ holds them.
+    pretrained_path: str | None = None
+    # Exact key names of stored tensors the class has no place for: skipped and logged (each) instead of refusing
+    # the folder, which any other unused stored tensor does. The paper scale lists none.
+    skip_stored_keys: list[str] = field(default_factory=list)
     dtype: str = "float32"  # frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
     gradient_checkpointing: bool = False  # recompute block activations in backward (paper-scale memory)
 
@@ -193,11 +197,12 @@ class SamplerConfig:
 # adapters (the generator has none), nor where the encoders live (backbone.offload_encoders).
 ENCODING_SECTIONS = ("name", "codec", "reference_encoder", "text_encoder")
 RESTORATION_SECTIONS = ("transformer", "schedule", "sampler")
-# Keys of those sections that do not change a restoration's bytes: memory settings, the training-time density,
+# Keys of those sections that do not change a restoration's bytes: memory settings, stored tensors left unused
+# (transformer.skip_stored_keys: they never reach the model), the training-time density,
 # the deployment guidance and seed (pseudo-targets have their own, data.prepare.pseudo_target_guidance, and a
 # seed derived from each clip).
-NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "schedule.train_time_power", "sampler.guidance_scale",
-                       "sampler.seed")
+NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "transformer.skip_stored_keys",
+                       "schedule.train_time_power", "sampler.guidance_scale", "sampler.seed")
 
 
 def cache_sections(pseudo_target) -> tuple[str, ...]:

@@ -1,0 +1,354 @@
+"""The first minutes on a GPU: one unattended check that times and loads the paper scale (about 8 min on one H100).
+
+Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-iterations 1000]``
+
+Sections, each measured on its own (a section that fails records its one-line error and the others still run: the
+minutes on a GPU are few, one failure must not cost the rest):
+- ``device``: GPU name, memory, torch and CUDA versions;
+- ``rasterizer``: one 3DGS fit of a procedural scene (embedded resolution) at the paper's fit settings
+  (``conf/splat/paper.yaml``) with every iteration-based schedule scaled to ``--fit-iterations``, once on the GPU
+  (gsplat) and once with the compiled CPU backend, same scene and seed: iterations per second of each, and the
+  PSNR of each fit on the scene's held-out views (the two should agree within 0.2 dB);
+- ``restorer``: the paper's restorer at its real shapes with random weights (nothing is read: a benchmark of time
+  and memory, not of quality), built in bf16 with fp32 LoRA adapters of the paper's rank on the supplement's
+  targets and gradient checkpointing as configured: seconds and peak memory of one guided deployment step
+  (``backbone.sampler.guidance_scale``: two forwards), one unguided rollout step (one forward, no gradient), one
+  Stage-2 iteration at the paper's batch (N student forwards with gradient, N teacher forwards without, the
+  optimiser step; the second iteration is timed, the first allocates AdamW's state), and the VAE's encode and
+  decode of one clip (49 x 480 x 720) in the ``vae`` section;
+- ``weights``: every released model the paper scale reads under ``paths.weights_dir`` (GSFixer, CogVideoX's VAE, T5
+  and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing; when the restorer's are all present,
+  they are loaded through the pipeline's own loaders and one clip is restored (seconds).
+
+Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log``; ``benchmarks/paper_gpu_hours.py --measured
+<out>/gpu_check.json`` replaces its assumed seconds with these. Without a CUDA device (``--scale auto``) it prints
+"no GPU: nothing measured" and exits 0; ``--scale rehearsal`` runs every section on the CPU at the rehearsal's
+tiny shapes (``experiment=rehearsal``: what the test suite does). The last printed line is the JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stage2_memory import _batch, _make_adapter, _module  # noqa: E402
+
+from tracegs.data.colmap import load_scene, test_indices_for  # noqa: E402
+from tracegs.data.config import SceneSourceConfig, SyntheticConfig  # noqa: E402
+from tracegs.data.splits import every_nth_test  # noqa: E402
+from tracegs.data.synthetic import generate_scene, scene_name  # noqa: E402
+from tracegs.eval.clips import mean_psnr  # noqa: E402
+from tracegs.splat.config import GaussianFitConfig  # noqa: E402
+from tracegs.splat.fit import View, fit_gaussians  # noqa: E402
+from tracegs.splat.gaussians import GaussianModel  # noqa: E402
+from tracegs.splat.render import fit_device, render_views  # noqa: E402
+
+log = logging.getLogger("gpu_check")
+MIB = 2**20
+SCENE_SEED = 0  # the embedded benchmark's first training scene
+
+
+def compose(scale: str, overrides: tuple[str, ...] = ()):
+    """The Stage-2 training config of ``experiment=<scale>`` (paper, or rehearsal at CPU sizes); it holds the
+    deployment, evaluation and data settings too."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from tracegs.config.location import CONF_DIR
+    from tracegs.config.schema import register_configs
+
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return hydra_compose(config_name="train", overrides=[f"experiment={scale}", "stage=stage2", *overrides])
+
+
+class Clock:
+    """Seconds and peak accelerator memory of a call; CUDA work is synchronised so the time is the kernels'."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def measure(self, work: Callable[[], object], repeats: int = 1) -> dict:
+        """Median seconds over ``repeats`` calls after one untimed warm-up call; peak MiB over the timed calls
+        (CUDA only: CPU tensors have no allocator statistics, None there)."""
+        work()
+        self._sync()
+        if self.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(self.device)
+        seconds = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            work()
+            self._sync()
+            seconds.append(time.perf_counter() - start)
+        peak = torch.cuda.max_memory_allocated(self.device) / MIB if self.device.type == "cuda" else None
+        return {"seconds": statistics.median(seconds), "peak_mib": peak}
+
+
+def device_facts(device: torch.device) -> dict:
+    facts = {"device": str(device), "torch": torch.__version__, "cuda": torch.version.cuda}
+    if device.type == "cuda":
+        props = torch.cuda.get_device_properties(device)
+        facts.update(name=props.name, memory_gib=round(props.total_memory / 2**30, 1),
+                     capability=f"{props.major}.{props.minor}")
+    else:
+        facts["name"] = "cpu"
+    return facts
+
+
+def shortened(fit: GaussianFitConfig, iterations: int) -> GaussianFitConfig:
+    """``fit`` with every iteration-based schedule scaled to ``iterations`` (the fractions of the paper's 30k stay)."""
+    def scaled(value: int) -> int:
+        return max(1, round(value * iterations / fit.iterations))
+
+    d = fit.densification
+    return replace(fit, iterations=iterations, snapshot_iters=[iterations],
+                   sh_degree_interval=scaled(fit.sh_degree_interval),
+                   densification=replace(d, refine_start_iter=scaled(d.refine_start_iter),
+                                         refine_stop_iter=scaled(d.refine_stop_iter),
+                                         refine_every=scaled(d.refine_every), reset_every=scaled(d.reset_every)))
+
+
+def fit_and_score(fit: GaussianFitConfig, views: list[View], held_out: list[View], init: GaussianModel) -> dict:
+    """Iterations per second of one fit, and its PSNR on the held-out views (rendered with the fit's backend)."""
+    device = fit_device(fit)
+    start = time.perf_counter()
+    model = fit_gaussians(views, fit, init)[fit.iterations].to(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    seconds = time.perf_counter() - start
+    rendered = render_views(model, [v.camera for v in held_out], fit.background, fit.sh_degree, fit.backend)
+    truth = torch.stack([v.image for v in held_out]).to(rendered.device)
+    return {"backend": str(fit.backend), "iterations": fit.iterations, "seconds": seconds,
+            "iterations_per_s": fit.iterations / seconds, "psnr_held_out": mean_psnr(rendered.cpu(), truth.cpu())}
+
+
+def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterations: int, work_dir: Path) -> dict:
+    """The same shortened fit with ``backends`` (accelerator's, then the CPU reference): speed and PSNR gap."""
+    synthetic = SyntheticConfig(root=str(work_dir / "synthetic"))
+    generate_scene(SCENE_SEED, synthetic, Path(synthetic.root))
+    source = SceneSourceConfig(root=synthetic.root, preset="synthetic")
+    scene = load_scene(source, scene_name(SCENE_SEED))
+    test = set(test_indices_for(source, scene) or every_nth_test(len(scene.cameras), source.test_every))
+    indices = [i for i in range(len(scene.cameras)) if i not in test]
+    training = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
+    held_out = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in sorted(test)]
+    init = GaussianModel.from_points(*scene.points_seen_by(indices))  # as prepare starts a fit
+    fits = [fit_and_score(replace(shortened(fit, iterations), backend=backend), training, held_out, init)
+            for backend in backends]
+    return {"fits": fits, "psnr_gap_db": fits[0]["psnr_held_out"] - fits[1]["psnr_held_out"],
+            "speedup": fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]}
+
+
+def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) -> dict:
+    """Time and memory of the restorer's units of work at ``cfg``'s shapes, random weights."""
+    from omegaconf import OmegaConf
+
+    from tracegs.restorer.sampler import guided_prediction
+
+    backbone = OmegaConf.to_object(cfg.backbone)
+    backbone.transformer.pretrained_path = None
+    kind = device.type
+    adapter = work_dir / "stage1_adapter"
+    _make_adapter(backbone, adapter, kind)
+    module = _module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
+                     cfg.stage.guidance_scale)
+    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
+    batch = {key: value.to(device) for key, value in _batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+    dtype = next(module.transformer.parameters()).dtype
+    one = {key: value[:1].to(dtype) for key, value in batch.items()}
+    t = torch.full((1,), 0.5, device=device)
+
+    def evaluation(guidance: float) -> Callable[[], object]:
+        def run():
+            with torch.no_grad(), torch.autocast(kind, dtype=dtype, enabled=dtype != torch.float32):
+                return guided_prediction(module.transformer, one["target"], one["student_cond"], t, one["text"],
+                                         one["ref_2d"], one["ref_3d"], guidance)
+        return run
+
+    figures = {"deploy_step": clock.measure(evaluation(backbone.sampler.guidance_scale), repeats=3),
+               "rollout_step": clock.measure(evaluation(1.0), repeats=3),
+               "stage2_iteration": stage2_iteration(module, batch, cfg.trainer.precision, device),
+               "batch_size": cfg.experiment.batch_size, "rollout_steps": cfg.stage.rollout_steps,
+               "deploy_guidance_scale": backbone.sampler.guidance_scale}
+    return figures
+
+
+def stage2_iteration(module, batch: dict, precision: str, device: torch.device) -> dict:
+    """Seconds and peak memory of the second Stage-2 training iteration (the first allocates AdamW's state)."""
+    import lightning as L
+    from torch.utils.data import DataLoader
+
+    class Probe(L.Callback):
+        def __init__(self):
+            self.figures: list[dict] = []
+
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+                torch.cuda.reset_peak_memory_stats(device)
+            self.start = time.perf_counter()
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            cuda = device.type == "cuda"
+            if cuda:
+                torch.cuda.synchronize(device)
+            self.figures.append({"seconds": time.perf_counter() - self.start,
+                                 "peak_mib": torch.cuda.max_memory_allocated(device) / MIB if cuda else None})
+
+    probe = Probe()
+    trainer = L.Trainer(accelerator="gpu" if device.type == "cuda" else "cpu", devices=1, precision=precision,
+                        max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[probe])
+    trainer.fit(module, train_dataloaders=DataLoader([batch], batch_size=None))
+    return probe.figures[-1]
+
+
+def vae_section(cfg, device: torch.device, clock: Clock) -> dict:
+    """The VAE's encode and decode of one clip: the weights folder's architecture when its config is present,
+    else diffusers' ``AutoencoderKLCogVideoX`` defaults (CogVideoX's published architecture); random weights."""
+    from diffusers import AutoencoderKLCogVideoX
+    from omegaconf import OmegaConf
+
+    from tracegs.restorer.codec import CogVideoXCodec
+
+    codec_cfg = OmegaConf.to_object(cfg.backbone.codec)
+    frames, frame_size = cfg.experiment.frames_per_clip, (cfg.experiment.frame_height, cfg.experiment.frame_width)
+    folder = Path(codec_cfg.pretrained_path or "")
+    config = AutoencoderKLCogVideoX.load_config(folder) if (folder / "config.json").is_file() else {}
+    torch.manual_seed(0)
+    with torch.device(device):
+        vae = AutoencoderKLCogVideoX.from_config(config).to(torch.bfloat16)
+    codec = CogVideoXCodec(codec_cfg, device, vae=vae)
+    clip = torch.rand(1, frames, 3, *frame_size, device=device)
+    latents = codec.encode(clip)
+    return {"vae_encode": clock.measure(lambda: codec.encode(clip)),
+            "vae_decode": clock.measure(lambda: codec.decode(latents)),
+            "vae_clip": [frames, *frame_size]}
+
+
+def weight_paths(cfg) -> dict[str, str | None]:
+    """Every released model the paper scale reads, by name: its configured local path (None where not used)."""
+    backbone, deploy, evaluation = cfg.backbone, cfg.deploy, cfg.evaluation
+    return {"gsfixer_transformer": backbone.transformer.pretrained_path,
+            "cogvideox_vae": backbone.codec.pretrained_path,
+            "t5_text_encoder": backbone.text_encoder.pretrained_path,
+            "t5_tokenizer": backbone.text_encoder.tokenizer_path,
+            "dinov2": backbone.reference_encoder.dino_path,
+            "vggt": backbone.reference_encoder.vggt_path,
+            "blip2_captioner": deploy.captions.blip2_path,
+            "vgg16_lpips": evaluation.lpips_weights}
+
+
+def weights_section(cfg, device: torch.device, clock: Clock) -> dict:
+    """Which released models are on disk; with the restorer's all present, load them and restore one clip."""
+    from omegaconf import OmegaConf
+
+    from tracegs.restorer.build import build_backbone
+    from tracegs.restorer.sampler import RestorationPipeline
+
+    paths = weight_paths(cfg)
+    present = {name: path is not None and Path(path).exists() for name, path in paths.items()}
+    missing = sorted(name for name, path in paths.items() if path is not None and not present[name])
+    figures: dict = {"paths": paths, "missing": missing}
+    restorer = ("gsfixer_transformer", "cogvideox_vae", "t5_text_encoder", "t5_tokenizer", "dinov2", "vggt")
+    if any(name in missing for name in restorer):
+        log.info("weights missing under %s: %s (nothing loaded)", cfg.paths.weights_dir, ", ".join(missing))
+        return figures
+    start = time.perf_counter()
+    backbone = build_backbone(OmegaConf.to_object(cfg.backbone), device=device)
+    figures["load_seconds"] = time.perf_counter() - start
+    height, width = cfg.experiment.frame_height, cfg.experiment.frame_width
+    frames = torch.rand(1, cfg.experiment.frames_per_clip, 3, height, width)
+    references = torch.rand(1, 2, 3, height, width)
+    pipeline = RestorationPipeline(backbone)
+    figures["restore_clip"] = clock.measure(
+        lambda: pipeline.restore(frames, references, ["a photo of a scene"], seed=0))
+    return figures
+
+
+def section(name: str, work: Callable[[], dict], record: dict) -> None:
+    """Run one section; its figures, or its error in one line (the traceback goes to the log), go in ``record``."""
+    log.info("%s ...", name)
+    start = time.perf_counter()
+    try:
+        record[name] = work()
+    except Exception as error:  # noqa: BLE001 (an unattended run records every failure and goes on)
+        log.error("%s failed: %s", name, traceback.format_exc())
+        record[name] = {"error": f"{type(error).__name__}: {error}".splitlines()[0]}
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()  # what a section built is gone: the next one measures its own peak
+    record[name]["section_seconds"] = round(time.perf_counter() - start, 2)
+    log.info("%s: %s", name, json.dumps(record[name], default=str))
+
+
+def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, ...] = ()) -> dict:
+    """Every section at ``scale`` on CUDA (paper) or the CPU (rehearsal); writes ``gpu_check.json`` in ``out``."""
+    from omegaconf import OmegaConf
+
+    out.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out / "gpu_check.log", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    try:
+        device = torch.device("cuda" if scale == "paper" else "cpu")
+        cfg = compose(scale, overrides)
+        clock = Clock(device)
+        fit = OmegaConf.to_object(cfg.data.prepare.fit)
+        backends = ("gsplat", "compiled") if device.type == "cuda" else ("torch", "compiled")
+        record: dict = {"scale": scale}
+        with tempfile.TemporaryDirectory() as scratch:
+            section("device", lambda: device_facts(device), record)
+            section("rasterizer", lambda: rasterizer_section(fit, backends, fit_iterations, Path(scratch)), record)
+            section("restorer", lambda: restorer_section(cfg, device, clock, Path(scratch)), record)
+            section("vae", lambda: vae_section(cfg, device, clock), record)
+            section("weights", lambda: weights_section(cfg, device, clock), record)
+        target = out / "gpu_check.json"
+        partial = target.with_suffix(".json.tmp")
+        partial.write_text(json.dumps(record, indent=2, default=str) + "\n")
+        partial.replace(target)
+        return record
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+
+
+def main(argv: list[str] | None = None) -> dict | None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="outputs/gpu_check")
+    parser.add_argument("--scale", choices=("auto", "paper", "rehearsal"), default="auto")
+    parser.add_argument("--fit-iterations", type=int, default=1000,
+                        help="the paper's 30k-iteration fit, every schedule scaled to this many iterations")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides of the composed config (e.g. paths.root_dir=...)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.scale == "auto" and not torch.cuda.is_available():
+        print("no GPU: nothing measured")
+        return None
+    scale = "paper" if args.scale == "auto" else args.scale
+    if scale == "paper" and not torch.cuda.is_available():
+        sys.exit("--scale paper needs a CUDA device (--scale rehearsal runs the same sections on the CPU)")
+    record = run_check(scale, Path(args.out), args.fit_iterations, tuple(args.overrides))
+    print(json.dumps(record, default=str))
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""benchmarks/gpu_check.py at the rehearsal's shapes on the CPU: every section of the one GPU check (its own
+functions, the JSON it writes) and benchmarks/paper_gpu_hours.py reading that JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import gpu_check  # noqa: E402  (a script directory, not a package)
+import paper_gpu_hours  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def checked(tmp_path_factory, rehearsal_root) -> tuple[dict, Path]:
+    """One check at rehearsal shapes on the rehearsal's weights tree (tiny random models in the paper's layouts)."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        from paper_weights import install_vggt_double
+
+        install_vggt_double(monkeypatch)
+        out = tmp_path_factory.mktemp("gpu_check")
+        record = gpu_check.main(["--scale", "rehearsal", "--fit-iterations", "20", "--out", str(out),
+                                 f"paths.root_dir={rehearsal_root}"])
+    return record, out
+
+
+def test_every_section_measures_and_the_json_is_what_it_printed(checked):
+    record, out = checked
+    assert json.loads((out / "gpu_check.json").read_text()) == json.loads(json.dumps(record, default=str))
+    assert "rasterizer ..." in (out / "gpu_check.log").read_text()
+    assert not [name for name, figures in record.items() if isinstance(figures, dict) and "error" in figures]
+    assert record["device"]["name"] == "cpu" and record["device"]["torch"] == torch.__version__
+    fits = record["rasterizer"]["fits"]
+    assert [fit["backend"] for fit in fits] == ["torch", "compiled"]  # on a GPU: gsplat, then compiled
+    assert all(fit["iterations"] == 20 and fit["iterations_per_s"] > 0 and math.isfinite(fit["psnr_held_out"])
+               for fit in fits)
+    restorer = record["restorer"]
+    assert restorer["batch_size"] == 2 and restorer["rollout_steps"] == 10  # the paper's batch and N
+    assert all(restorer[unit]["seconds"] > 0 for unit in ("deploy_step", "rollout_step", "stage2_iteration"))
+    assert record["vae"]["vae_clip"] == [9, 32, 48] and record["vae"]["vae_decode"]["seconds"] > 0
+
+
+def test_present_weights_are_loaded_and_restore_a_clip_missing_ones_are_named(checked):
+    weights = checked[0]["weights"]
+    assert set(weights["paths"]) == {"gsfixer_transformer", "cogvideox_vae", "t5_text_encoder", "t5_tokenizer",
+                                     "dinov2", "vggt", "blip2_captioner", "vgg16_lpips"}
+    assert weights["paths"]["blip2_captioner"] is None  # the rehearsal captions from caption.txt
+    assert weights["missing"] == []
+    assert weights["load_seconds"] > 0 and weights["restore_clip"]["seconds"] > 0
+
+
+def test_missing_weights_are_named_and_nothing_is_loaded(tmp_path):
+    cfg = gpu_check.compose("rehearsal", (f"paths.root_dir={tmp_path}",))
+    weights = gpu_check.weights_section(cfg, torch.device("cpu"), gpu_check.Clock(torch.device("cpu")))
+    assert weights["missing"] == ["cogvideox_vae", "dinov2", "gsfixer_transformer", "t5_text_encoder",
+                                  "t5_tokenizer", "vgg16_lpips", "vggt"]
+    assert "load_seconds" not in weights
+
+
+def test_a_failing_section_is_recorded_and_the_others_still_run(tmp_path):
+    record = {}
+
+    def broken() -> dict:
+        raise RuntimeError("CUDA out of memory\nsecond line")
+
+    gpu_check.section("restorer", broken, record)
+    gpu_check.section("device", lambda: {"name": "cpu"}, record)
+    assert record["restorer"]["error"] == "RuntimeError: CUDA out of memory"
+    assert record["device"]["name"] == "cpu"
+
+
+def test_without_a_gpu_nothing_is_measured(capsys, tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    assert gpu_check.main(["--out", str(tmp_path)]) is None
+    assert capsys.readouterr().out.strip() == "no GPU: nothing measured"
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_estimate_reads_the_measured_seconds(checked, capsys):
+    record, out = checked
+    assumed = paper_gpu_hours.main([])
+    measured = paper_gpu_hours.main(["--measured", str(out / "gpu_check.json")])
+    unit, sources = measured["unit_seconds"], measured["unit_sources"]
+    assert unit["transformer_forward"] == record["restorer"]["rollout_step"]["seconds"]
+    assert unit["vae_encode"] == record["vae"]["vae_encode"]["seconds"]
+    assert sources["transformer_forward"] == "measured on cpu"
+    assert sources["fit_iteration"] == sources["caption"] == "assumed (one A100)"
+    assert assumed["unit_sources"]["transformer_forward"] == "assumed (one A100)"
+    assert measured["gpu_hours_total"] != assumed["gpu_hours_total"]
+    assert "transformer_forward: measured on cpu" in capsys.readouterr().out
+
+
+def test_an_unreadable_measurement_is_refused_in_one_line(tmp_path):
+    broken = tmp_path / "gpu_check.json"
+    broken.write_text("{not json")
+    with pytest.raises(SystemExit, match="--measured .*gpu_check.json: not a readable gpu_check.json"):
+        paper_gpu_hours.main(["--measured", str(broken)])

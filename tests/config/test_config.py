@@ -177,6 +177,13 @@ def test_wrong_type_names_the_field():
         (["data=dl3dv", "data.prepare.split=val"], "data.prepare.split"),  # test: captured held-out clips
         (["backbone.schedule.train_time_power=-1"], "backbone.schedule.train_time_power"),
         (["backbone.schedule.deploy_time_power=-1"], "backbone.schedule.deploy_time_power"),
+        (["backbone.transformer.sigma_data=0"], "backbone.transformer.sigma_data"),
+        (["backbone.schedule.noise_scale=0"], "backbone.schedule.noise_scale"),
+        (["experiment=paper", "backbone.schedule.noise_scale=0.5"], "backbone.schedule.noise_scale"),
+        (["backbone.transformer.prediction=preconditioned", "backbone.schedule.noise_scale=0.2"],
+         "backbone.transformer.noise_scale"),  # the preconditioning must know the noise end
+        (["backbone.schedule.train_time_logit_normal=[1.0]"], "backbone.schedule.train_time_logit_normal"),
+        (["backbone.schedule.train_time_logit_normal=[1.0,0]"], "backbone.schedule.train_time_logit_normal"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
         (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["training_data=dl3dvx"], "training_data"),
@@ -196,6 +203,12 @@ def test_invalid_combination_names_the_field(overrides, field):
         validate(cfg)
     assert error.value.field == field
     assert f"'{field}'" in str(error.value)
+
+
+def test_the_multi_step_restorer_takes_its_noise_end_from_the_schedule():
+    cfg = compose(config_name="train", overrides=["backbone=tiny_diffusion", "backbone.schedule.noise_scale=0.17"])
+    validate(cfg)
+    assert cfg.backbone.transformer.noise_scale == 0.17
 
 
 def test_deployment_eval_is_off_by_default_and_takes_validation_scenes():

@@ -9,8 +9,12 @@ from tracegs.restorer.schedules import RectifiedFlowSchedule, VPredictionDDIMSch
 def schedules():
     return [
         RectifiedFlowSchedule(ScheduleConfig(kind="rectified_flow", deploy_steps=20)),
+        RectifiedFlowSchedule(ScheduleConfig(kind="rectified_flow", deploy_steps=20, noise_scale=0.2)),
         VPredictionDDIMSchedule(ScheduleConfig(kind="vpred_ddim", deploy_steps=50)),
     ]
+
+
+IDS = ["rectified_flow", "rectified_flow_small_noise", "vpred_ddim"]
 
 
 @pytest.mark.parametrize("steps", [50, 10])
@@ -52,7 +56,7 @@ def test_ddim_step_matches_diffusers_cogvideox_scheduler(steps):
         )
 
 
-@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+@pytest.mark.parametrize("schedule", schedules(), ids=IDS)
 def test_rollout_with_exact_velocity_recovers_clean_latent(schedule):
     g = torch.Generator().manual_seed(1)
     x0, noise = torch.randn(2, 3, 4, 6, 6, generator=g), torch.randn(2, 3, 4, 6, 6, generator=g)
@@ -66,7 +70,7 @@ def test_rollout_with_exact_velocity_recovers_clean_latent(schedule):
         torch.testing.assert_close(z, x0, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+@pytest.mark.parametrize("schedule", schedules(), ids=IDS)
 def test_predict_clean_inverts_add_noise(schedule):
     g = torch.Generator().manual_seed(2)
     x0, noise = torch.randn(4, 2, 3, 4, 4, generator=g), torch.randn(4, 2, 3, 4, 4, generator=g)
@@ -77,7 +81,7 @@ def test_predict_clean_inverts_add_noise(schedule):
     )
 
 
-@pytest.mark.parametrize("schedule", schedules(), ids=["rectified_flow", "vpred_ddim"])
+@pytest.mark.parametrize("schedule", schedules(), ids=IDS)
 def test_resampled_grid_is_strictly_decreasing_subset_with_both_ends(schedule):
     grid = schedule.timesteps()
     assert (grid[1:] < grid[:-1]).all()
@@ -97,7 +101,7 @@ def test_resampled_grid_is_strictly_decreasing_subset_with_both_ends(schedule):
 
 
 def test_deployment_schedule_ends():
-    rf, ddim = schedules()
+    rf, _, ddim = schedules()
     assert rf.timesteps(20)[0] == 1.0 and rf.timesteps(20)[-1] == 0.0 and rf.timesteps(20).numel() == 21
     grid = ddim.timesteps(50)
     assert grid.numel() == 51 and grid[0] == 999 and grid[-1] == -1
@@ -137,3 +141,16 @@ def test_training_times_can_be_logit_normal():
     assert float(t.min()) > 0.0 and float(t.max()) < 1.0
     logits = torch.logit(t.double())
     assert float(logits.std()) == pytest.approx(1.2, abs=0.03)
+
+
+def test_a_trajectory_starts_at_the_noise_end_of_the_training_path():
+    """The sampler's first state ``prior(eps)`` is the forward path at the grid's first time: sigma_n eps for a
+    rectified flow with noise end sigma_n (x0 has no weight at t = 1), CogVideoX's pure noise for DDIM."""
+    g = torch.Generator().manual_seed(4)
+    x0, noise = torch.randn(2, 3, 4, 4, 4, generator=g), torch.randn(2, 3, 4, 4, 4, generator=g)
+    standard, small, ddim = schedules()
+    for schedule in (small, standard):
+        start = schedule.timesteps()[0].expand(2)
+        torch.testing.assert_close(schedule.prior(noise), schedule.add_noise(x0, noise, start))
+    torch.testing.assert_close(small.prior(noise), 0.2 * noise)
+    assert torch.equal(ddim.prior(noise), noise)

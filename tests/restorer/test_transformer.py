@@ -134,7 +134,7 @@ def test_load_transformer_lists_missing_keys(tmp_path):
         k: v
         for k, v in transformer_kwargs(cfg).items()
         if k not in ("ref_2d_dim", "ref_3d_dim", "reference_norms", "timestep_scale", "prediction", "clean_min_time",
-                     "sigma_data")
+                     "sigma_data", "noise_scale")
     }
     CogVideoXTransformer3DModel(**kwargs).save_pretrained(cfg.pretrained_path)
     first_missing = r"model weight 'projector_dino.proj.bias' is not in the folder \(0 unused, 24 missing"
@@ -224,11 +224,12 @@ def _randomised(model):
     return model
 
 
-@pytest.mark.parametrize("sigma_data", [0.2, 1.0])
-def test_preconditioned_clean_prediction_tends_to_the_state_at_low_noise(make_inputs, sigma_data):
+@pytest.mark.parametrize(("sigma_data", "noise_scale"), [(0.2, 1.0), (1.0, 1.0), (0.17, 0.17)])
+def test_preconditioned_clean_prediction_tends_to_the_state_at_low_noise(make_inputs, sigma_data, noise_scale):
     """EDM's c_skip -> 1 and c_out -> 0 as t -> 0: x0_hat = z_t - t v -> z_t whatever the network outputs, and
     the velocity stays finite at t = 0 (no division by t)."""
-    model = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma_data)))
+    model = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma_data,
+                                                             noise_scale=noise_scale)))
     inputs = make_inputs()
     gaps = []
     with torch.no_grad():
@@ -241,22 +242,25 @@ def test_preconditioned_clean_prediction_tends_to_the_state_at_low_noise(make_in
     assert gaps[2] < 0.15 * gaps[1]  # |x0_hat - z_t| = t |v| with v bounded: linear in t near the clean end
 
 
-def test_preconditioned_velocity_is_that_of_edms_clean_prediction(make_inputs):
+@pytest.mark.parametrize("noise", [1.0, 0.25])
+def test_preconditioned_velocity_is_that_of_edms_clean_prediction(make_inputs, noise):
     """v = (z_t - x0_hat) / t with x0_hat = R + c_skip s + c_out F(c_in s), s = z_t - (1 - t) R (Karras et al.
-    2022, Table 1), written out here from the network output F read through a velocity-head twin."""
+    2022, Table 1; noise end sigma_n: z_t = (1 - t) x0 + t sigma_n eps), written out here from the network
+    output F read through a velocity-head twin."""
     sigma = 0.3
-    precond = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma)))
+    precond = _randomised(create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=sigma,
+                                                               noise_scale=noise)))
     head = create_transformer(TransformerConfig())
     head.load_state_dict(precond.state_dict())
     inputs = make_inputs()
     t = torch.tensor([0.7, 0.2]).reshape(2, 1, 1, 1, 1)
     inputs["timestep"] = t.flatten()
     shifted = inputs["noisy"] - (1 - t) * inputs["cond"]
-    variance = (1 - t) ** 2 * sigma**2 + t**2
+    variance = (1 - t) ** 2 * sigma**2 + t**2 * noise**2
     with torch.no_grad():
         velocity = precond(**inputs).velocity
         network = head(**{**inputs, "noisy": shifted / variance.sqrt()}).velocity
-    x0 = inputs["cond"] + (1 - t) * sigma**2 / variance * shifted + t * sigma / variance.sqrt() * network
+    x0 = inputs["cond"] + (1 - t) * sigma**2 / variance * shifted + t * noise * sigma / variance.sqrt() * network
     torch.testing.assert_close(velocity, (inputs["noisy"] - x0) / t, rtol=1e-4, atol=1e-4)
 
 

@@ -227,6 +227,18 @@ def _validate_backbone(cfg: DictConfig) -> None:
         f"'{backbone.transformer.prediction}' converts x0 to a rectified-flow velocity; schedule.kind is "
         f"'{backbone.schedule.kind}' (use prediction=velocity)",
     )
+    transformer, schedule = backbone.transformer, backbone.schedule
+    _require(transformer.sigma_data > 0, "backbone.transformer.sigma_data", f"must be > 0, got {transformer.sigma_data}")
+    _require(schedule.noise_scale > 0 and (schedule.noise_scale == 1 or schedule.kind == "rectified_flow"),
+             "backbone.schedule.noise_scale",
+             f"must be > 0 and is for schedule.kind=rectified_flow only, got {schedule.noise_scale} with '{schedule.kind}'")
+    _require(transformer.prediction != "preconditioned" or transformer.noise_scale == schedule.noise_scale,
+             "backbone.transformer.noise_scale",
+             f"must be the schedule's noise end (backbone.schedule.noise_scale = {schedule.noise_scale}): the "
+             f"preconditioning is derived from it, got {transformer.noise_scale}")
+    logit_normal = schedule.train_time_logit_normal
+    _require(logit_normal is None or (len(logit_normal) == 2 and logit_normal[1] > 0),
+             "backbone.schedule.train_time_logit_normal", f"must be [mean, std > 0] or null, got {logit_normal}")
     # The codec's spatial factor times the patch size must tile the rendered frames exactly (the CogVideoX
     # VAE compresses 8x spatially, supplement A.1; the embedded codec by its block size).
     factor = (8 if backbone.codec.kind == "cogvideox" else backbone.codec.block_size) * backbone.transformer.patch_size

@@ -93,7 +93,7 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
         return velocities[-1]
 
     # The solver's own velocity at each visited state is the student's prediction there: no second forward.
-    states = solve(schedule, grid, noise, student_velocity, keep_states=True)
+    states = solve(schedule, grid, schedule.prior(noise), student_velocity, keep_states=True)
     visited, noised, taught = [], [], []
     for z, v, t in zip(states[:-1], velocities, grid[:-1]):
         t_batch = t.expand(z.shape[0]).to(device)

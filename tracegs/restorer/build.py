@@ -60,6 +60,7 @@ def transformer_kwargs(cfg: TransformerConfig) -> dict:
         prediction=cfg.prediction,
         clean_min_time=cfg.clean_min_time,
         sigma_data=cfg.sigma_data,
+        noise_scale=cfg.noise_scale,
     )
 
 

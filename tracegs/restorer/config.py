@@ -86,6 +86,8 @@ class TransformerConfig:
     clean_min_time: float = 0.05
     # prediction=preconditioned: the standard deviation of the residual x0 - R in latent units, EDM's sigma_data.
     sigma_data: float = 1.0
+    # prediction=preconditioned: the schedule's noise end sigma_n (schedule.noise_scale; the two must agree).
+    noise_scale: float = 1.0
     # Local folder holding config.json and the weights (build.load_transformer), or whose transformer/ holds them.
     pretrained_path: str | None = None
     # Exact key names of stored tensors the class has no place for: skipped and logged (each) instead of refusing
@@ -163,6 +165,9 @@ class ScheduleConfig:
     # rectified_flow: with a value, training times are logit-normal instead, t = sigmoid(m + s n), n ~ N(0, 1)
     # (Esser et al. 2024, Sec. 3.1): [m, s]. Takes the place of train_time_power.
     train_time_logit_normal: list[float] | None = None
+    # rectified_flow: the noise end of the path, z_1 = noise_scale eps (1: the standard path). Near the size of the
+    # residual x0 - R, the states carry what the restorer is unsure of through the whole trajectory.
+    noise_scale: float = 1.0
     # rectified_flow: the deployment grid (and so Stage 2's resampled grids, drawn from it) puts its M + 1 points
     # at equal steps of t^(q + 1), q >= 0; q = 0 is the uniform grid. With q = p every solver step spans an equal
     # share of the training times, so the solver stays where the training times are (with p = 12 and q = 0

@@ -115,7 +115,7 @@ def sample(
         with autocast:
             return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
 
-    states = solve(schedule, grid, initial_noise(cond.shape, generator, cond.device), velocity, progress,
+    states = solve(schedule, grid, schedule.prior(initial_noise(cond.shape, generator, cond.device)), velocity, progress,
                    keep_states=return_states)
     return (states[-1], states) if return_states else states[-1]
 

@@ -45,6 +45,10 @@ class NoiseSchedule:
         """The M-step deployment schedule: ``M + 1`` strictly decreasing points, pure noise first, clean last."""
         raise NotImplementedError
 
+    def prior(self, noise: torch.Tensor) -> torch.Tensor:
+        """The first state of every trajectory, z at the grid's noise end, from standard normal ``noise``."""
+        return noise
+
     def sample_train_t(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """Per-sample training times for forward-noised states (Stage 1, baseline, off-policy)."""
         raise NotImplementedError
@@ -64,12 +68,17 @@ class NoiseSchedule:
 
 
 class RectifiedFlowSchedule(NoiseSchedule):
+    """z_t = (1 - t) x0 + t sigma_n eps with sigma_n = ``noise_scale`` (1: the standard path)."""
+
     def add_noise(self, x0, noise, t):
         t = _expand(t, x0)
-        return (1.0 - t) * x0 + t * noise
+        return (1.0 - t) * x0 + t * self.cfg.noise_scale * noise
 
     def velocity_target(self, x0, noise, t):
-        return noise - x0
+        return self.cfg.noise_scale * noise - x0
+
+    def prior(self, noise):
+        return self.cfg.noise_scale * noise
 
     def predict_clean(self, z, v, t):
         return z - _expand(t, z) * v

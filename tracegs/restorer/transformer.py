@@ -40,24 +40,26 @@ class Preconditioning:
     """EDM's preconditioning (Karras et al. 2022, Sec. 5 and Table 1) of a rectified-flow restorer, centred on
     its rendering R: the network learns only what neither R nor the state z_t already says.
 
-    With z_t = (1 - t) x0 + t eps, the shifted state s = z_t - (1 - t) R = (1 - t)(x0 - R) + t eps is a scaled
-    variance-exploding state of the residual x0 - R, whose standard deviation is ``sigma_data``. With
-    D = (1 - t)^2 sigma_data^2 + t^2 (the variance of s):
+    With z_t = (1 - t) x0 + t sigma_n eps (``noise_scale`` sigma_n: the schedule's noise end), the shifted state
+    s = z_t - (1 - t) R = (1 - t)(x0 - R) + t sigma_n eps is a scaled variance-exploding state of the residual
+    x0 - R, whose standard deviation is ``sigma_data``. With D = (1 - t)^2 sigma_data^2 + t^2 sigma_n^2 (the
+    variance of s):
 
         x0_hat = R + c_skip s + c_out F(c_in s),   c_skip = (1 - t) sigma_data^2 / D,
-        c_out = t sigma_data / sqrt(D),           c_in = 1 / sqrt(D),
+        c_out = t sigma_n sigma_data / sqrt(D),   c_in = 1 / sqrt(D),
 
     so the network's input has unit variance at every t, and its output is scaled by what z_t cannot tell.
     At t = 1 x0_hat = R + sigma_data F (the prediction from R alone); as t -> 0, c_skip -> 1 and c_out -> 0, so
     x0_hat -> z_t for any network output: the last steps only refine, and no error is divided by t.
     The velocity v = (z_t - x0_hat) / t is written without the division (``velocity``):
-    v = (t - (1 - t) sigma_data^2) / D s - R - sigma_data / sqrt(D) F, finite at every t in [0, 1].
+    v = (t sigma_n^2 - (1 - t) sigma_data^2) / D s - R - sigma_n sigma_data / sqrt(D) F, finite on [0, 1].
     """
 
     sigma_data: float
+    noise_scale: float = 1.0
 
     def variance(self, t: torch.Tensor) -> torch.Tensor:
-        return (1.0 - t) ** 2 * self.sigma_data**2 + t**2
+        return (1.0 - t) ** 2 * self.sigma_data**2 + t**2 * self.noise_scale**2
 
     def shifted(self, noisy: torch.Tensor, cond: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """s = z_t - (1 - t) R, the state of the residual x0 - R."""
@@ -70,8 +72,8 @@ class Preconditioning:
                  t: torch.Tensor) -> torch.Tensor:
         """v = (z_t - x0_hat) / t of the network output F, in the form without 1 / t."""
         variance = self.variance(t)
-        skip = (t - (1.0 - t) * self.sigma_data**2) / variance
-        return skip * shifted - cond - self.sigma_data * variance.rsqrt() * output
+        skip = (t * self.noise_scale**2 - (1.0 - t) * self.sigma_data**2) / variance
+        return skip * shifted - cond - self.noise_scale * self.sigma_data * variance.rsqrt() * output
 
 
 def velocity_from_clean(noisy: torch.Tensor, clean: torch.Tensor, t: torch.Tensor, min_time: float) -> torch.Tensor:
@@ -260,6 +262,7 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         prediction: str = "velocity",
         clean_min_time: float = 0.05,
         sigma_data: float = 1.0,
+        noise_scale: float = 1.0,
     ):
         if prediction not in PREDICTIONS:
             raise ValueError(f"transformer prediction={prediction!r} must be one of {PREDICTIONS}")
@@ -396,7 +399,7 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
         weights = self.patch_embed.proj.weight.dtype  # e.g. a bf16 base fed float32 cached latents
         network_input = noisy
         if self.config.prediction == "preconditioned":
-            precond = Preconditioning(self.config.sigma_data)
+            precond = Preconditioning(self.config.sigma_data, self.config.noise_scale)
             t = timestep.to(noisy.dtype).reshape(-1, *([1] * (noisy.dim() - 1)))
             shifted = precond.shifted(noisy, cond.to(noisy.dtype), t)
             network_input = precond.c_in(t) * shifted

@@ -129,7 +129,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         returns every state."""
         activate(self.transformer, STUDENT)
         student_cond = self.latent(batch, "student_cond")
-        noise = initial_noise(student_cond.shape, generator, student_cond.device)
+        noise = self.schedule.prior(initial_noise(student_cond.shape, generator, student_cond.device))
         if velocity is None:
             def velocity(_: int, state: Tensor, t: Tensor) -> Tensor:
                 return self.guided(state, student_cond, t, batch).velocity

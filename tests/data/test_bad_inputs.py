@@ -101,14 +101,15 @@ def truncated_baseline_transformer(tmp: Path):
     directory = transformer_dir(tmp / "baseline_transformer")
     truncate(directory / "diffusion_pytorch_model.safetensors")
     return ("deploy", ["ablation=A", f"artifacts.baseline_weights={directory}"],
-            f"{directory}: cannot load the transformer weights")
+            f"{directory / 'diffusion_pytorch_model.safetensors'}: cannot load the transformer weights")
 
 
 def baseline_directory_without_weights(tmp: Path):
     directory = transformer_dir(tmp / "baseline_transformer")
     (directory / "diffusion_pytorch_model.safetensors").unlink()
     return ("deploy", ["ablation=A", f"artifacts.baseline_weights={directory}"],
-            f"{directory}: cannot load the transformer weights")
+            f"{directory}: holds no diffusion_pytorch_model.safetensors, *.safetensors shards or "
+            "diffusion_pytorch_model.bin")
 
 
 def corrupt_checkpoint(tmp: Path):

@@ -182,6 +182,8 @@ def test_wrong_type_names_the_field():
         (["experiment=paper", "backbone.schedule.noise_scale=0.5"], "backbone.schedule.noise_scale"),
         (["backbone.transformer.prediction=preconditioned", "backbone.schedule.noise_scale=0.2"],
          "backbone.transformer.noise_scale"),  # the preconditioning must know the noise end
+        (["backbone.sampler.temperature=1.5"], "backbone.sampler.temperature"),
+        (["backbone.sampler.temperature=-0.1"], "backbone.sampler.temperature"),
         (["backbone.schedule.train_time_logit_normal=[1.0]"], "backbone.schedule.train_time_logit_normal"),
         (["backbone.schedule.train_time_logit_normal=[1.0,0]"], "backbone.schedule.train_time_logit_normal"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),

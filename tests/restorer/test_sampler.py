@@ -33,6 +33,23 @@ def test_sampler_is_deterministic_per_seed(backbone, make_inputs):
     assert not torch.allclose(first, other)
 
 
+def test_temperature_scales_the_first_state_and_zero_makes_the_restorer_deterministic(backbone, make_inputs):
+    """Every trajectory starts at the noise end of tau * eps: tau = 1 is the Gaussian prior, tau = 0 its centre,
+    so the restoration no longer depends on the seed."""
+    inputs = _inputs(backbone, make_inputs)
+
+    def run(seed, temperature):
+        return sample(backbone.transformer, backbone.schedule, **inputs, steps=4, guidance_scale=1.0,
+                      generator=torch.Generator().manual_seed(seed), temperature=temperature, return_states=True)[1]
+
+    prior = run(7, 1.0)[0]
+    assert torch.equal(run(7, 0.5)[0], 0.5 * prior)
+    cold, other_seed = run(7, 0.0), run(8, 0.0)
+    assert torch.count_nonzero(cold[0]) == 0
+    assert all(torch.equal(a, b) for a, b in zip(cold, other_seed))
+    assert not torch.allclose(run(7, 1.0)[-1], run(8, 1.0)[-1])
+
+
 def test_guidance_one_skips_unconditional_pass(backbone, make_inputs):
     inputs = _inputs(backbone, make_inputs)
     calls, handle = _count_forwards(backbone.transformer)

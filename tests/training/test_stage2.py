@@ -179,19 +179,21 @@ def test_interrupted_and_resumed_equals_uninterrupted(stage1_adapter, tmp_path):
         assert torch.equal(a, b), name
 
 
-@pytest.mark.parametrize("guidance", [1.0, 4.0])
+@pytest.mark.parametrize(("guidance", "temperature"), [(1.0, 1.0), (4.0, 1.0), (1.0, 0.0)])
 @pytest.mark.parametrize("rollout_steps", [N, M])
-def test_rollout_visits_the_deployment_samplers_states(stage1_adapter, guidance, rollout_steps):
-    """Same noise, grid, guidance and adapter: the Stage-2 rollout is the deployment sampler's trajectory, and
-    the teacher is queried there under the same guidance rule."""
-    module = make_module(stage1_adapter, guidance_scale=guidance, rollout_steps=rollout_steps)
+def test_rollout_visits_the_deployment_samplers_states(stage1_adapter, guidance, temperature, rollout_steps):
+    """Same noise, grid, guidance, sampling temperature and adapter: the Stage-2 rollout is the deployment
+    sampler's trajectory, and the teacher is queried there under the same guidance rule."""
+    module = make_module(stage1_adapter, guidance_scale=guidance, rollout_steps=rollout_steps,
+                         temperature=temperature)
     batch = make_batch()
     batch_size = batch["target"].shape[0]
 
     def deployed(grid, generator, scale=guidance):
         with using_adapter(module.transformer, STUDENT):
             return sample(module.transformer, module.schedule, batch["student_cond"], batch["ref_2d"], batch["ref_3d"],
-                          batch["text"], M, scale, generator, return_states=True, grid=grid)[1]
+                          batch["text"], M, scale, generator, temperature=temperature, return_states=True,
+                          grid=grid)[1]
 
     generator = module.step_generator()  # the first training step's generator: grid draw, then the noise
     grid = module.training_grid(generator)

@@ -236,6 +236,8 @@ def _validate_backbone(cfg: DictConfig) -> None:
              "backbone.transformer.noise_scale",
              f"must be the schedule's noise end (backbone.schedule.noise_scale = {schedule.noise_scale}): the "
              f"preconditioning is derived from it, got {transformer.noise_scale}")
+    _require(0 <= backbone.sampler.temperature <= 1, "backbone.sampler.temperature",
+             f"must be in [0, 1] (1: the Gaussian prior itself), got {backbone.sampler.temperature}")
     logit_normal = schedule.train_time_logit_normal
     _require(logit_normal is None or (len(logit_normal) == 2 and logit_normal[1] > 0),
              "backbone.schedule.train_time_logit_normal", f"must be [mean, std > 0] or null, got {logit_normal}")

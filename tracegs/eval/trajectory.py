@@ -13,7 +13,7 @@ from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.restorer.build import Backbone
-from tracegs.restorer.sampler import guided_prediction, initial_noise, solve, using_adapter
+from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve, using_adapter
 
 
 @dataclass
@@ -93,7 +93,8 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
         return velocities[-1]
 
     # The solver's own velocity at each visited state is the student's prediction there: no second forward.
-    states = solve(schedule, grid, schedule.prior(noise), student_velocity, keep_states=True)
+    states = solve(schedule, grid, first_state(schedule, noise, backbone.cfg.sampler.temperature), student_velocity,
+                   keep_states=True)
     visited, noised, taught = [], [], []
     for z, v, t in zip(states[:-1], velocities, grid[:-1]):
         t_batch = t.expand(z.shape[0]).to(device)

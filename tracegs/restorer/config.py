@@ -193,6 +193,13 @@ class SamplerConfig:
 
     guidance_scale: float = 1.0
     seed: int = 0
+    # Sampling temperature tau: every reverse trajectory (deployment, pseudo-target restorations, the Stage-2
+    # rollout, the trajectory diagnostics) starts at the schedule's noise end of tau * eps. The paper samples
+    # from the Gaussian prior itself (tau = 1, its DDIM from noise). tau < 1 narrows the samples towards the
+    # restorer's posterior mean, which PSNR rewards; tau = 0 starts every trajectory at the noise end's centre
+    # (a deterministic restorer; forward-noised training states are never that quiet, so the student's states
+    # are its own). conf/backbone/tiny_diffusion.yaml records the measured choice.
+    temperature: float = 1.0
     autocast_bf16: bool = True  # only takes effect on CUDA
 
 

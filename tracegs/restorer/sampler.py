@@ -52,8 +52,15 @@ def guided_prediction(
 
 
 def initial_noise(shape: torch.Size, generator: torch.Generator, device: torch.device | str) -> torch.Tensor:
-    """z_{t_N} ~ N(0, I), drawn on the CPU from ``generator`` so a seed gives the same states on any device."""
+    """eps ~ N(0, I) of a trajectory's first state, drawn on the CPU from ``generator`` so a seed gives the same
+    states on any device."""
     return torch.randn(shape, generator=generator, dtype=torch.float32).to(device)
+
+
+def first_state(schedule: NoiseSchedule, noise: torch.Tensor, temperature: float) -> torch.Tensor:
+    """z_{t_M} of every reverse trajectory (deployment, the Stage-2 rollout, the trajectory diagnostics): the
+    schedule's noise end for standard normal ``noise`` scaled by the sampling temperature (``SamplerConfig``)."""
+    return schedule.prior(temperature * noise)
 
 
 def solve(
@@ -95,11 +102,13 @@ def sample(
     steps: int,
     guidance_scale: float,
     generator: torch.Generator,
+    temperature: float = 1.0,
     return_states: bool = False,
     progress: bool = False,
     grid: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, list[torch.Tensor]]:
-    """Run the M-step solver z_{t_M} ~ N(0, I) -> z_{t_0} conditioned on ``cond`` latents (B, f, C, h, w).
+    """Run the M-step solver z_{t_M} -> z_{t_0} (``first_state`` at ``temperature``) conditioned on ``cond``
+    latents (B, f, C, h, w).
 
     ``grid`` replaces the M-step deployment schedule (e.g. a Stage-2 training grid). bf16 autocast is used
     on CUDA. With ``return_states`` also returns the visited states [z_{t_M}, ..., z_{t_0}].
@@ -115,8 +124,8 @@ def sample(
         with autocast:
             return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
 
-    states = solve(schedule, grid, schedule.prior(initial_noise(cond.shape, generator, cond.device)), velocity, progress,
-                   keep_states=return_states)
+    z = first_state(schedule, initial_noise(cond.shape, generator, cond.device), temperature)
+    states = solve(schedule, grid, z, velocity, progress, keep_states=return_states)
     return (states[-1], states) if return_states else states[-1]
 
 
@@ -209,5 +218,6 @@ class RestorationPipeline:
                 steps or cfg.schedule.deploy_steps,
                 cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale,
                 generator,
+                temperature=cfg.sampler.temperature,
                 progress=progress,
             )

@@ -95,6 +95,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         seed=stage.seed,
         lora=cfg.backbone.lora,
         guidance_scale=stage.guidance_scale,
+        temperature=cfg.backbone.sampler.temperature,
     )
 
 

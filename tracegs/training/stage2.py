@@ -10,7 +10,7 @@ from torch import Tensor, nn
 
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
-from tracegs.restorer.sampler import guided_prediction, initial_noise, solve
+from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve
 from tracegs.training.config import MemoryMode, OptimizerConfig, TrajectorySpace
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
@@ -28,7 +28,8 @@ class Stage2DistillationModule(RestorerTrainingModule):
     ``on_policy=False`` (variant E) evaluates the same objective at independently forward-noised
     pseudo-target states on the same grid.
 
-    The rollout is the deployment sampler's solver (``sampler.solve``) with the same initial-noise draw.
+    The rollout is the deployment sampler's solver (``sampler.solve``) with the same initial-noise draw and
+    sampling temperature (``backbone.sampler.temperature``).
     ``guidance_scale`` (``stage.guidance_scale``) is 1 by default: the student advances with its own
     conditional velocity u_i = v(z_{t'_i}, t'_i, R_s) and the teacher is queried once per state, N student
     forwards with gradient and N teacher forwards without, as the supplement writes Eqs. 4-6. Any other scale
@@ -56,6 +57,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         seed: int = 0,
         lora: LoraConfig | None = None,
         guidance_scale: float = 1.0,
+        temperature: float = 1.0,
         trajectory_space: TrajectorySpace | str = TrajectorySpace.velocity,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
@@ -68,6 +70,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.on_policy = on_policy
         self.memory_mode = MemoryMode.parse(memory_mode, "stage.memory_mode")
         self.guidance_scale = guidance_scale
+        self.temperature = temperature
         self.trajectory_space = TrajectorySpace.parse(trajectory_space, "loss.trajectory_space")
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
@@ -129,7 +132,8 @@ class Stage2DistillationModule(RestorerTrainingModule):
         returns every state."""
         activate(self.transformer, STUDENT)
         student_cond = self.latent(batch, "student_cond")
-        noise = self.schedule.prior(initial_noise(student_cond.shape, generator, student_cond.device))
+        noise = first_state(self.schedule, initial_noise(student_cond.shape, generator, student_cond.device),
+                            self.temperature)
         if velocity is None:
             def velocity(_: int, state: Tensor, t: Tensor) -> Tensor:
                 return self.guided(state, student_cond, t, batch).velocity

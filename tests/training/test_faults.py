@@ -1,5 +1,6 @@
-"""Stage 2 under faults: SIGKILL at a random moment, or SIGTERM / SIGUSR2, then the same call again ends with a
-student adapter byte-identical to the uninterrupted run's; a checkpoint that did not reach the disk stops the run."""
+"""Stage 2 under faults: SIGKILL at a random moment, SIGTERM / SIGUSR2, or a SLURM requeue, then the same call again
+ends with a student adapter byte-identical to the uninterrupted run's; a checkpoint that did not reach the disk stops
+the run."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from tracegs.errors import OutputPathError
 from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.checkpoints import ConfirmedCheckpoint
 from tracegs.training.config import OptimizerConfig
-from tracegs.training.run import train_stage
+from tracegs.training.run import resume_checkpoint, train_stage
 
 STEPS = 6
 SCRIPT = (
@@ -54,11 +55,12 @@ def uninterrupted(tmp_path_factory):
     return tmp, stage2, product_bytes(product)
 
 
-def start_training(cfg, tmp: Path) -> subprocess.Popen:
+def start_training(cfg, tmp: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """The Stage-2 training of ``cfg`` in a new process, with ``env`` added to this process's environment."""
     spec = tmp / f"{Path(cfg.output_dir).name}.pickle"
     spec.write_bytes(pickle.dumps(cfg))
     return subprocess.Popen([sys.executable, "-c", SCRIPT, str(spec)], stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+                            env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
 
 
 def wait_for_saves(checkpoint: Path, saves: int, process: subprocess.Popen) -> None:
@@ -69,6 +71,35 @@ def wait_for_saves(checkpoint: Path, saves: int, process: subprocess.Popen) -> N
         if checkpoint.is_file():
             seen.add(checkpoint.stat().st_mtime_ns)
         time.sleep(0.005)
+
+
+def wait_for_file(path: Path, process: subprocess.Popen) -> None:
+    """Poll until ``path`` exists or the process ends."""
+    deadline = time.monotonic() + 300
+    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+
+
+def slurm_job(tmp: Path, job_id: str) -> tuple[dict[str, str], Path]:
+    """(environment of a one-task SLURM batch job, file of the ``scontrol`` calls it makes).
+
+    ``SLURMEnvironment.detect()`` needs SLURM_NTASKS and a job name other than "bash" / "interactive" (which
+    mean an interactive allocation); the requeue handler reads SLURM_JOB_ID and runs ``scontrol`` from PATH.
+    The cluster's scontrol is not what is under test: the one put first on PATH only records its arguments.
+    """
+    calls, bin_dir = tmp / f"scontrol_{job_id}.log", tmp / f"bin_{job_id}"
+    bin_dir.mkdir()
+    scontrol = bin_dir / "scontrol"
+    scontrol.write_text(f'#!/bin/sh\nprintf \'%s\\n\' "$*" >> "{calls}"\n')
+    scontrol.chmod(0o755)
+    env = {"SLURM_NTASKS": "1", "SLURM_PROCID": "0", "SLURM_LOCALID": "0", "SLURM_NODEID": "0",
+           "SLURM_NODELIST": "localhost", "SLURM_JOB_ID": job_id, "SLURM_JOB_NAME": "tracegs-stage2",
+           "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    return env, calls
+
+
+def global_step(checkpoint: Path) -> int:
+    return torch.load(checkpoint, map_location="cpu", weights_only=True, mmap=True)["global_step"]
 
 
 @pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
@@ -122,3 +153,45 @@ def test_a_checkpoint_that_did_not_reach_the_disk_stops_the_run(tmp_path, read_o
             trainer.fit(module, train_dataloaders=fixed_batch_loader(make_batch()))
             assert trainer.global_step == 2
     assert list(folder.iterdir()) == []
+
+
+@pytest.mark.slow  # two training processes per case
+@pytest.mark.parametrize("end", ["SIGTERM", "SIGKILL"], ids=["SIGTERM", "KillWait-SIGKILL"])
+def test_a_slurm_requeue_resumes_to_identical_bytes(uninterrupted, end):
+    """The SLURM time-limit path of the cluster scripts (``#SBATCH --signal=SIGUSR2@90``): SIGUSR2 makes
+    Lightning's SLURMEnvironment save hpc_ckpt_1.ckpt and call ``scontrol requeue``; SLURM then ends the job with
+    SIGTERM (a checkpoint after the step in flight), or with SIGKILL when the job outlives KillWait; the requeued
+    job (same command, same environment) resumes from the newest checkpoint to the uninterrupted run's bytes.
+    The SIGKILL case saves every 3 steps, so the requeue checkpoint is the only one past step 3."""
+    tmp, stage2, expected = uninterrupted
+    cfg = stage2(f"slurm_{end}")
+    cfg.stage.checkpoint_every_n_steps = 1 if end == "SIGTERM" else 3
+    run_dir = Path(cfg.output_dir)
+    last, hpc = run_dir / "checkpoints" / "last.ckpt", run_dir / "hpc_ckpt_1.ckpt"
+    env, scontrol_calls = slurm_job(tmp, "4242" if end == "SIGTERM" else "4243")
+    process = start_training(cfg, tmp, env)
+    wait_for_saves(last, 1, process)
+    time.sleep(0.05)  # into the next step: the requeue checkpoint comes after the step in flight
+    assert process.poll() is None, f"training ended before the signal: {process.stderr.read()[-2000:]}"
+    process.send_signal(signal.SIGUSR2)
+    wait_for_file(scontrol_calls, process)
+    if process.poll() is None:
+        process.send_signal(getattr(signal, end))
+    _, stderr = process.communicate(timeout=300)
+    assert scontrol_calls.read_text() == f"requeue {env['SLURM_JOB_ID']}\n", stderr[-2000:]
+    assert hpc.is_file() and 0 < global_step(hpc) < STEPS, stderr[-2000:]
+    assert not (run_dir / "student_adapter").exists()
+    if end == "SIGTERM":  # the SIGTERM checkpoint comes after the requeue checkpoint
+        assert "training stopped by a signal after step" in stderr, stderr[-2000:]
+        assert global_step(last) >= global_step(hpc)
+        resumed_from = last
+    else:  # killed before it saved again: only the requeue checkpoint holds the steps after step 3
+        assert global_step(last) == 3 < global_step(hpc)
+        resumed_from = hpc
+    assert resume_checkpoint(cfg, run_dir) == str(resumed_from)
+    requeued = start_training(cfg, tmp, env)
+    _, stderr = requeued.communicate(timeout=300)
+    assert requeued.returncode == 0, stderr[-2000:]
+    assert f"Restoring states from the checkpoint path at {resumed_from}" in stderr, stderr[-3000:]
+    assert scontrol_calls.read_text().count("requeue") == 1  # the requeued job ran to its end
+    assert product_bytes(run_dir / "student_adapter") == expected

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import pickle
 import signal
+import threading
 from pathlib import Path
 
 import torch
@@ -19,8 +20,8 @@ from tracegs.errors import InputFileError, OutputPathError, TraceGSError, one_li
 IMPORTED_HPARAM_KEYS = ("_instantiator", "_class_path")
 
 
-def require_loadable_checkpoint(path: str | Path, field: str) -> None:
-    """Load ``path`` with ``weights_only=True`` (memory-mapped, so cheap) before Lightning does.
+def require_loadable_checkpoint(path: str | Path, field: str) -> dict:
+    """Load ``path`` with ``weights_only=True`` (memory-mapped, so cheap) before Lightning does; return it.
 
     A truncated file or one that needs pickled code would otherwise fail inside Lightning with a
     traceback; a pickled one is refused here rather than executed.
@@ -40,6 +41,25 @@ def require_loadable_checkpoint(path: str | Path, field: str) -> None:
     if named_code:
         raise InputFileError(path, f"its hyper_parameters name code to import ({', '.join(named_code)}): loading "
                                    "it could run arbitrary code", fix)
+    return checkpoint
+
+
+def requeue_checkpoints(run_dir: Path) -> list[Path]:
+    """The ``hpc_ckpt_<n>.ckpt`` files Lightning's SLURM requeue handler wrote in ``run_dir`` (its
+    ``default_root_dir``), in the order of ``n``."""
+    return sorted(run_dir.glob("hpc_ckpt_*.ckpt"), key=lambda path: int(path.stem.rpartition("_")[2] or 0))
+
+
+def newest_checkpoint(paths: list[Path], field: str) -> Path | None:
+    """The existing file of ``paths`` with the highest ``global_step`` (the first of equals), each checked
+    loadable; None when none exists."""
+    newest, newest_step = None, -1
+    for path in paths:
+        if path.is_file():
+            step = require_loadable_checkpoint(path, field).get("global_step", 0)
+            if step > newest_step:
+                newest, newest_step = path, step
+    return newest
 
 
 def finished_checkpoint_state(path: str | Path, max_steps: int) -> dict | None:
@@ -79,23 +99,47 @@ class ConfirmedCheckpoint(ModelCheckpoint):
 
 
 class CheckpointOnSignal(Callback):
-    """Write ``last.ckpt`` after the current step and stop when SIGTERM (or SIGUSR2) arrives.
+    """Write ``last.ckpt`` after the current step and stop when SIGTERM (or SIGUSR2) arrives; under SLURM, run
+    Lightning's requeue after the current step.
 
     Lightning's signal connector records SIGTERM in ``trainer.received_sigterm``, but a single process acts
     on it only at the end of an epoch, which at paper scale is hours away. This callback makes it act after
     the step in flight, through Lightning's own ``save_checkpoint`` and ``SIGTERMException``. Outside SLURM
-    SIGUSR2 (the signal the SLURM scripts ask for before a time limit) is forwarded as SIGTERM; under SLURM
-    Lightning's ``SLURMEnvironment`` owns it (checkpoint and requeue).
+    the requeue signal (SIGUSR2, the signal the SLURM scripts ask for before a time limit) is forwarded as
+    SIGTERM. Under SLURM Lightning's ``SLURMEnvironment`` owns it: its handler saves ``hpc_ckpt_<n>.ckpt`` and
+    calls ``scontrol requeue``. Lightning runs that handler the moment the signal lands, which can be between
+    the optimizer's update and the step counter's increment, or inside another checkpoint's save: a
+    checkpoint that a resumed run would replay a step on top of. So the handler is kept and run here, after
+    the step in flight, like the SIGTERM checkpoint; every rank runs it when any rank received the signal, as
+    its save is a collective.
     """
 
-    def __init__(self, last_checkpoint: Path) -> None:
+    def __init__(self, last_checkpoint: Path, requeue_signal: int | None = getattr(signal, "SIGUSR2", None)) -> None:
         self.last_checkpoint = last_checkpoint
+        self.requeue_signal = requeue_signal
+        self.slurm_requeue = None  # Lightning's requeue handler, once deferred
+        self.requeue_requested = False
 
     def setup(self, trainer, pl_module, stage: str) -> None:
-        if not SLURMEnvironment.detect() and hasattr(signal, "SIGUSR2"):
-            signal.signal(signal.SIGUSR2, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
+        if not SLURMEnvironment.detect() and self.requeue_signal is not None:
+            signal.signal(self.requeue_signal, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
+
+    def on_train_start(self, trainer, *_) -> None:
+        # Lightning registers its handlers after the setup hooks and before this one; its teardown restores
+        # the handler it found, so the deferral ends with the fit.
+        handler = signal.getsignal(self.requeue_signal) if self.requeue_signal is not None else None
+        if SLURMEnvironment.detect() and callable(handler) and threading.current_thread() is threading.main_thread():
+            self.slurm_requeue, self.requeue_requested = handler, False
+            signal.signal(self.requeue_signal, self._request_requeue)
+
+    def _request_requeue(self, *_) -> None:
+        self.requeue_requested = True
 
     def on_train_batch_end(self, trainer, *_) -> None:
+        if self.slurm_requeue is not None and trainer.strategy.reduce_boolean_decision(self.requeue_requested,
+                                                                                       all=False):
+            self.requeue_requested = False
+            self.slurm_requeue(self.requeue_signal, None)
         if trainer.received_sigterm:
             trainer.save_checkpoint(self.last_checkpoint)
             raise SIGTERMException()

@@ -240,7 +240,8 @@ class TrainerConfig:
     fast_dev_run: int = 0
     overfit_batches: float = 0.0
     detect_anomaly: bool = False
-    # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints and requeues.
+    # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints (hpc_ckpt_<n>.ckpt in the
+    # run folder, after the step in flight) and requeues; the requeued job resumes from its newest checkpoint.
     slurm_requeue_signal: str = "SIGUSR2"
     cluster: ClusterResources = field(default_factory=ClusterResources)
     fsdp: FsdpConfig = field(default_factory=FsdpConfig)

@@ -37,6 +37,8 @@ from tracegs.training.checkpoints import (
     CheckpointOnSignal,
     ConfirmedCheckpoint,
     finished_checkpoint_state,
+    newest_checkpoint,
+    requeue_checkpoints,
     require_loadable_checkpoint,
     stopped_by_signal,
 )
@@ -168,6 +170,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         save_last=True,
         enable_version_counter=False,  # one file per step: a rerun overwrites, never adds ``last-v1.ckpt``
     )
+    on_signal = CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt",
+                                   getattr(signal, cfg.trainer.slurm_requeue_signal, None))
     return L.Trainer(
         accelerator=cfg.trainer.accelerator,
         devices=cfg.trainer.devices,
@@ -180,8 +184,7 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints, CheckpointOnSignal(output_dir / "checkpoints" / "last.ckpt"), PlainTrainingProgress(),
-                   *weight_average(cfg.stage), *extra_callbacks],
+        callbacks=[checkpoints, on_signal, PlainTrainingProgress(), *weight_average(cfg.stage), *extra_callbacks],
         enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
@@ -196,16 +199,20 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
 
 
 def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
-    """The checkpoint to resume from: an explicit path, this run's ``last.ckpt`` for "last", or None."""
+    """The checkpoint to resume from: an explicit path; for "last" the newer of this run's ``last.ckpt`` and the
+    checkpoints of its SLURM requeues (None when it has neither); or None."""
     resume = cfg.stage.resume_from
     if resume is None:
         return None
     if resume == "last":
-        last = output_dir / "checkpoints" / "last.ckpt"
-        if not last.is_file():
-            return None
-        resume = str(last)
-    elif not Path(resume).is_file():
+        # Lightning resumes from its requeue checkpoint (hpc_ckpt_<n>.ckpt) only when given no path, and this
+        # run names last.ckpt once one exists. A job that SLURM kills after the requeue checkpoint and before
+        # its next periodic save (SIGKILL at the end of KillWait, or a long step) leaves the requeue
+        # checkpoint ahead of last.ckpt: resuming from last.ckpt would train those steps again.
+        newest = newest_checkpoint([output_dir / "checkpoints" / "last.ckpt", *requeue_checkpoints(output_dir)],
+                                   "stage.resume_from")
+        return None if newest is None else str(newest)
+    if not Path(resume).is_file():
         raise FileNotFoundError(f"stage.resume_from: no such checkpoint {resume}")
     require_loadable_checkpoint(resume, "stage.resume_from")
     return resume

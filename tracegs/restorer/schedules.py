@@ -1,7 +1,8 @@
 """Noise schedules behind one interface (main paper Eq. 1 solver T_i, Eq. 4 rollout, Alg. 1 Resample).
 
 Both schedules use the velocity parameterisation the restorer predicts:
-- ``RectifiedFlowSchedule`` (tiny backbone): z_t = (1 - t) x0 + t eps, v = eps - x0, t in [0, 1], Euler steps.
+- ``RectifiedFlowSchedule`` (tiny backbone): z_t = (1 - t) x0 + t sigma_n eps, v = sigma_n eps - x0, t in [0, 1],
+  Euler steps (sigma_n = ``noise_scale``, 1 on the standard path).
 - ``VPredictionDDIMSchedule`` (CogVideoX): z_t = sqrt(a_t) x0 + sqrt(1 - a_t) eps, v = sqrt(a_t) eps - sqrt(1 - a_t) x0
   with integer DDPM steps t in [0, T-1] and deterministic DDIM updates; the clean end of a grid is t = -1
   (alpha-bar = 1, diffusers' ``set_alpha_to_one``). This is what the paper calls velocity / flow matching.

@@ -82,6 +82,17 @@ def test_predict_clean_inverts_add_noise(schedule):
 
 
 @pytest.mark.parametrize("schedule", schedules(), ids=IDS)
+def test_velocity_toward_a_clean_frame_predicts_that_frame(schedule):
+    """The velocity Stage 2 compares the student with under loss.trajectory_target=pseudo_target: at any state
+    above the clean end, its clean prediction is the given frame."""
+    g = torch.Generator().manual_seed(1)
+    z, x0 = torch.randn(2, 3, 4, 5, 6, generator=g), torch.randn(2, 3, 4, 5, 6, generator=g)
+    t = schedule.timesteps()[:-1][torch.tensor([0, 7])]
+    torch.testing.assert_close(schedule.predict_clean(z, schedule.velocity_toward(z, x0, t), t), x0,
+                               rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("schedule", schedules(), ids=IDS)
 def test_resampled_grid_is_strictly_decreasing_subset_with_both_ends(schedule):
     grid = schedule.timesteps()
     assert (grid[1:] < grid[:-1]).all()
@@ -141,6 +152,19 @@ def test_training_times_can_be_logit_normal():
     assert float(t.min()) > 0.0 and float(t.max()) < 1.0
     logits = torch.logit(t.double())
     assert float(logits.std()) == pytest.approx(1.2, abs=0.03)
+
+
+def test_a_uniform_share_of_training_times_reaches_the_low_noise_states():
+    """train_time_uniform_share mixes uniform draws into a density concentrated near t = 1: with t^12 and a
+    quarter uniform, P(t < 0.5) = 0.25 * 0.5 + 0.75 * 0.5^13; without a share the draws are t^12's own."""
+    power = ScheduleConfig(kind="rectified_flow", train_time_power=12)
+    mixed = RectifiedFlowSchedule(ScheduleConfig(kind="rectified_flow", train_time_power=12,
+                                                 train_time_uniform_share=0.25))
+    t = mixed.sample_train_t(200_000, torch.Generator().manual_seed(0))
+    assert float((t < 0.5).float().mean()) == pytest.approx(0.25 * 0.5 + 0.75 * 0.5**13, abs=0.005)
+    assert 0.0 <= float(t.min()) and float(t.max()) <= 1.0
+    plain = RectifiedFlowSchedule(power).sample_train_t(1000, torch.Generator().manual_seed(3))
+    assert torch.equal(plain, torch.rand(1000, generator=torch.Generator().manual_seed(3)) ** (1 / 13))
 
 
 def test_a_trajectory_starts_at_the_noise_end_of_the_training_path():

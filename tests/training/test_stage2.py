@@ -275,3 +275,22 @@ def test_clean_space_trajectory_term_weighs_each_state_by_t_squared(stage1_adapt
         torch.testing.assert_close(in_clean, t_value**2 * in_velocity, rtol=1e-4, atol=1e-8)
     with pytest.raises(ValueError, match="loss.trajectory_space"):
         make_module(stage1_adapter, trajectory_space="noise")
+
+
+def test_pseudo_target_trajectory_term_compares_the_students_clean_prediction_with_the_pseudo_target(
+        stage1_adapter):
+    """loss.trajectory_target=pseudo_target (the oracle teacher of the embedded scale, whose pseudo-target is the
+    ground truth): at each visited state the student is compared with the clip's pseudo-target, not the teacher."""
+    batch = make_batch()
+    oracle = make_module(stage1_adapter, lambda_ret=0.0, trajectory_space="clean", trajectory_target="pseudo_target")
+    taught = make_module(stage1_adapter, lambda_ret=0.0, trajectory_space="clean")
+    taught.load_state_dict(oracle.state_dict())
+    state = torch.randn_like(batch["target"].float())
+    t = torch.full((state.shape[0],), 0.4)
+    terms, student_velocity = oracle.state_loss(batch, state, t)
+    expected = torch.nn.functional.mse_loss(oracle.schedule.predict_clean(state, student_velocity, t),
+                                            batch["target"].float())
+    torch.testing.assert_close(terms["traj"], expected, rtol=1e-4, atol=1e-8)
+    assert not torch.allclose(taught.state_loss(batch, state, t)[0]["traj"], expected)
+    with pytest.raises(ValueError, match="loss.trajectory_target"):
+        make_module(stage1_adapter, trajectory_target="teacher_views")

@@ -113,6 +113,7 @@ _IGNORED_PER_KIND = {kind: {*_NOT_READ_BY_TRAINING, *other_splits(*_READ_SPLITS[
 # stages stay in a later stage's scope: its folder is named before the earlier products are located.)
 _STAGE2_ONLY = {"experiment.stage2_steps", "experiment.stage2_lr", "experiment.stage2_warmup_steps",
                 "stage.rollout_steps", "stage.memory_mode", "stage.guidance_scale", "loss.trajectory_space",
+                "loss.trajectory_target",
                 "backbone.schedule.deploy_steps", "backbone.schedule.deploy_time_power", "backbone.sampler"}
 _IGNORED_PER_KIND["stage1"] |= _STAGE2_ONLY
 # A trains the whole transformer: no adapter, no Stage-1 budget.

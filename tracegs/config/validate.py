@@ -238,6 +238,8 @@ def _validate_backbone(cfg: DictConfig) -> None:
              f"preconditioning is derived from it, got {transformer.noise_scale}")
     _require(0 <= backbone.sampler.temperature <= 1, "backbone.sampler.temperature",
              f"must be in [0, 1] (1: the Gaussian prior itself), got {backbone.sampler.temperature}")
+    _require(0 <= schedule.train_time_uniform_share <= 1, "backbone.schedule.train_time_uniform_share",
+             f"must be in [0, 1], got {schedule.train_time_uniform_share}")
     logit_normal = schedule.train_time_logit_normal
     _require(logit_normal is None or (len(logit_normal) == 2 and logit_normal[1] > 0),
              "backbone.schedule.train_time_logit_normal", f"must be [mean, std > 0] or null, got {logit_normal}")

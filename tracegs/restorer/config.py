@@ -165,6 +165,10 @@ class ScheduleConfig:
     # rectified_flow: with a value, training times are logit-normal instead, t = sigmoid(m + s n), n ~ N(0, 1)
     # (Esser et al. 2024, Sec. 3.1): [m, s]. Takes the place of train_time_power.
     train_time_logit_normal: list[float] | None = None
+    # rectified_flow: the share of training times drawn uniformly on [0, 1] instead (a mixture with the density
+    # above): a density concentrated near t = 1, where the first prediction is made, still trains the low-noise
+    # states the last reverse steps visit.
+    train_time_uniform_share: float = 0.0
     # rectified_flow: the noise end of the path, z_1 = noise_scale eps (1: the standard path). Near the size of the
     # residual x0 - R, the states carry what the restorer is unsure of through the whole trajectory.
     noise_scale: float = 1.0
@@ -214,7 +218,8 @@ RESTORATION_SECTIONS = ("transformer", "schedule", "sampler")
 # the deployment guidance and seed (pseudo-targets have their own, data.prepare.pseudo_target_guidance, and a
 # seed derived from each clip).
 NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "transformer.skip_stored_keys",
-                       "schedule.train_time_power", "sampler.guidance_scale", "sampler.seed")
+                       "schedule.train_time_power", "schedule.train_time_uniform_share", "sampler.guidance_scale",
+                       "sampler.seed")
 
 
 def cache_sections(pseudo_target) -> tuple[str, ...]:

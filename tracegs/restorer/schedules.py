@@ -38,6 +38,11 @@ class NoiseSchedule:
     def predict_clean(self, z: torch.Tensor, v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    def velocity_toward(self, z: torch.Tensor, x0: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The velocity whose clean prediction at state ``z`` is ``x0`` (``predict_clean`` inverted; t above the
+        clean end)."""
+        raise NotImplementedError
+
     def step(self, z: torch.Tensor, v: torch.Tensor, t: torch.Tensor, t_prev: torch.Tensor) -> torch.Tensor:
         """Solver step T_i from t to t_prev < t (main paper Eq. 1), deterministic."""
         raise NotImplementedError
@@ -84,6 +89,9 @@ class RectifiedFlowSchedule(NoiseSchedule):
     def predict_clean(self, z, v, t):
         return z - _expand(t, z) * v
 
+    def velocity_toward(self, z, x0, t):
+        return (z - x0) / _expand(t, z)
+
     def step(self, z, v, t, t_prev):
         return z + (_expand(t_prev, z) - _expand(t, z)) * v
 
@@ -94,9 +102,14 @@ class RectifiedFlowSchedule(NoiseSchedule):
     def sample_train_t(self, batch, generator=None):
         if self.cfg.train_time_logit_normal is not None:
             mean, std = self.cfg.train_time_logit_normal
-            return torch.sigmoid(mean + std * torch.randn(batch, generator=generator))
-        # Density (p + 1) t^p on [0, 1] by inverse CDF (p = train_time_power; 0 = uniform).
-        return torch.rand(batch, generator=generator) ** (1.0 / (1.0 + self.cfg.train_time_power))
+            t = torch.sigmoid(mean + std * torch.randn(batch, generator=generator))
+        else:
+            # Density (p + 1) t^p on [0, 1] by inverse CDF (p = train_time_power; 0 = uniform).
+            t = torch.rand(batch, generator=generator) ** (1.0 / (1.0 + self.cfg.train_time_power))
+        if self.cfg.train_time_uniform_share == 0.0:
+            return t  # the generator's stream of a design without the mixture stays as it was
+        uniform = torch.rand(batch, generator=generator) < self.cfg.train_time_uniform_share
+        return torch.where(uniform, torch.rand(batch, generator=generator), t)
 
 
 class VPredictionDDIMSchedule(NoiseSchedule):
@@ -150,6 +163,10 @@ class VPredictionDDIMSchedule(NoiseSchedule):
     def predict_clean(self, z, v, t):
         signal, sigma = self._coefficients(t, z)
         return signal * z - sigma * v
+
+    def velocity_toward(self, z, x0, t):
+        signal, sigma = self._coefficients(t, z)
+        return (signal * z - x0) / sigma
 
     def predict_noise(self, z: torch.Tensor, v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         signal, sigma = self._coefficients(t, z)

@@ -39,6 +39,16 @@ class TrajectorySpace(Mode):
     clean = "clean"
 
 
+class TrajectoryTarget(Mode):
+    """What the student is compared with at each visited state (``LossConfig``)."""
+
+    teacher = "teacher"  # the frozen privileged teacher's prediction there, main paper Eq. 5
+    # The velocity that would take the state to the clip's pseudo-target (supp. A.4). At the embedded scale the
+    # pseudo-target is the ground truth, so this is an oracle teacher: it separates what the privileged teacher's
+    # targets do from what supervising the student at its own states does.
+    pseudo_target = "pseudo_target"
+
+
 class LrDecay(Mode):
     """The learning rate after warm-up (``OptimizerConfig``)."""
 
@@ -193,6 +203,7 @@ class LossConfig:
     lambda_align: float = 1.0
     lambda_ret: float = 0.15
     trajectory_space: TrajectorySpace = TrajectorySpace.velocity
+    trajectory_target: TrajectoryTarget = TrajectoryTarget.teacher
     # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
     retrieval_eps: float = 1e-6
 

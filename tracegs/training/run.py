@@ -92,6 +92,7 @@ def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
         lambda_ret=cfg.loss.lambda_ret,
         retrieval_eps=cfg.loss.retrieval_eps,
         trajectory_space=cfg.loss.trajectory_space,
+        trajectory_target=cfg.loss.trajectory_target,
         on_policy=cfg.policy.on_policy,
         memory_mode=stage.memory_mode,
         seed=stage.seed,

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve
-from tracegs.training.config import MemoryMode, OptimizerConfig, TrajectorySpace
+from tracegs.training.config import MemoryMode, OptimizerConfig, TrajectorySpace, TrajectoryTarget
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
 
@@ -59,6 +59,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         guidance_scale: float = 1.0,
         temperature: float = 1.0,
         trajectory_space: TrajectorySpace | str = TrajectorySpace.velocity,
+        trajectory_target: TrajectoryTarget | str = TrajectoryTarget.teacher,
     ) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
         if not 1 <= rollout_steps <= deploy_steps:
@@ -72,6 +73,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         self.guidance_scale = guidance_scale
         self.temperature = temperature
         self.trajectory_space = TrajectorySpace.parse(trajectory_space, "loss.trajectory_space")
+        self.trajectory_target = TrajectoryTarget.parse(trajectory_target, "loss.trajectory_target")
         self.transformer.requires_grad_(False)
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
@@ -148,7 +150,10 @@ class Stage2DistillationModule(RestorerTrainingModule):
             teacher = self.guided(state, self.latent(batch, "teacher_cond"), t, batch, read_retrieval)
         activate(self.transformer, STUDENT)
         student = self.guided(state, self.latent(batch, "student_cond"), t, batch, read_retrieval)
-        compared = (student.velocity, teacher.velocity)
+        target_velocity = teacher.velocity
+        if self.trajectory_target is TrajectoryTarget.pseudo_target:
+            target_velocity = self.schedule.velocity_toward(state, self.latent(batch, "target"), t.to(state.device))
+        compared = (student.velocity, target_velocity)
         if self.trajectory_space is TrajectorySpace.clean:
             compared = tuple(self.schedule.predict_clean(state, v, t.to(state.device)) for v in compared)
         terms = distillation_state_loss(

@@ -26,8 +26,10 @@ demo: setup
 benchmark: setup
 	$(BIN)/tracegs-benchmark
 
+# The suite runs on every core (pytest-xdist, work stealing): each test is single-threaded (tests/conftest.py),
+# so two workers on two cores roughly halve the wall time; `pytest FILE` alone still runs in one process.
 test: setup
-	@$(BIN)/python -m pytest -q; status=$$?; \
+	@$(BIN)/python -m pytest -q -n auto --dist worksteal; status=$$?; \
 	if [ $$status -eq 5 ]; then echo "make test: pytest collected no tests - the set-up is broken" >&2; fi; \
 	exit $$status
 

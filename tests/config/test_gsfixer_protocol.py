@@ -10,16 +10,47 @@ from hydra import compose, initialize_config_dir
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.config.validate import ConfigError, validate
+
+
+def composed(config_name: str, overrides: list[str]):
+    register_configs()
+    with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
+        return compose(config_name=config_name, overrides=overrides)
 
 
 @pytest.fixture(scope="module")
 def paper():
-    register_configs()
-    with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
-        yield compose(config_name="prepare", overrides=["experiment=paper"])
+    return composed("prepare", ["experiment=paper"])
+
+
+# gsfixer/cogvideo/inference.py l. 323, the default of --negative_prompt.
+GSFIXER_NEGATIVE_PROMPT = (
+    "The video is not of a high quality, it has a low resolution. Watermark present in each frame. The background "
+    "is solid. Strange body and strange trajectory. Distortion."
+)
 
 
 def test_opacity_reset_follows_gsfixers_mipnerf360_script(paper):
     """train_mipnerf360_sparse_view_recon_per_scene.py l. 49: ``--opacity_reset_interval 3100`` (the paper states
     no interval)."""
     assert paper.data.prepare.fit.densification.reset_every == 3100
+
+
+def test_guidance_runs_against_gsfixers_negative_prompt(paper):
+    """gsfixer/cogvideo/inference.py l. 320-325 (``--negative_prompt``), passed to the pipeline at l. 147 with
+    guidance 6 (l. 305-309): the paper's unconditional branch is that prompt's T5 encoding."""
+    assert paper.backbone.text_encoder.negative_prompt == GSFIXER_NEGATIVE_PROMPT
+    assert paper.backbone.sampler.guidance_scale == 6.0
+    assert paper.data.prepare.pseudo_target_guidance == 6.0
+
+
+def test_the_embedded_scale_keeps_the_all_zero_unconditional_branch():
+    assert composed("prepare", []).backbone.text_encoder.negative_prompt is None
+
+
+def test_a_guided_rollout_is_refused_where_deployment_guides_against_a_negative_prompt():
+    cfg = composed("train", ["experiment=paper", "stage=stage2", "stage.guidance_scale=6"])
+    with pytest.raises(ConfigError, match="stage.guidance_scale"):
+        validate(cfg)
+

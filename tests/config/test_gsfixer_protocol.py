@@ -54,3 +54,11 @@ def test_a_guided_rollout_is_refused_where_deployment_guides_against_a_negative_
     with pytest.raises(ConfigError, match="stage.guidance_scale"):
         validate(cfg)
 
+
+@pytest.mark.parametrize("dataset, rule", [("mipnerf360", "linspace"), ("nerfbusters", "linspace"),
+                                           ("dl3dv", "nested")])
+def test_evaluation_datasets_pick_gsfixers_linspace_sparse_views(dataset, rule):
+    """datasets/colmap_debug.py l. 416-422 (np.linspace over the every-8th split's training views) on the
+    evaluation-only datasets; DL3DV trains too, whose clips need nested sets (paper Sec. 3)."""
+    cfg = composed("prepare", ["experiment=paper", f"data={dataset}"])
+    assert (cfg.data.source.view_rule, cfg.data.source.test_every) == (rule, 8)

@@ -62,3 +62,17 @@ def test_evaluation_datasets_pick_gsfixers_linspace_sparse_views(dataset, rule):
     evaluation-only datasets; DL3DV trains too, whose clips need nested sets (paper Sec. 3)."""
     cfg = composed("prepare", ["experiment=paper", f"data={dataset}"])
     assert (cfg.data.source.view_rule, cfg.data.source.test_every) == (rule, 8)
+
+
+def test_deployment_trajectory_follows_gsfixers_ellipse_and_clip_ends(paper):
+    """gsfixer/extrapolation/outpaint/sparse.py l. 203 (``generate_ellipse_path(poses, 85, ...)``: 85 ellipse
+    poses) and l. 286-297 (the captured reference images over the clip's rendered end frames); training clips
+    follow the same trajectory config."""
+    assert paper.deploy.trajectory.ellipse_frames == 85
+    assert paper.deploy.trajectory.captured_ends is True
+    assert paper.data.prepare.trajectory == paper.deploy.trajectory
+
+
+def test_the_embedded_trajectory_keeps_its_own_values():
+    trajectory = composed("prepare", []).deploy.trajectory
+    assert (trajectory.ellipse_frames, trajectory.captured_ends) == (64, False)

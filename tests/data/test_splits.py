@@ -79,3 +79,17 @@ def test_split_json_that_breaks_nesting_is_rejected(tmp_path):
 def test_more_views_than_exist_fails_clearly():
     with pytest.raises(SplitError, match="18 training views, but of the scene.s 16 images 2 are held out.*leaving 14"):
         make_split(16, [3, 18])
+
+
+def test_linspace_rule_picks_gsfixers_sparse_views():
+    """GSFixer's release, datasets/colmap_debug.py l. 416-422: test = every 8th image, train = the rest, and the
+    K views are ``train[round(i)] for i in np.linspace(0, len(train) - 1, K)`` (both ends, half to even)."""
+    split = make_split(30, [3, 6, 9], view_rule="linspace")
+    train = [i for i in range(30) if i % 8 != 0]  # 26 views
+    assert split.test == [0, 8, 16, 24]
+    # linspace(0, 25, 3) = 0, 12.5, 25: 12.5 rounds to 12 (half to even), so train[12] = 14
+    assert split.views(3) == [train[0], train[12], train[25]] == [1, 14, 29]
+    # linspace(0, 25, 6) = 0, 5, 10, 15, 20, 25
+    assert split.views(6) == [train[i] for i in (0, 5, 10, 15, 20, 25)]
+    assert split.views(9) == [train[round(i)] for i in (0, 3.125, 6.25, 9.375, 12.5, 15.625, 18.75, 21.875, 25)]
+    assert split.views(3) != make_split(30, [3]).views(3)  # not the nested rule's

@@ -118,3 +118,23 @@ def test_pipeline_restores_clips_with_and_without_adapter(backbone):
         RestorationPipeline(backbone, "teacher")
     with pytest.raises(ValueError, match="captions"):
         pipeline.restore(frames, refs, ["a", "b"], seed=0)
+
+
+def test_guidance_runs_its_unconditional_branch_on_the_negative_prompt(backbone, make_inputs):
+    """With ``text_encoder.negative_prompt`` set (paper scale: GSFixer's, gsfixer/cogvideo/inference.py l. 320-325),
+    the pipeline's unconditional branch is that prompt's encoding (no quality suffix), not the all-zero
+    embedding; without one it stays all-zero (the embedded scale)."""
+    inputs = make_inputs(batch=2, frames=2)
+    latents = (inputs["cond"], inputs["ref_2d"], inputs["ref_3d"], inputs["text"])
+    calls, handle = _count_forwards(backbone.transformer)
+    zero = RestorationPipeline(backbone).restore_latents(*latents, seed=0, steps=1, guidance_scale=6.0)
+    assert not calls[0]["text"][2:].any()
+    backbone.cfg.text_encoder.negative_prompt = "Distortion. Watermark present in each frame."
+    calls.clear()
+    negative = RestorationPipeline(backbone).restore_latents(*latents, seed=0, steps=1, guidance_scale=6.0)
+    handle.remove()
+    encoded = backbone.text_encoder.encode_prompts(["Distortion. Watermark present in each frame."])[0]
+    unconditional = calls[0]["text"][2:]
+    assert torch.equal(unconditional, torch.stack([encoded, encoded]))
+    assert not torch.equal(encoded, backbone.text_encoder.encode(["Distortion. Watermark present in each frame."])[0])
+    assert not torch.allclose(zero, negative)

@@ -158,3 +158,16 @@ def test_round_shapes_cycle_so_many_rounds_use_every_shape_equally():
     cfg = TrajectoryConfig(ellipse_scales=[1.0, 0.85, 0.7], height_variations=[0.05, 0.1, 0.15])
     shapes = [round_shape(cfg, r) for r in range(9)]
     assert {s: shapes.count(s) for s in shapes} == {(1.0, 0.05): 3, (0.85, 0.1): 3, (0.7, 0.15): 3}
+
+
+def test_captured_ends_replace_the_rendered_end_frames():
+    """GSFixer's release, gsfixer/extrapolation/outpaint/sparse.py l. 286-297: the clip's first and last frames
+    are the captured reference images, the frames between them stay rendered."""
+    from tracegs.splat.trajectory import with_captured_ends
+
+    frames, references = torch.rand(5, 3, 4, 6), torch.rand(2, 3, 4, 6)
+    clip = with_captured_ends(frames, references)
+    assert torch.equal(clip[0], references[0]) and torch.equal(clip[-1], references[1])
+    assert torch.equal(clip[1:-1], frames[1:-1])
+    with pytest.raises(ValueError, match="rendered size"):
+        with_captured_ends(frames, torch.rand(2, 3, 8, 12))

@@ -188,6 +188,14 @@ def _validate_training(cfg: DictConfig) -> None:
         f"Stage-2 rollout N={cfg.stage.rollout_steps} must be in [1, M] with M=backbone.schedule.deploy_steps="
         f"{deploy_steps} (the grid is resampled from the deployment schedule)",
     )
+    # Training reads cached text embeddings and never loads the text encoder, so a guided rollout has no encoding
+    # of a negative prompt: its unconditional branch would differ from deployment's.
+    _require(
+        cfg.stage.guidance_scale == 1.0 or cfg.backbone.text_encoder.negative_prompt is None,
+        "stage.guidance_scale",
+        f"{cfg.stage.guidance_scale} guides the Stage-2 rollout, but training has no encoding of "
+        "backbone.text_encoder.negative_prompt (deployment's unconditional branch); use 1 or negative_prompt=null",
+    )
     _require(cfg.loss.lambda_ret >= 0, "loss.lambda_ret", f"must be >= 0, got {cfg.loss.lambda_ret}")
     _require(cfg.loss.lambda_align >= 0, "loss.lambda_align", f"must be >= 0, got {cfg.loss.lambda_align}")
     _require(cfg.optimizer.lr > 0, "optimizer.lr", f"must be > 0, got {cfg.optimizer.lr}")

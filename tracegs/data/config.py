@@ -30,6 +30,14 @@ class SourcePreset(Mode):
     custom = "custom"
 
 
+class ViewRule(Mode):
+    """How a scene's K-view sets are picked from its training views where no split file lists them
+    (tracegs.data.splits)."""
+
+    nested = "nested"  # spread evenly around the capture and nested, V_3 in V_6 in ... in V_18 (paper Sec. 3)
+    linspace = "linspace"  # GSFixer's: each set on its own, np.linspace over the training views, both ends included
+
+
 class PseudoTarget(Mode):
     """Where a training clip's target comes from (supplement A.4)."""
 
@@ -96,6 +104,10 @@ class SceneSourceConfig:
     width: int | None = None  # paper scale: 480 x 720
     normalize: bool = True  # centre the cameras and scale them into the unit ball (3DGS convention)
     test_every: int = 8
+    # Where a scene has no split file for a count. nested: V_s in V_d, which training clips need (paper Sec. 3).
+    # linspace: GSFixer's sparse views (datasets/colmap_debug.py l. 416-422), not nested; the evaluation-only
+    # datasets use it (conf/data/mipnerf360.yaml, conf/data/nerfbusters.yaml).
+    view_rule: ViewRule = ViewRule.nested
 
 
 @dataclass

@@ -71,7 +71,7 @@ from tracegs.splat.fit import View, fit_gaussians
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
 from tracegs.splat.render import render_clip, require_available
-from tracegs.splat.trajectory import round_clips
+from tracegs.splat.trajectory import round_clips, with_captured_ends
 
 MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
 
@@ -469,13 +469,17 @@ def clip_condition_keys(cfg: PrepareConfig, views: int) -> list[str]:
 
 
 def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, tuple[Path, int]],
-                      cfg: PrepareConfig, images: list[int] | None = None
+                      cfg: PrepareConfig, refs: list[int], images: list[int] | None = None
                       ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
     """Frames [F,3,H,W] (on the CPU) of every condition along one clip, rendered by deployment's clip path
-    (``render_clip``), and of ground truth when the scene has it: the captured ``images`` the cameras are those
-    of, or the ground-truth scene rendered on the background it was made with."""
+    (``render_clip``, with the captured reference images ``refs`` at its ends where ``trajectory.captured_ends``),
+    and of ground truth when the scene has it: the captured ``images`` the cameras are those of, or the
+    ground-truth scene rendered on the background it was made with."""
     conditions = {key: render_clip(load_ply(path), cameras, cfg.fit, iteration).cpu()
                   for key, (path, iteration) in paths.items()}
+    if cfg.trajectory.captured_ends:
+        references = torch.stack([plan.scene.load_image(i) for i in refs])
+        conditions = {key: with_captured_ends(frames, references) for key, frames in conditions.items()}
     ground_truth = None
     if images is not None:
         ground_truth = torch.stack([plan.scene.load_image(i) for i in images])
@@ -506,7 +510,7 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [
         (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg,
-         clips[c].get("images")) for c in todo])
+         clips[c]["refs"], clips[c].get("images")) for c in todo])
     return SceneClips(clips, shard_paths, settings, todo, rendered)
 
 

@@ -4,7 +4,8 @@ TRACE-GS pairs a sparse view set V_s (K = 3, 6, 9) with a denser V_d (12, 18, al
 requires V_s to be a subset of V_d. Mip-NeRF 360 / ReconFusion publish ``train_test_split_{n}.json``
 (``train_ids`` / ``test_ids`` index the images sorted by name); they are honoured when present.
 Otherwise the test views are every 8th image and each view set is spread evenly around the capture,
-grown greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all.
+grown greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all (``view_rule`` nested), or, with ``view_rule``
+linspace, picked as GSFixer picks its sparse views: ``linspace_views``, each set on its own.
 
 Every split builds the whole ladder ``NESTED_VIEW_COUNTS`` (as far as the scene has views), whatever
 counts the caller asks for, so a K-view set is the same set in prepare, training and evaluation.
@@ -18,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 if TYPE_CHECKING:
     from tracegs.data.colmap import Scene
@@ -106,6 +109,15 @@ def grow_evenly(candidates: Sequence[int], keep: Sequence[int], count: int) -> l
     return sorted(candidates[i] for i in chosen)
 
 
+def linspace_views(candidates: Sequence[int], count: int) -> list[int]:
+    """GSFixer's sparse views (its release, datasets/colmap_debug.py l. 419-422): ``count`` positions of
+    ``np.linspace(0, n - 1, count)``, both ends included, rounded half to even as Python's ``round``."""
+    n = len(candidates)
+    if count > n:
+        raise SplitError(f"asked for {count} training views but the scene has only {n}")
+    return [candidates[round(float(i))] for i in np.linspace(0, n - 1, count)]
+
+
 def read_split_json(path: Path, num_images: int) -> tuple[list[int], list[int]]:
     """``(train_ids, test_ids)`` from a ReconFusion split file, validated against the image count."""
     try:
@@ -125,8 +137,9 @@ def make_split(
     test_every: int = 8,
     split_dir: Path | None = None,
     test_indices: Sequence[int] | None = None,
+    view_rule: str = "nested",
 ) -> SceneSplit:
-    """Build the test split and the nested view sets of one scene.
+    """Build the test split and the view sets of one scene (``view_rule``: see ``data.config.ViewRule``).
 
     ``split_dir`` is searched for ``train_test_split_{n}.json``; a file found for a count is used
     verbatim for that view set (and its ``test_ids`` for the test split). ``test_indices`` overrides
@@ -166,12 +179,14 @@ def make_split(
                              f"{len(test)} are held out for testing, leaving {len(train)} usable")
         if count in json_sets:
             path, chosen = json_sets[count]
-            if not set(previous) <= set(chosen):
+            if view_rule == "nested" and not set(previous) <= set(chosen):
                 raise SplitError(f"{path}: not a superset of {previous_name}; view sets must be nested")
             overlap = set(chosen) & held_out
             if overlap:
                 raise SplitError(f"{path}: train_ids {sorted(overlap)[:5]} are test views")
             previous_name = path.name
+        elif view_rule == "linspace":  # each set on its own: not nested
+            chosen = linspace_views(train, count)
         else:
             chosen = grow_evenly(train, previous, count)
             previous_name = f"the {count}-view set"
@@ -184,8 +199,9 @@ def make_split(
 
 def split_scene(scene: Scene, source: SceneSourceConfig, view_counts: Sequence[int | None]) -> SceneSplit:
     """The split of a loaded scene: its ReconFusion files, the preset's test views or every
-    ``source.test_every``-th image, and the nested view sets. Prepare and evaluation both call this."""
+    ``source.test_every``-th image, and the view sets of ``source.view_rule``. Prepare and evaluation both call
+    this."""
     from tracegs.data.colmap import test_indices_for
 
     return make_split(len(scene), view_counts, source.test_every, split_dir=scene.root,
-                      test_indices=test_indices_for(source, scene))
+                      test_indices=test_indices_for(source, scene), view_rule=source.view_rule)

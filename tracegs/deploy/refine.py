@@ -26,7 +26,7 @@ from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render_clip
-from tracegs.splat.trajectory import round_clips
+from tracegs.splat.trajectory import round_clips, with_captured_ends
 
 
 def pseudo_weight(j: int, first_repair: int, total: int, lambda_reg: float = 1.0) -> float:
@@ -62,8 +62,10 @@ def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_i
     for (a, b), cams in round_clips([v.camera for v in captured], round_index, cfg.trajectory,
                                     cfg.max_clips_per_round, generator):
         frames = render_clip(fitter.model, cams, fit_cfg, fitter.iteration)
-        clips.append(Clip(frames=frames, cameras=list(cams), references=torch.stack([captured[a].image,
-                                                                                        captured[b].image]),
+        references = torch.stack([captured[a].image, captured[b].image])
+        if cfg.trajectory.captured_ends:
+            frames = with_captured_ends(frames, references)
+        clips.append(Clip(frames=frames, cameras=list(cams), references=references,
                           caption=clip_caption(cfg.captions, frames[0], caption)))
     release_captioner()  # the round is captioned: BLIP-2 leaves the accelerator before the restorer denoises
     return clips

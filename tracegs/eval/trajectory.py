@@ -13,7 +13,14 @@ from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from tracegs.restorer.build import Backbone
-from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve, using_adapter
+from tracegs.restorer.sampler import (
+    first_state,
+    guided_prediction,
+    initial_noise,
+    negative_text,
+    solve,
+    using_adapter,
+)
 
 
 @dataclass
@@ -77,10 +84,12 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
     guidance = backbone.cfg.sampler.guidance_scale
     grid = schedule.timesteps(steps or backbone.cfg.schedule.deploy_steps)
     ref_2d, ref_3d, text = (x.to(device) for x in (shared.ref_2d, shared.ref_3d, shared.text))
+    uncond_text = negative_text(backbone) if guidance != 1.0 else None
 
     def predict(role: Role, z: Tensor, t: Tensor) -> Tensor:
         with using_adapter(model, role.adapter):
-            return guided_prediction(model, z, role.condition.to(device), t, text, ref_2d, ref_3d, guidance).velocity
+            return guided_prediction(model, z, role.condition.to(device), t, text, ref_2d, ref_3d, guidance,
+                                     uncond_text=uncond_text).velocity
 
     def score(z: Tensor, v: Tensor, t: Tensor) -> float:
         return _psnr(backbone, schedule.predict_clean(z, v.float(), t), shared.truth)

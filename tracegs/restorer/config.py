@@ -147,6 +147,10 @@ class TextEncoderConfig:
     # (``text_encoder/``), or ``pretrained_path`` itself if there is no such folder (a plain T5 checkpoint).
     tokenizer_path: str | None = None
     quality_suffix: str = QUALITY_SUFFIX
+    # The unconditional branch of guided sampling (deployment, variant A, pseudo-targets): None = the all-zero
+    # embedding caption dropout trains (supplement A.2); a prompt = its encoding, without the quality suffix.
+    # Paper scale: GSFixer's negative prompt (conf/backbone/cogvideox5b.yaml).
+    negative_prompt: str | None = None
     seed: int = 0
     dtype: str = "float32"  # T5 weights (frozen, inference only); paper scale "bfloat16". Embeddings leave as float32.
 

@@ -264,6 +264,11 @@ class TextEncoder:
         return self
 
     def encode(self, captions: list[str]) -> torch.Tensor:
+        """Captions -> (B, L, D): each caption's prompt (``prompt``) encoded."""
+        return self.encode_prompts([self.prompt(c) for c in captions])
+
+    def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
+        """Prompts as they are (no quality suffix) -> (B, L, D)."""
         raise NotImplementedError
 
 
@@ -272,10 +277,10 @@ class EmbeddedTextEncoder(TextEncoder):
     CRC32(word) and ``cfg.seed`` (no vocabulary, no weights), truncated / zero-padded to ``max_length``."""
 
     @torch.no_grad()
-    def encode(self, captions: list[str]) -> torch.Tensor:
-        out = torch.zeros(len(captions), self.cfg.max_length, self.cfg.dim)
-        for row, caption in enumerate(captions):
-            words = re.findall(r"[a-z0-9]+", self.prompt(caption).lower())[: self.cfg.max_length]
+    def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
+        out = torch.zeros(len(prompts), self.cfg.max_length, self.cfg.dim)
+        for row, prompt in enumerate(prompts):
+            words = re.findall(r"[a-z0-9]+", prompt.lower())[: self.cfg.max_length]
             for col, word in enumerate(words):
                 generator = torch.Generator().manual_seed(zlib.crc32(word.encode()) + (self.cfg.seed << 32))
                 out[row, col] = torch.randn(self.cfg.dim, generator=generator)
@@ -315,9 +320,9 @@ class T5TextEncoder(TextEncoder):
         return self
 
     @torch.no_grad()
-    def encode(self, captions: list[str]) -> torch.Tensor:
+    def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
         ids = self.tokenizer(
-            [self.prompt(c) for c in captions],
+            prompts,
             padding="max_length",
             max_length=self.cfg.max_length,
             truncation=True,

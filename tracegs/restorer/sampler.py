@@ -24,10 +24,12 @@ def guided_prediction(
     ref_3d: torch.Tensor,
     guidance_scale: float,
     return_retrieval: bool = False,
+    uncond_text: torch.Tensor | None = None,
 ) -> RestorerOutput:
     """One restorer evaluation under classifier-free guidance: velocity v_u + s (v_c - v_u), the unconditional
-    branch using the all-zero text embedding (supplement A.2). Scale 1 is exactly the conditional velocity, so
-    that pass is skipped; otherwise both branches run as one doubled batch (twice the compute and activations).
+    branch using ``uncond_text`` (``negative_text``: one prompt's encoding, broadcast over the batch), None = the
+    all-zero text embedding (supplement A.2). Scale 1 is exactly the conditional velocity, so that pass is
+    skipped; otherwise both branches run as one doubled batch (twice the compute and activations).
     The retrieval response (main paper Eq. 7) is the conditional branch's."""
     if guidance_scale == 1.0:
         return model(noisy=z, cond=cond, timestep=t, text=text, ref_2d=ref_2d, ref_3d=ref_3d,
@@ -40,7 +42,7 @@ def guided_prediction(
         noisy=twice(z),
         cond=twice(cond),
         timestep=twice(t),
-        text=torch.cat([text, torch.zeros_like(text)]),
+        text=torch.cat([text, torch.zeros_like(text) if uncond_text is None else uncond_text.to(text).expand_as(text)]),
         ref_2d=twice(ref_2d),
         ref_3d=twice(ref_3d),
         return_retrieval=return_retrieval,
@@ -49,6 +51,18 @@ def guided_prediction(
     retrieval = both.retrieval.chunk(2)[0] if both.retrieval is not None else None
     return RestorerOutput(velocity=unconditional + guidance_scale * (conditional - unconditional),
                           retrieval=retrieval)
+
+
+def negative_text(backbone: Backbone) -> torch.Tensor | None:
+    """The unconditional branch's text embedding (1, L, D) under ``backbone``: the encoding of
+    ``text_encoder.negative_prompt``, or None (the all-zero embedding) when no prompt is set."""
+    prompt = backbone.cfg.text_encoder.negative_prompt
+    if prompt is None:
+        return None
+    if backbone.text_encoder is None:
+        raise ValueError("backbone.text_encoder.negative_prompt is set, so guided sampling encodes it, but the "
+                         "backbone was built without its text encoder")
+    return backbone.text_encoder.encode_prompts([prompt])
 
 
 def initial_noise(shape: torch.Size, generator: torch.Generator, device: torch.device | str) -> torch.Tensor:
@@ -106,9 +120,10 @@ def sample(
     return_states: bool = False,
     progress: bool = False,
     grid: torch.Tensor | None = None,
+    uncond_text: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, list[torch.Tensor]]:
     """Run the M-step solver z_{t_M} -> z_{t_0} (``first_state`` at ``temperature``) conditioned on ``cond``
-    latents (B, f, C, h, w).
+    latents (B, f, C, h, w); ``uncond_text`` is the guidance's unconditional branch (``guided_prediction``).
 
     ``grid`` replaces the M-step deployment schedule (e.g. a Stage-2 training grid). bf16 autocast is used
     on CUDA. With ``return_states`` also returns the visited states [z_{t_M}, ..., z_{t_0}].
@@ -122,7 +137,8 @@ def sample(
 
     def velocity(_: int, z: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         with autocast:
-            return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale).velocity
+            return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale,
+                                     uncond_text=uncond_text).velocity
 
     z = first_state(schedule, initial_noise(cond.shape, generator, cond.device), temperature)
     states = solve(schedule, grid, z, velocity, progress, keep_states=return_states)
@@ -207,6 +223,8 @@ class RestorationPipeline:
         """The same restoration from already encoded inputs (e.g. a prepared cache): clean latents."""
         cfg, device = self.backbone.cfg, self.device
         generator = torch.Generator().manual_seed(cfg.sampler.seed if seed is None else seed)
+        guidance_scale = cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale
+        uncond_text = negative_text(self.backbone) if guidance_scale != 1.0 else None
         with using_adapter(self.backbone.transformer, self.adapter):
             return sample(
                 self.backbone.transformer,
@@ -216,8 +234,9 @@ class RestorationPipeline:
                 ref_3d.to(device),
                 text.to(device),
                 steps or cfg.schedule.deploy_steps,
-                cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale,
+                guidance_scale,
                 generator,
                 temperature=cfg.sampler.temperature,
                 progress=progress,
+                uncond_text=uncond_text,
             )

@@ -86,3 +86,6 @@ class TrajectoryConfig:
     ellipse_scales: list[float] = field(default_factory=lambda: [1.0, 0.85, 0.7])
     height_variations: list[float] = field(default_factory=lambda: [0.05, 0.1, 0.15])
     ellipse_frames: int = 64
+    # Each clip's first and last rendered frames replaced by the captured reference images they are rendered at,
+    # as GSFixer's restorer sees them (``with_captured_ends``); the paper scale sets it (conf/deploy/paper.yaml).
+    captured_ends: bool = False

@@ -128,6 +128,15 @@ def make_clip(ref_a: Camera, ref_b: Camera, path: Sequence[Camera], num_frames: 
     return clip
 
 
+def with_captured_ends(frames: Tensor, references: Tensor) -> Tensor:
+    """A rendered clip [F,3,H,W] whose first and last frames are replaced by the two captured reference images
+    [2,3,H,W] of its end cameras (GSFixer's release, gsfixer/extrapolation/outpaint/sparse.py l. 286-297)."""
+    if references.shape[0] != 2 or references.shape[1:] != frames.shape[1:]:
+        raise ValueError(f"references {tuple(references.shape)} do not match a clip of frames "
+                         f"{tuple(frames.shape[1:])}: two captured images at the rendered size are needed")
+    return torch.cat([references[:1].to(frames), frames[1:-1], references[1:].to(frames)])
+
+
 def _nearest(poses: Sequence[Camera], camera: Camera) -> int:
     centres = torch.stack([pose.center for pose in poses])
     return int((centres - camera.center.float()).norm(dim=1).argmin())

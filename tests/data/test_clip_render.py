@@ -3,6 +3,7 @@ images along the same cameras."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
@@ -13,15 +14,18 @@ from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
+from tracegs.splat.trajectory import round_clips
 
 
-def test_prepare_and_deployment_render_one_clip_identically(colmap_scene, tmp_path):
+@pytest.mark.parametrize("captured_ends", [False, True])
+def test_prepare_and_deployment_render_one_clip_identically(colmap_scene, tmp_path, captured_ends):
     """A snapshot at iteration 340 (SH degree 3 by then, view-dependent colour present, a grey background)
-    rendered along deployment's clips by deployment and, from its PLY, by prepare: identical frames."""
+    rendered along deployment's clips by deployment and, from its PLY, by prepare: identical frames, the captured
+    reference images at both ends included where ``trajectory.captured_ends``."""
     root, _ = colmap_scene
     source = SceneSourceConfig(root=str(root.parent), preset="custom")
     fit = GaussianFitConfig(background=[0.2, 0.4, 0.6])
-    trajectory = TrajectoryConfig(frames_per_clip=5)
+    trajectory = TrajectoryConfig(frames_per_clip=5, captured_ends=captured_ends)
     prepare = PrepareConfig(student_views=[3], dense_views=[6], pseudo_target="dense", fit=fit,
                             frames_per_clip=5, trajectory=trajectory)
     plan = plan_scene(source, prepare, root.name)
@@ -31,15 +35,20 @@ def test_prepare_and_deployment_render_one_clip_identically(colmap_scene, tmp_pa
         model.sh_rest.copy_(0.3 * torch.randn(model.sh_rest.shape, generator=generator))
     fitter = GaussianFitter(model, fit, scene_extent=1.0)
     fitter.iteration = 340
-    captured = [View(image=plan.scene.load_image(i), camera=plan.scene.cameras[i]) for i in plan.split.views(3)]
-    clips = render_round_clips(fitter, captured, 0, RefinementConfig(trajectory=trajectory), fit, "",
-                               torch.Generator().manual_seed(0))
+    views = plan.split.views(3)
+    captured = [View(image=plan.scene.load_image(i), camera=plan.scene.cameras[i]) for i in views]
+    refinement = RefinementConfig(trajectory=trajectory)
+    clips = render_round_clips(fitter, captured, 0, refinement, fit, "", torch.Generator().manual_seed(0))
+    pairs = [pair for pair, _ in round_clips([v.camera for v in captured], 0, trajectory, refinement.max_clips_per_round,
+                                            torch.Generator().manual_seed(0))]
     snapshot = tmp_path / "it000340.ply"
     save_ply(model, snapshot)
-    for clip in clips:
-        conditions, ground_truth = render_conditions(plan, clip.cameras, {"s3_it340": (snapshot, 340)}, prepare)
+    for clip, (a, b) in zip(clips, pairs, strict=True):
+        conditions, ground_truth = render_conditions(plan, clip.cameras, {"s3_it340": (snapshot, 340)}, prepare,
+                                                     [views[a], views[b]])
         assert ground_truth is None
         assert torch.equal(conditions["s3_it340"], clip.frames)
+        assert torch.equal(clip.frames[0], captured[a].image) == captured_ends
 
 
 def test_a_six_view_training_clip_follows_deployment_from_those_six_views(colmap_scene):

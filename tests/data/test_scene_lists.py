@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from scene_builders import write_scene
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import SceneFormatError, list_scenes, read_scene_list
 from tracegs.data.config import SceneSourceConfig
+from tracegs.errors import InputFileError
 from tracegs.pipeline.evaluate import deploy, evaluate
 
 PUBLISHED = {
@@ -29,6 +31,43 @@ def test_published_benchmark_lists_are_found_from_the_config(data, tmp_path):
     source = SceneSourceConfig(root=str(tmp_path), preset=data, test_list=cfg.data.source.test_list)
     with pytest.raises(SceneFormatError, match="not under"):
         list_scenes(source, "test")
+
+
+# DL3DV-Benchmark publishes its scenes as benchmark-meta.csv: a header row, then a row a scene whose "hash" column
+# names its folder (a 64-hex hash, as GSFixer's DL3DV scripts list the scene folders). The other columns are labels
+# this reader ignores; their names here are placeholders.
+DL3DV_HASHES = ["9f518d266943220090b58a2fc950772767a6eba1162fb49ff721cbdabeba3b95",
+                "0a1b2c3d4e5f60718293a4b5c6d7e8f90a1b2c3d4e5f60718293a4b5c6d7e8f9"]
+
+
+def test_dl3dv_benchmark_list_loads_as_published(tmp_path):
+    root = tmp_path / "DL3DV-10K"
+    for name in DL3DV_HASHES:
+        write_scene(root / name, image_dir="images_4")
+    table = root / "benchmark-meta.csv"
+    table.write_text("\ufeff" + "label_a,hash,label_b\n" + "".join(f"x,{h},y\n" for h in DL3DV_HASHES),
+                     encoding="utf-8")
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["experiment=paper", "data=dl3dv", f"data.source.root={root}",
+                                                         f"data.source.test_list={table}",
+                                                         "data.source.train_list=null"])
+    assert list_scenes(OmegaConf.to_object(cfg.data.source), "test") == DL3DV_HASHES
+    # A scene on both lists is still refused: evaluation never runs on a scene the restorer was trained on.
+    (root / "train_scenes.txt").write_text(f"{DL3DV_HASHES[1]}\n")
+    source = SceneSourceConfig(root=str(root), preset="dl3dv", test_list=str(table),
+                               train_list=str(root / "train_scenes.txt"))
+    with pytest.raises(SceneFormatError, match=f"training scenes \\['{DL3DV_HASHES[1]}'\\]"):
+        list_scenes(source, "test")
+
+
+def test_a_scene_table_without_a_hash_column_is_refused_in_one_line(tmp_path):
+    table = tmp_path / "benchmark-meta.csv"
+    table.write_text("scene,batch\nkitchen,1K\n")
+    with pytest.raises(InputFileError) as refused:
+        read_scene_list(str(table), "source.test_list")
+    assert str(refused.value) == (f"{table}: no 'hash' column in its header ['scene', 'batch']; name the scene "
+                                  "folders in a 'hash' column, or one a line in a .txt file, for source.test_list")
 
 
 @pytest.mark.parametrize("stage", ["evaluate", "deploy"])

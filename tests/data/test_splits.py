@@ -6,8 +6,9 @@ from scene_builders import write_scene
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
 from tracegs.data.prepare import plan_scene
-from tracegs.data.splits import SplitError, make_split
+from tracegs.data.splits import SplitError, make_split, split_scene
 from tracegs.deploy.scenes import load_unit
+from tracegs.errors import ConfigError
 
 
 def test_every_eighth_is_held_out_and_view_sets_are_nested_and_spread():
@@ -68,12 +69,74 @@ def test_reconfusion_split_json_is_honoured(tmp_path):
     assert split.views(None) == [i for i in range(16) if i not in test_ids]
 
 
-def test_split_json_that_breaks_nesting_is_rejected(tmp_path):
-    (tmp_path / "train_test_split_3.json").write_text(json.dumps({"train_ids": [1, 2, 3], "test_ids": [0]}))
-    (tmp_path / "train_test_split_6.json").write_text(json.dumps({"train_ids": [4, 5, 6, 7, 9, 10],
-                                                                  "test_ids": [0]}))
-    with pytest.raises(SplitError, match="train_test_split_6.json.*nested"):
+# A Mip-NeRF 360 scene folder as ReconFusion's split files complete it (GSFixer's release reads them from the scene
+# folder, datasets/colmap_debug.py l. 402-414): {"train_ids": [...], "test_ids": [...]} per K, indexing the
+# images sorted by name. Nothing published makes the 3-, 6- and 9-view sets nested, so these are not: the 6- and
+# 9-view sets leave out views of the 3-view set.
+PUBLISHED_TEST = [0, 8, 16, 24]  # every 8th image, as the 25 test views of bicycle's 194 images
+PUBLISHED = {3: [27, 2, 12], 6: [3, 7, 13, 19, 26, 30], 9: [1, 5, 10, 14, 18, 21, 25, 29, 31]}
+
+
+def published_scene(root):
+    """A 32-image scene in the Mip-NeRF 360 layout (images_4, sparse/0) with ReconFusion's split files."""
+    root, _ = write_scene(root, n=32, image_dir="images_4")
+    for count, ids in PUBLISHED.items():
+        (root / f"train_test_split_{count}.json").write_text(json.dumps({"train_ids": ids, "test_ids": PUBLISHED_TEST}))
+    return root
+
+
+@pytest.mark.parametrize("view_rule", ["linspace", "nested"])  # data=mipnerf360's rule, and data=dl3dv's
+def test_published_split_files_are_evaluated_as_published(tmp_path, view_rule):
+    """Evaluating a K-view set needs that set and the test views, nested in the scene's other sets or not."""
+    root = published_scene(tmp_path / "mipnerf360" / "bicycle")
+    source = SceneSourceConfig(root=str(root.parent), preset="mipnerf360", view_rule=view_rule)
+    scene = load_scene(source, "bicycle")
+    split = split_scene(scene, source, [3, 6, 9])
+    assert split.test == PUBLISHED_TEST and {k: split.views(k) for k in PUBLISHED} == {
+        k: sorted(ids) for k, ids in PUBLISHED.items()}
+    for k, ids in PUBLISHED.items():
+        unit = load_unit(scene, k, source)
+        assert (unit.captured_ids, unit.test_ids) == (sorted(ids), PUBLISHED_TEST)
+    # A held-out cache (prepare's test split) is scored as evaluation scores: on the published sets.
+    held_out = PrepareConfig(split="test", student_views=[3, 6, 9], dense_views=[12, None], frames_per_clip=3)
+    plan = plan_scene(source, held_out, "bicycle")
+    assert {k: plan.split.views(k) for k in PUBLISHED} == {k: sorted(ids) for k, ids in PUBLISHED.items()}
+
+
+def test_training_clips_refuse_published_sets_outside_a_dense_set(tmp_path):
+    """Training clips need V_s inside V_d (paper Sec. 3): the 12-view set grows the 9-view file's set, which
+    leaves out views of the 3-view file's. With all training views as the only dense set, every V_s is inside."""
+    published_scene(tmp_path / "scenes" / "bicycle")
+    source = SceneSourceConfig(root=str(tmp_path / "scenes"), preset="mipnerf360")
+    training = PrepareConfig(student_views=[3, 6, 9], dense_views=[12, 18, None])
+    with pytest.raises(SplitError) as refused:
+        plan_scene(source, training, "bicycle")
+    (line,) = str(refused.value).splitlines()
+    assert line.startswith(f"{tmp_path / 'scenes' / 'bicycle' / 'train_test_split_3.json'}: views [2, 27] of "
+                           "the 3-view set are not in the 12-view set"), line
+    assert "data.prepare.dense_views=[null]" in line
+    plan = plan_scene(source, PrepareConfig(student_views=[3, 6, 9], dense_views=[None], pseudo_target="dense"),
+                      "bicycle")
+    assert plan.split.views(3) == sorted(PUBLISHED[3])
+
+
+def test_training_clips_refuse_the_linspace_rule(tmp_path):
+    """GSFixer's rule picks each set on its own: no split file to blame, so the config field is named."""
+    write_scene(tmp_path / "scenes" / "ring", n=32)
+    source = SceneSourceConfig(root=str(tmp_path / "scenes"), preset="custom", view_rule="linspace")
+    with pytest.raises(ConfigError, match=r"^config field 'data.source.view_rule': linspace picks each view set on "
+                                          r"its own, and scene ring's 3-view set .* use nested$"):
+        plan_scene(source, PrepareConfig(student_views=[3], dense_views=[12, None]), "ring")
+
+
+def test_split_files_with_different_test_views_are_refused_in_one_line(tmp_path):
+    (tmp_path / "train_test_split_3.json").write_text(json.dumps({"train_ids": [1, 2, 3], "test_ids": [0, 8]}))
+    (tmp_path / "train_test_split_6.json").write_text(json.dumps({"train_ids": [1, 2, 3, 4, 5, 6], "test_ids": [0]}))
+    with pytest.raises(SplitError) as refused:
         make_split(12, [3, 6], split_dir=tmp_path)
+    assert str(refused.value) == (f"{tmp_path / 'train_test_split_6.json'}: test_ids differ from "
+                                  "train_test_split_3.json's; one test set serves every view set of a scene, so "
+                                  "give the scene's split files the same test_ids")
 
 
 def test_more_views_than_exist_fails_clearly():

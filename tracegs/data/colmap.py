@@ -6,6 +6,8 @@ imported inside the functions that need it, after PIL and torch are loaded.
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -95,16 +97,24 @@ def preset_dirs(cfg: SceneSourceConfig) -> tuple[str, str, str | None]:
 
 
 def read_scene_list(path: str, field: str) -> list[str]:
-    """Scene names of a list file (one a line, blank lines and ``#`` comments ignored). A relative path that
-    does not exist from the working directory is read from the config tree, where the published benchmark
-    lists ship (``conf/data/scenes/``)."""
+    """Scene names of a list file: one a line (blank lines and ``#`` comments ignored), or a ``.csv`` table whose
+    ``hash`` column names them, as DL3DV-Benchmark publishes its scenes (``benchmark-meta.csv``: a header row,
+    then one row a scene, its folder named by the hash). A relative path that does not exist from the working
+    directory is read from the config tree, where the published benchmark lists ship (``conf/data/scenes/``)."""
     file = Path(path)
     if not file.is_file() and not file.is_absolute():
         file = Path(CONF_DIR) / path
     if not file.is_file():
         raise FileNotFoundError(f"{field}={path!r}: scene list not found")
-    names = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()]
-    for number, name in enumerate(names, 1):
+    if file.suffix == ".csv":
+        table = csv.DictReader(io.StringIO(file.read_text(encoding="utf-8-sig"), newline=""))
+        if "hash" not in (table.fieldnames or []):
+            raise InputFileError(file, f"no 'hash' column in its header {table.fieldnames}",
+                                 f"name the scene folders in a 'hash' column, or one a line in a .txt file, for {field}")
+        names, first_line = [(row["hash"] or "").strip() for row in table], 2
+    else:
+        names, first_line = [line.split("#", 1)[0].strip() for line in file.read_text().splitlines()], 1
+    for number, name in enumerate(names, first_line):
         problem = plain_name_problem(name) if name else None
         if problem:
             raise InputFileError(file, f"line {number}: {name!r} {problem}",

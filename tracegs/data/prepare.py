@@ -44,7 +44,7 @@ from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
 from tracegs.data.datamodule import CacheError, clip_record
 from tracegs.data.held_out import captured_clips
-from tracegs.data.splits import SceneSplit, split_scene, view_set_key
+from tracegs.data.splits import SceneSplit, require_sparse_in_dense, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
     benchmark_scene_names,
@@ -111,6 +111,8 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
     """Load and split a scene, and list the fits; raises before anything is written on bad input."""
     scene = load_scene(source, name)
     split = split_scene(scene, source, _view_counts(cfg))
+    if cfg.split == Split.train:  # a held-out cache is scored as evaluation scores: on the benchmark's own sets
+        require_sparse_in_dense(split, cfg.student_views, cfg.dense_views, scene.root, source.view_rule)
     finals = teacher_view_counts(cfg)
     fits: dict[str, list[int]] = {}
     for count in _view_counts(cfg):

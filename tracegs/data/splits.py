@@ -2,7 +2,9 @@
 
 TRACE-GS pairs a sparse view set V_s (K = 3, 6, 9) with a denser V_d (12, 18, all training views) and
 requires V_s to be a subset of V_d. Mip-NeRF 360 / ReconFusion publish ``train_test_split_{n}.json``
-(``train_ids`` / ``test_ids`` index the images sorted by name); they are honoured when present.
+(``train_ids`` / ``test_ids`` index the images sorted by name); they are honoured when present, as published:
+nothing says a scene's 3-, 6- and 9-view files are nested, and evaluating a K-view set needs only that set and
+the test views. Only training clips need V_s inside V_d (``require_sparse_in_dense``, called by prepare).
 Otherwise the test views are every 8th image and each view set is spread evenly around the capture,
 grown greedily so that V_3 in V_6 in V_9 in V_12 in V_18 in all (``view_rule`` nested), or, with ``view_rule``
 linspace, picked as GSFixer picks its sparse views: ``linspace_views``, each set on its own.
@@ -21,6 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from tracegs.errors import ConfigError
 
 if TYPE_CHECKING:
     from tracegs.data.colmap import Scene
@@ -118,6 +122,11 @@ def linspace_views(candidates: Sequence[int], count: int) -> list[int]:
     return [candidates[round(float(i))] for i in np.linspace(0, n - 1, count)]
 
 
+def split_file(split_dir: Path, count: int) -> Path:
+    """Where a scene folder lists its published ``count``-view set: ``train_test_split_{count}.json``."""
+    return Path(split_dir) / f"train_test_split_{count}.json"
+
+
 def read_split_json(path: Path, num_images: int) -> tuple[list[int], list[int]]:
     """``(train_ids, test_ids)`` from a ReconFusion split file, validated against the image count."""
     try:
@@ -142,7 +151,8 @@ def make_split(
     """Build the test split and the view sets of one scene (``view_rule``: see ``data.config.ViewRule``).
 
     ``split_dir`` is searched for ``train_test_split_{n}.json``; a file found for a count is used
-    verbatim for that view set (and its ``test_ids`` for the test split). ``test_indices`` overrides
+    verbatim for that view set, nested in the others or not (and its ``test_ids`` for the test split, which
+    the scene's files must share: one test set serves all its view sets). ``test_indices`` overrides
     the every-``test_every`` rule (e.g. NeRFBusters' separate evaluation capture). The ladder
     ``NESTED_VIEW_COUNTS`` is always built too (the counts the scene has views for), so each set does not
     depend on which other counts the caller asked for.
@@ -152,13 +162,15 @@ def make_split(
     json_test: list[int] | None = None
     if split_dir is not None:
         for count in sorted(requested | set(NESTED_VIEW_COUNTS)):
-            path = Path(split_dir) / f"train_test_split_{count}.json"
+            path = split_file(split_dir, count)
             if path.is_file():
                 train_ids, test_ids = read_split_json(path, num_images)
                 if len(train_ids) != count:
                     raise SplitError(f"{path}: lists {len(train_ids)} train_ids, expected {count}")
                 if json_test is not None and test_ids != json_test:
-                    raise SplitError(f"{path}: test_ids differ from the other split files")
+                    first = json_sets[min(json_sets)][0].name
+                    raise SplitError(f"{path}: test_ids differ from {first}'s; one test set serves every view set "
+                                     "of a scene, so give the scene's split files the same test_ids")
                 json_test = test_ids
                 json_sets[count] = (path, train_ids)
     if json_test is not None:
@@ -172,29 +184,51 @@ def make_split(
     counts = sorted(requested | set(json_sets) | {c for c in NESTED_VIEW_COUNTS if c <= len(train)})
     view_sets: dict[str, list[int]] = {}
     previous: list[int] = []
-    previous_name = "the empty set"
     for count in counts:
         if count > len(train):
             raise SplitError(f"asked for {count} training views, but of the scene's {num_images} images "
                              f"{len(test)} are held out for testing, leaving {len(train)} usable")
         if count in json_sets:
             path, chosen = json_sets[count]
-            if view_rule == "nested" and not set(previous) <= set(chosen):
-                raise SplitError(f"{path}: not a superset of {previous_name}; view sets must be nested")
             overlap = set(chosen) & held_out
             if overlap:
                 raise SplitError(f"{path}: train_ids {sorted(overlap)[:5]} are test views")
-            previous_name = path.name
         elif view_rule == "linspace":  # each set on its own: not nested
             chosen = linspace_views(train, count)
-        else:
+        else:  # grows the largest smaller set, a published one included
             chosen = grow_evenly(train, previous, count)
-            previous_name = f"the {count}-view set"
         view_sets[view_set_key(count)] = chosen
         previous = chosen
     if any(c is None for c in view_counts):
         view_sets["all"] = list(train)
     return SceneSplit(test=test, train=train, view_sets=view_sets)
+
+
+def require_sparse_in_dense(split: SceneSplit, sparse: Sequence[int], dense: Sequence[int | None], split_dir: Path,
+                            view_rule: str) -> None:
+    """Refuse, naming what to change, a scene whose sparse set V_s is not inside a dense set V_d it is paired with.
+
+    Training clips pair every sparse set with every dense set, and the method needs V_s inside V_d (paper Sec. 3:
+    the dense reconstruction sees what the sparse one sees, and more). Evaluating a K-view set needs only that
+    set, so ``make_split`` takes published sets as they are and prepare of training clips checks here. The
+    culprit is a published split file (nothing makes a scene's 3-, 6- and 9-view files nested) or, with no file,
+    the linspace rule, which picks each set on its own. All training views (``None``) hold every sparse set.
+    """
+    for count in sparse:
+        for denser in (d for d in dense if d is not None):
+            outside = sorted(set(split.views(count)) - set(split.views(denser)))
+            if not outside:
+                continue
+            published = [p for p in (split_file(split_dir, count), split_file(split_dir, denser)) if p.is_file()]
+            if not published:
+                raise ConfigError("data.source.view_rule",
+                                  f"{view_rule} picks each view set on its own, and scene {Path(split_dir).name}'s "
+                                  f"{count}-view set has views {outside[:5]} outside its {denser}-view set; training "
+                                  "clips need V_s inside V_d (paper Sec. 3): use nested")
+            raise SplitError(f"{published[0]}: views {outside[:5]} of the {count}-view set are not in the "
+                             f"{denser}-view set, and training clips need V_s inside V_d (paper Sec. 3); prepare "
+                             "them with data.prepare.dense_views=[null] (all training views) or without the "
+                             "scene's split files")
 
 
 def split_scene(scene: Scene, source: SceneSourceConfig, view_counts: Sequence[int | None]) -> SceneSplit:

@@ -70,7 +70,7 @@ class SceneUnit:
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
-    """Split ``scene`` exactly as prepare does (``split_scene``: the same nested sets) and load V_s and the
+    """Split ``scene`` exactly as prepare does (``split_scene``: the same view sets) and load V_s and the
     test set. Test views are disjoint from every training view, so reference frames never enter the metrics."""
     split = split_scene(scene, source, [views])
     captured_ids = split.views(views)

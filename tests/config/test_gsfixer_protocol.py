@@ -13,6 +13,7 @@ from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
 from tracegs.deploy.config import RefinementConfig
 from tracegs.splat.config import ClipRule, TrajectoryConfig
+from tracegs.splat.trajectory import clip_layout
 
 
 def composed(config_name: str, overrides: list[str]):
@@ -87,7 +88,7 @@ def test_deployment_clips_are_gsfixers_windows_with_its_round_rule(paper):
     assert list(trajectory.ellipse_scales) == [1.2, 1.2, 1.2]
     assert len(paper.deploy.repair_iters) == 3  # one entry per repair round
     assert paper.deploy.max_clips_per_round is None
-    assert (trajectory.frames_per_clip // 3 + 1, trajectory.frames_per_clip % 3) == (17, 1)  # sparse.py l. 246
+    assert clip_layout(trajectory.frames_per_clip) == (16, 17, 16)  # sparse.py l. 246-253: int(49 / 3) (+ 1)
 
 
 def test_the_embedded_trajectory_keeps_its_own_values():
@@ -99,8 +100,8 @@ def test_the_embedded_trajectory_keeps_its_own_values():
 
 
 @pytest.mark.parametrize("overrides, field", [
-    (["deploy.trajectory.clip_rule=gsfixer_windows", "deploy.max_clips_per_round=null"],
-     "deploy.trajectory.frames_per_clip"),  # 9-frame embedded clips are not 3n+1
+    (["deploy.trajectory.clip_rule=gsfixer_windows", "deploy.max_clips_per_round=null",
+      "deploy.trajectory.ellipse_frames=4"], "deploy.trajectory.ellipse_frames"),  # 9 frames: windows of 5
     (["deploy.trajectory.pitch_degrees=[2.0]"], "deploy.trajectory.pitch_degrees"),
 ])
 def test_a_trajectory_gsfixers_rule_cannot_make_is_refused_naming_the_field(overrides, field):

@@ -118,9 +118,10 @@ class TrajectoryConfig:
                 raise ConfigError("pitch_degrees", f"only clip_rule=gsfixer_windows pitches its poses, got "
                                                    f"{list(self.pitch_degrees)} with clip_rule={self.clip_rule}")
             return
-        if self.frames_per_clip % 3 != 1:
-            raise ConfigError("frames_per_clip", f"clip_rule=gsfixer_windows makes clips of 3n+1 frames (n bridge, "
-                                                 f"n+1 ellipse, n bridge poses), got {self.frames_per_clip}")
-        if self.ellipse_frames < self.frames_per_clip // 3 + 1:
+        if self.frames_per_clip < 7:
+            raise ConfigError("frames_per_clip", f"clip_rule=gsfixer_windows bridges with (frames_per_clip - 1) // 3 "
+                                                 f">= 2 poses each side, so at least 7 frames, got {self.frames_per_clip}")
+        if self.ellipse_frames < self.frames_per_clip - 2 * ((self.frames_per_clip - 1) // 3):
             raise ConfigError("ellipse_frames", f"clip_rule=gsfixer_windows needs at least one window of "
-                                                f"{self.frames_per_clip // 3 + 1} poses, got {self.ellipse_frames}")
+                                                f"{self.frames_per_clip - 2 * ((self.frames_per_clip - 1) // 3)} "
+                                                f"poses, got {self.ellipse_frames}")

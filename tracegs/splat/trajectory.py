@@ -289,18 +289,18 @@ def window_clips(references: Sequence[Camera], round_index: int, cfg: Trajectory
     """(reference pair, cameras) of every clip of round ``round_index`` by GSFixer's rule (``clip_rule`` =
     ``gsfixer_windows``; gsfixer/extrapolation/outpaint/sparse.py l. 191-283): the round's ellipse
     (``gsfixer_ellipse`` with the round's scale, height multiple and pitch and a vertical phase drawn from
-    ``generator``, l. 198-204) cut into ``window_starts`` windows of frames_per_clip // 3 + 1 poses (l. 246), each
-    bridged by frames_per_clip // 3 poses from the view nearest its first pose (``nearest_view``) and to the
-    view nearest its last one (l. 249-283). A window's first and last ellipse poses also end its bridges, as
+    ``generator``, l. 198-204) cut into ``window_starts`` windows of the middle segment's poses and bridged by the
+    end segments' (``clip_layout``: 16/17/16 at 49 frames, l. 246-253) from the view nearest its first pose
+    (``nearest_view``) and to the view nearest its last one (l. 249-283). A window's first and last ellipse poses also end its bridges, as
     in GSFixer; the pair is (view before, view after), possibly one view twice."""
     scale, height_multiple = round_shape(cfg, round_index)
     pitch = cfg.pitch_degrees[round_index % len(cfg.pitch_degrees)]
     phase = 2.0 * math.pi * torch.rand((), generator=generator).item()
     ellipse = gsfixer_ellipse(references, cfg.ellipse_frames, scale, height_multiple, phase, pitch)
-    bridge = cfg.frames_per_clip // 3
+    bridge, length, _ = clip_layout(cfg.frames_per_clip)
     clips = []
-    for start in window_starts(len(ellipse), bridge + 1):
-        window = ellipse[start:start + bridge + 1]
+    for start in window_starts(len(ellipse), length):
+        window = ellipse[start:start + length]
         a, b = nearest_view(references, window[0]), nearest_view(references, window[-1])
         clip = (gsfixer_bridge(references[a], window[0], bridge, references[0]) + window
                 + gsfixer_bridge(window[-1], references[b], bridge, references[0]))

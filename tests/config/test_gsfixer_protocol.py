@@ -11,6 +11,9 @@ from hydra import compose, initialize_config_dir
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
+from tracegs.deploy.config import RefinementConfig
+from tracegs.splat.config import ClipRule, TrajectoryConfig
+from tracegs.splat.trajectory import clip_layout
 
 
 def composed(config_name: str, overrides: list[str]):
@@ -73,6 +76,42 @@ def test_deployment_trajectory_follows_gsfixers_ellipse_and_clip_ends(paper):
     assert paper.data.prepare.trajectory == paper.deploy.trajectory
 
 
+def test_deployment_clips_are_gsfixers_windows_with_its_round_rule(paper):
+    """gsfixer/extrapolation/outpaint/sparse.py l. 198-204 (round r: z_variation max(1.5 - 0.2 r, 0.5), pitch
+    scale=r, i.e. 2r degrees, sample_utils.py l. 204-217), sample_utils.py l. 158-161 (semi-axes 1.2 x the 90th
+    percentile every round) and l. 236-283 with base.py l. 13-34 (overlapping windows bridged to their nearest
+    views, every window restored); rounds 0, 1, 2 are GSFixer's repair calls 0, 1, 2 (train.py l. 279-300)."""
+    trajectory = paper.deploy.trajectory
+    assert trajectory.clip_rule == "gsfixer_windows"
+    assert list(trajectory.height_variations) == pytest.approx([max(1.5 - 0.2 * r, 0.5) for r in range(3)])
+    assert list(trajectory.pitch_degrees) == [2.0 * r for r in range(3)]
+    assert list(trajectory.ellipse_scales) == [1.2, 1.2, 1.2]
+    assert len(paper.deploy.repair_iters) == 3  # one entry per repair round
+    assert paper.deploy.max_clips_per_round is None
+    assert clip_layout(trajectory.frames_per_clip) == (16, 17, 16)  # sparse.py l. 246-253: int(49 / 3) (+ 1)
+
+
 def test_the_embedded_trajectory_keeps_its_own_values():
     trajectory = composed("prepare", []).deploy.trajectory
     assert (trajectory.ellipse_frames, trajectory.captured_ends) == (64, False)
+    assert (trajectory.clip_rule, list(trajectory.pitch_degrees)) == ("reference_pairs", [0.0])
+    assert (list(trajectory.ellipse_scales), list(trajectory.height_variations)) == ([1.0, 0.85, 0.7],
+                                                                                     [0.05, 0.1, 0.15])
+
+
+@pytest.mark.parametrize("overrides, field", [
+    (["deploy.trajectory.clip_rule=gsfixer_windows", "deploy.max_clips_per_round=null",
+      "deploy.trajectory.ellipse_frames=4"], "deploy.trajectory.ellipse_frames"),  # 9 frames: windows of 5
+    (["deploy.trajectory.pitch_degrees=[2.0]"], "deploy.trajectory.pitch_degrees"),
+])
+def test_a_trajectory_gsfixers_rule_cannot_make_is_refused_naming_the_field(overrides, field):
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        validate(composed("prepare", overrides))
+
+
+def test_gsfixers_windows_are_all_restored():
+    """gsfixer/extrapolation/outpaint/sparse.py l. 245-301: every window of the round is rendered and restored."""
+    windows = TrajectoryConfig(frames_per_clip=49, clip_rule=ClipRule.gsfixer_windows)
+    RefinementConfig(trajectory=windows, max_clips_per_round=None).validate()
+    with pytest.raises(ConfigError, match="'max_clips_per_round'"):
+        RefinementConfig(trajectory=windows, max_clips_per_round=2).validate()

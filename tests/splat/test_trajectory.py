@@ -8,16 +8,23 @@ import pytest
 import torch
 from conftest import ring_cameras
 
-from tracegs.splat.config import TrajectoryConfig
+from tracegs.errors import ConfigError
+from tracegs.splat.cameras import Camera, look_at_rotation
+from tracegs.splat.config import ClipRule, TrajectoryConfig
 from tracegs.splat.trajectory import (
     bridge_poses,
     clip_layout,
     ellipse_poses,
     focus_point,
+    gsfixer_bridge,
+    gsfixer_ellipse,
     make_clip,
+    nearest_view,
+    round_clips,
     round_shape,
     round_trajectory,
     shorter_arc,
+    window_starts,
 )
 
 
@@ -171,3 +178,129 @@ def test_captured_ends_replace_the_rendered_end_frames():
     assert torch.equal(clip[1:-1], frames[1:-1])
     with pytest.raises(ValueError, match="rendered size"):
         with_captured_ends(frames, torch.rand(2, 3, 8, 12))
+
+
+# GSFixer's windows (ClipRule.gsfixer_windows). The ring: eight cameras on an ellipse of semi-axes 3 x 2 at
+# heights alternately +0.5 and -0.5, all looking at the origin, so the focus is the origin, the mean up is +z,
+# the principal axes are x then y, the 90th-percentile offsets are 3 and 2 and the 10th-90th height band is +-0.5.
+RING_SEMI_AXES, RING_HEIGHT = (3.0, 2.0), 0.5
+
+
+def elliptic_ring() -> list[Camera]:
+    cameras = []
+    for k in range(8):
+        theta = 2 * math.pi * k / 8
+        eye = torch.tensor([RING_SEMI_AXES[0] * math.cos(theta), RING_SEMI_AXES[1] * math.sin(theta),
+                            RING_HEIGHT * (-1) ** k])
+        cameras.append(Camera.look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]), fov_x_deg=50.0,
+                                      width=72, height=48))
+    return cameras
+
+
+def gsfixer_config(**overrides) -> TrajectoryConfig:
+    values = dict(frames_per_clip=49, ellipse_frames=85, clip_rule=ClipRule.gsfixer_windows,
+                  ellipse_scales=[1.2, 1.2, 1.2], height_variations=[1.5, 1.3, 1.1], pitch_degrees=[0.0, 2.0, 4.0])
+    return TrajectoryConfig(**{**values, **overrides})
+
+
+def test_gsfixer_windows_start_where_gsfixer_cuts_its_85_poses():
+    """gsfixer/extrapolation/outpaint/base.py l. 13-34 (generate_overlapping_indices with num_frames 49 // 3 + 1):
+    85 poses give 7 windows of 17 starting at 0/12/24/36/48/60/68; 20 poses in windows of 4 give 7 windows, six
+    overlapping by 1 and the last by 3."""
+    assert window_starts(85, 17) == [0, 12, 24, 36, 48, 60, 68]
+    assert window_starts(20, 4) == [0, 3, 6, 9, 12, 15, 16]
+    with pytest.raises(ValueError, match="at least"):
+        window_starts(16, 17)
+
+
+def test_gsfixer_round_is_seven_clips_of_a_bridge_a_window_and_a_bridge():
+    """gsfixer/extrapolation/outpaint/sparse.py l. 236-283: per window, 16 bridge poses from the reference (the
+    last one the window's first pose), the window's 17 consecutive ellipse poses, 16 bridge poses to the
+    reference (the first one the window's last pose): 49 frames, ends at the two references."""
+    cameras = elliptic_ring()
+    cfg = gsfixer_config()
+    clips = round_clips(cameras, 0, cfg, None, torch.Generator().manual_seed(0))
+    phase = 2 * math.pi * torch.rand((), generator=torch.Generator().manual_seed(0)).item()
+    ellipse = gsfixer_ellipse(cameras, 85, 1.2, 1.5, phase, 0.0)
+    assert len(clips) == 7
+    for ((a, b), clip), start in zip(clips, [0, 12, 24, 36, 48, 60, 68]):
+        assert len(clip) == 49
+        for frame, pose in zip(clip[16:33], ellipse[start:start + 17]):
+            assert torch.allclose(frame.world_to_camera, pose.world_to_camera, atol=1e-6)
+        assert torch.allclose(clip[15].world_to_camera, clip[16].world_to_camera, atol=1e-6)
+        assert torch.allclose(clip[33].world_to_camera, clip[32].world_to_camera, atol=1e-6)
+        assert torch.allclose(clip[0].world_to_camera, cameras[a].world_to_camera, atol=1e-5)
+        assert torch.allclose(clip[-1].world_to_camera, cameras[b].world_to_camera, atol=1e-5)
+        assert (a, b) == (nearest_view(cameras, clip[16]), nearest_view(cameras, clip[32]))
+
+
+@pytest.mark.parametrize("round_index, multiple, pitch", [(0, 1.5, 0.0), (1, 1.3, 2.0), (2, 1.1, 4.0)])
+def test_gsfixer_ellipse_height_and_pitch_per_round(round_index, multiple, pitch):
+    """gsfixer/extrapolation/outpaint/sparse.py l. 198-204 (z_variation 1.5 - 0.2 r, scale=r) with
+    sample_utils.py l. 144-219: pose k of 85 at angle t = 2 pi k / 85 sits at (1.2 x 3 cos t, 1.2 x 2 sin t,
+    z_variation x (-0.5 + (0.5 cos(t + phase) + 0.5))) on the ring, looks at the origin pitched up by 2r degrees
+    about its own x axis."""
+    cameras = elliptic_ring()
+    clips = round_clips(cameras, round_index, gsfixer_config(), None, torch.Generator().manual_seed(3))
+    phase = 2 * math.pi * torch.rand((), generator=torch.Generator().manual_seed(3)).item()
+    for (_, clip), start in zip(clips, window_starts(85, 17)):
+        for k, pose in enumerate(clip[16:33], start):
+            t = 2 * math.pi * k / 85
+            height = multiple * (-RING_HEIGHT + 2 * RING_HEIGHT * (0.5 * math.cos(t + phase) + 0.5))
+            expected = torch.tensor([1.2 * RING_SEMI_AXES[0] * math.cos(t), 1.2 * RING_SEMI_AXES[1] * math.sin(t),
+                                     height])
+            assert torch.allclose(pose.center, expected, atol=1e-4), (k, pose.center, expected)
+            assert_proper_rotation(pose)
+            level = look_at_rotation(expected, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+            assert torch.allclose(pose.rotation[0], level[0], atol=1e-5)  # pitched about its own x axis
+            up_tilted = math.cos(math.radians(pitch)) * level[2] - math.sin(math.radians(pitch)) * level[1]
+            assert torch.allclose(pose.rotation[2], up_tilted, atol=1e-5)  # towards the camera's up (-y)
+
+
+def test_gsfixer_bridge_keeps_gsfixers_uneven_last_step():
+    """gsfixer/extrapolation/outpaint/sparse.py l. 26-39 and l. 80-81: interp_traj of two poses samples the
+    spline at k / 16 for k < 15 and appends the end pose, so centres 0..14 then 16 between x = 0 and x = 16; the
+    optical axis is the normalised blend of the two ends (l. 63-72)."""
+    start = Camera.look_at(torch.zeros(3), torch.tensor([0.0, 5.0, 0.0]), torch.tensor([0.0, 0.0, 1.0]),
+                           fov_x_deg=50.0, width=72, height=48)
+    end = Camera.look_at(torch.tensor([16.0, 0.0, 0.0]), torch.tensor([21.0, 0.0, 0.0]),
+                         torch.tensor([0.0, 0.0, 1.0]), fov_x_deg=50.0, width=72, height=48)
+    bridge = gsfixer_bridge(start, end, 16, start)
+    assert [round(pose.center[0].item(), 4) for pose in bridge] == [*range(15), 16]
+    assert torch.allclose(bridge[0].world_to_camera, start.world_to_camera, atol=1e-6)
+    assert torch.allclose(bridge[-1].world_to_camera, end.world_to_camera, atol=1e-6)
+    halfway = gsfixer_bridge(start, end, 3, start)[1]  # fraction 1/3
+    blend = torch.tensor([1 / 3, 2 / 3, 0.0]) / torch.tensor([1 / 3, 2 / 3, 0.0]).norm()
+    assert torch.allclose(halfway.rotation[2], blend, atol=1e-6)
+    for pose in bridge:
+        assert_proper_rotation(pose)
+
+
+def test_each_window_bridges_to_the_view_gsfixers_score_prefers():
+    """gsfixer/extrapolation/outpaint/sparse.py l. 157-172: score = centre distance + 0.5 x (1 - cosine of the
+    optical axes). From a pose at the origin looking along +x: a view 0.8 away looking back scores 1.8, one 0.9
+    away looking sideways 1.4, one 1.0 away looking the same way 1.0, so the farthest one is chosen."""
+    up = torch.tensor([0.0, 0.0, 1.0])
+
+    def view(centre, direction):
+        centre = torch.tensor(centre)
+        return Camera.look_at(centre, centre + torch.tensor(direction), up, fov_x_deg=50.0, width=72, height=48)
+
+    pose = view([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    views = [view([0.0, 0.8, 0.0], [-1.0, 0.0, 0.0]), view([0.0, -0.9, 0.0], [0.0, 1.0, 0.0]),
+             view([-1.0, 0.0, 0.0], [1.0, 0.0, 0.0])]
+    assert nearest_view(views, pose) == 2
+    assert nearest_view(views[:2], pose) == 1
+
+
+def test_gsfixer_windows_refuse_what_they_cannot_make():
+    with pytest.raises(ConfigError, match="'frames_per_clip'.*at least 7"):
+        gsfixer_config(frames_per_clip=5).validate()
+    with pytest.raises(ConfigError, match="'ellipse_frames'"):
+        gsfixer_config(ellipse_frames=16).validate()
+    with pytest.raises(ConfigError, match="'pitch_degrees'"):
+        TrajectoryConfig(pitch_degrees=[2.0]).validate()
+    with pytest.raises(ConfigError, match="'height_variations'"):
+        gsfixer_config(height_variations=[]).validate()
+    with pytest.raises(ValueError, match="max_clips"):
+        round_clips(elliptic_ring(), 0, gsfixer_config(), 2, torch.Generator())

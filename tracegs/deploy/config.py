@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from tracegs.data.config import CaptionConfig
 from tracegs.errors import ConfigError
-from tracegs.splat.trajectory import TrajectoryConfig
+from tracegs.splat.config import ClipRule, TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
 
@@ -48,6 +48,13 @@ class RefinementConfig:
             raise ConfigError("max_clips_per_round", f"must be >= 1 or null, got {self.max_clips_per_round}")
         if self.clip_batch < 1:
             raise ConfigError("clip_batch", f"must be >= 1, got {self.clip_batch}")
+        try:
+            self.trajectory.validate()
+        except ConfigError as error:
+            raise error.under("trajectory") from error
+        if self.trajectory.clip_rule == ClipRule.gsfixer_windows and self.max_clips_per_round is not None:
+            raise ConfigError("max_clips_per_round", f"must be null with trajectory.clip_rule=gsfixer_windows "
+                                                     f"(every window is restored), got {self.max_clips_per_round}")
 
 
 @dataclass

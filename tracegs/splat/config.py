@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 
 
@@ -73,19 +74,54 @@ class GaussianFitConfig:
         return min(self.sh_degree, iteration // max(self.sh_degree_interval, 1))
 
 
+class ClipRule(Mode):
+    """How a repair round's trajectory is cut into clips (tracegs.splat.trajectory.round_clips)."""
+
+    # One clip per pair of reference views chained in capture order, its middle the ellipse arc between them.
+    reference_pairs = "reference_pairs"
+    # GSFixer's release (gsfixer/extrapolation/outpaint/sparse.py l. 236-283): the round's ellipse cut into
+    # overlapping windows of consecutive poses, each bridged from and to its nearest captured view.
+    gsfixer_windows = "gsfixer_windows"
+
+
 @dataclass
 class TrajectoryConfig:
     """Deployment trajectory of supplement A.5: a 360-degree ellipse around the focus point whose scale and
     vertical variation depend on the repair round, with a random vertical phase, joined to the reference views
-    by bridge poses. Round r (0-based) uses scale `ellipse_scales[r]` and height variation
-    `height_variations[r]`, one entry per repair round, cycling beyond them (prepare renders many rounds).
-    The supplement states that both depend on the round but not their values: these are unstated choices.
-    Prepare and deployment read this one config (``data.prepare.trajectory`` is ``deploy.trajectory``)."""
+    by bridge poses. Round r (0-based) uses scale `ellipse_scales[r]`, height variation `height_variations[r]`
+    and pitch `pitch_degrees[r]`, one entry per repair round, cycling beyond them (prepare renders many rounds).
+    The supplement states that scale and height depend on the round but not their values: the embedded ones are
+    unstated choices, the paper scale takes GSFixer's (conf/deploy/paper.yaml). Their meaning follows
+    `clip_rule`: with ``reference_pairs`` the scale multiplies the cameras' horizontal spread and the height
+    variation is an amplitude in mean camera distances; with ``gsfixer_windows`` the scale multiplies the
+    cameras' 90th-percentile horizontal offset and the height variation multiplies their 10th-90th percentile
+    height band (``gsfixer_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
+    is ``deploy.trajectory``)."""
 
     frames_per_clip: int = 9
     ellipse_scales: list[float] = field(default_factory=lambda: [1.0, 0.85, 0.7])
     height_variations: list[float] = field(default_factory=lambda: [0.05, 0.1, 0.15])
+    # Every ellipse pose pitched up about its own x axis by this many degrees (``gsfixer_windows`` only).
+    pitch_degrees: list[float] = field(default_factory=lambda: [0.0])
     ellipse_frames: int = 64
+    clip_rule: ClipRule = ClipRule.reference_pairs
     # Each clip's first and last rendered frames replaced by the captured reference images they are rendered at,
     # as GSFixer's restorer sees them (``with_captured_ends``); the paper scale sets it (conf/deploy/paper.yaml).
     captured_ends: bool = False
+
+    def validate(self) -> None:
+        for name in ("ellipse_scales", "height_variations", "pitch_degrees"):
+            if not getattr(self, name):
+                raise ConfigError(name, "must list at least one value (one per repair round, cycling)")
+        if self.clip_rule != ClipRule.gsfixer_windows:
+            if any(pitch != 0.0 for pitch in self.pitch_degrees):
+                raise ConfigError("pitch_degrees", f"only clip_rule=gsfixer_windows pitches its poses, got "
+                                                   f"{list(self.pitch_degrees)} with clip_rule={self.clip_rule}")
+            return
+        if self.frames_per_clip < 7:
+            raise ConfigError("frames_per_clip", f"clip_rule=gsfixer_windows bridges with (frames_per_clip - 1) // 3 "
+                                                 f">= 2 poses each side, so at least 7 frames, got {self.frames_per_clip}")
+        if self.ellipse_frames < self.frames_per_clip - 2 * ((self.frames_per_clip - 1) // 3):
+            raise ConfigError("ellipse_frames", f"clip_rule=gsfixer_windows needs at least one window of "
+                                                f"{self.frames_per_clip - 2 * ((self.frames_per_clip - 1) // 3)} "
+                                                f"poses, got {self.ellipse_frames}")

@@ -11,7 +11,7 @@ from kornia.geometry.quaternion import Quaternion
 from torch import Tensor
 
 from tracegs.splat.cameras import Camera, look_at_rotation
-from tracegs.splat.config import TrajectoryConfig
+from tracegs.splat.config import ClipRule, TrajectoryConfig
 
 
 def focus_point(cameras: Sequence[Camera]) -> Tensor:
@@ -197,10 +197,127 @@ def round_trajectory(references: Sequence[Camera], pairs: Sequence[tuple[int, in
     return clips
 
 
+def gsfixer_ellipse(cameras: Sequence[Camera], n: int, scale: float, height_multiple: float, phase: float,
+                    pitch_degrees: float) -> list[Camera]:
+    """GSFixer's ellipse of ``n`` poses (gsfixer/extrapolation/outpaint/sample_utils.py l. 144-219), in our
+    world frame: origin at the focus point, height along the cameras' mean up direction, in-plane axes the
+    principal axes of the camera centres (largest spread first, signed so that the first camera lies on the
+    positive side).
+
+    GSFixer computes it in its normalised world (datasets/normalize.py: z up along the cameras' mean up, then
+    the sparse point cloud's principal axes, origin at the point cloud's median); the point cloud is not at
+    hand here, so the camera centres and the focus point stand in for it. Pose k sits at angle 2 pi k / n from
+    the first axis, on semi-axes ``scale`` x the 90th percentile of the centres' absolute offsets along each axis
+    (l. 158-161); its height is ``height_multiple`` x a point of the centres' 10th-90th percentile height band,
+    swept once around the loop with phase ``phase`` radians (l. 165-183). Every pose looks at the focus point,
+    level with the cameras' mean up (l. 198-203), then turns up about its own x axis by ``pitch_degrees``
+    (l. 204-217, ``scale=i`` there). Intrinsics and image size come from ``cameras[0]`` (sparse.py l. 124).
+    """
+    focus = focus_point(cameras)
+    up = mean_up(cameras)
+    offsets = torch.stack([camera.center.float() for camera in cameras]) - focus
+    heights = offsets @ up
+    planar = offsets - heights[:, None] * up
+    spread = planar - planar.mean(dim=0)
+    axes = torch.linalg.eigh(spread.T @ spread).eigenvectors.flip(-1).T  # descending spread
+    axis_x = axes[0] if (planar[0] @ axes[0]) >= 0 else -axes[0]
+    axis_y = torch.linalg.cross(up, axis_x)
+    semi_x, semi_y = (scale * torch.quantile((planar @ axis).abs(), 0.9).item() for axis in (axis_x, axis_y))
+    low, high = torch.quantile(heights, 0.1).item(), torch.quantile(heights, 0.9).item()
+    pitch = math.radians(pitch_degrees)
+    turn = torch.tensor([[1.0, 0.0, 0.0],
+                         [0.0, math.cos(pitch), math.sin(pitch)],
+                         [0.0, -math.sin(pitch), math.cos(pitch)]])
+    reference = cameras[0]
+    poses = []
+    for k in range(n):
+        theta = 2.0 * math.pi * k / n
+        height = height_multiple * (low + (high - low) * (0.5 * math.cos(theta + phase) + 0.5))
+        eye = focus + semi_x * math.cos(theta) * axis_x + semi_y * math.sin(theta) * axis_y + height * up
+        rotation = turn @ look_at_rotation(eye, focus, up)
+        poses.append(Camera.from_pose(reference.K.float(), rotation, eye, reference.width, reference.height))
+    return poses
+
+
+def window_starts(total: int, window: int) -> list[int]:
+    """First pose of each of GSFixer's overlapping windows of ``window`` consecutive poses over a path of
+    ``total`` (gsfixer/extrapolation/outpaint/base.py l. 13-34): total // window + 2 windows sharing the surplus
+    as evenly spaced overlaps, the last window taking the remainder; 0/12/24/36/48/60/68 for 85 poses in
+    windows of 17."""
+    if not 1 <= window <= total:
+        raise ValueError(f"windows of {window} poses need a path of at least that many, got {total}")
+    count = total // window + 2
+    overlap = count * window - total
+    if overlap < count:
+        overlap += count
+    step = window - overlap // (count - 1)
+    starts = [k * step for k in range(count - 1)]
+    return [*starts, starts[-1] + window - (overlap - (count - 2) * (overlap // (count - 1)))]
+
+
+def nearest_view(views: Sequence[Camera], pose: Camera) -> int:
+    """Index of the view nearest ``pose`` by GSFixer's score, the distance between centres plus 0.5 x (1 -
+    cosine between the optical axes) (gsfixer/extrapolation/outpaint/sparse.py l. 146-173); the first on ties."""
+    centres = torch.stack([view.center.float() for view in views])
+    forwards = torch.stack([view.rotation[2].float() for view in views])
+    scores = (centres - pose.center.float()).norm(dim=1) + 0.5 * (1.0 - forwards @ pose.rotation[2].float())
+    return int(scores.argmin())
+
+
+def gsfixer_bridge(start: Camera, end: Camera, n: int, intrinsics: Camera) -> list[Camera]:
+    """GSFixer's ``n`` bridge poses from ``start`` to ``end``, both included (gsfixer/extrapolation/outpaint/
+    sparse.py l. 26-111, ``interp_traj`` of two poses): the fractions k / n for k < n - 1, then ``end`` itself.
+    Centres are interpolated linearly; the optical axis is the normalised blend of the two, the x axis
+    perpendicular to it and to the blended y axes (their look-at and up points, interpolated linearly). Image
+    size and intrinsics come from ``intrinsics``."""
+    if n < 2:
+        raise ValueError(f"a bridge includes both ends, so n >= 2, got {n}")
+    poses = []
+    for t in [k / n for k in range(n - 1)] + [1.0]:
+        forward = torch.lerp(start.rotation[2].float(), end.rotation[2].float(), t)
+        forward = forward / forward.norm()
+        right = torch.linalg.cross(torch.lerp(start.rotation[1].float(), end.rotation[1].float(), t), forward)
+        right = right / right.norm()
+        rotation = torch.stack([right, torch.linalg.cross(forward, right), forward])
+        centre = torch.lerp(start.center.float(), end.center.float(), t)
+        poses.append(Camera.from_pose(intrinsics.K.float(), rotation, centre, intrinsics.width, intrinsics.height))
+    return poses
+
+
+def window_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryConfig,
+                 generator: torch.Generator) -> list[tuple[tuple[int, int], list[Camera]]]:
+    """(reference pair, cameras) of every clip of round ``round_index`` by GSFixer's rule (``clip_rule`` =
+    ``gsfixer_windows``; gsfixer/extrapolation/outpaint/sparse.py l. 191-283): the round's ellipse
+    (``gsfixer_ellipse`` with the round's scale, height multiple and pitch and a vertical phase drawn from
+    ``generator``, l. 198-204) cut into ``window_starts`` windows of the middle segment's poses and bridged by the
+    end segments' (``clip_layout``: 16/17/16 at 49 frames, l. 246-253) from the view nearest its first pose
+    (``nearest_view``) and to the view nearest its last one (l. 249-283). A window's first and last ellipse poses also end its bridges, as
+    in GSFixer; the pair is (view before, view after), possibly one view twice."""
+    scale, height_multiple = round_shape(cfg, round_index)
+    pitch = cfg.pitch_degrees[round_index % len(cfg.pitch_degrees)]
+    phase = 2.0 * math.pi * torch.rand((), generator=generator).item()
+    ellipse = gsfixer_ellipse(references, cfg.ellipse_frames, scale, height_multiple, phase, pitch)
+    bridge, length, _ = clip_layout(cfg.frames_per_clip)
+    clips = []
+    for start in window_starts(len(ellipse), length):
+        window = ellipse[start:start + length]
+        a, b = nearest_view(references, window[0]), nearest_view(references, window[-1])
+        clip = (gsfixer_bridge(references[a], window[0], bridge, references[0]) + window
+                + gsfixer_bridge(window[-1], references[b], bridge, references[0]))
+        clips.append(((a, b), clip))
+    return clips
+
+
 def round_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryConfig, max_clips: int | None,
                 generator: torch.Generator) -> list[tuple[tuple[int, int], list[Camera]]]:
-    """(reference pair, cameras) of every clip of round ``round_index`` given the K reference views: the
+    """(reference pair, cameras) of every clip of round ``round_index`` given the K reference views, by
+    ``cfg.clip_rule``: GSFixer's windows (``window_clips``, every window: ``max_clips`` must be None), or the
     round's pairs (``reference_pairs``) and their clips (``round_trajectory``), drawn in that order from
     ``generator``. Deployment calls it with the captured views, prepare with a training clip's K-view set."""
+    if cfg.clip_rule == ClipRule.gsfixer_windows:
+        if max_clips is not None:
+            raise ValueError(f"clip_rule=gsfixer_windows restores every window, so max_clips must be None, "
+                             f"got {max_clips}")
+        return window_clips(references, round_index, cfg, generator)
     pairs = reference_pairs(len(references), max_clips, generator)
     return list(zip(pairs, round_trajectory(references, pairs, round_index, cfg, generator)))

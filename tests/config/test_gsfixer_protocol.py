@@ -11,8 +11,6 @@ from hydra import compose, initialize_config_dir
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import ConfigError, validate
-from tracegs.deploy.config import RefinementConfig
-from tracegs.splat.config import ClipRule, TrajectoryConfig
 from tracegs.splat.trajectory import clip_layout
 
 
@@ -107,11 +105,3 @@ def test_the_embedded_trajectory_keeps_its_own_values():
 def test_a_trajectory_gsfixers_rule_cannot_make_is_refused_naming_the_field(overrides, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         validate(composed("prepare", overrides))
-
-
-def test_gsfixers_windows_are_all_restored():
-    """gsfixer/extrapolation/outpaint/sparse.py l. 245-301: every window of the round is rendered and restored."""
-    windows = TrajectoryConfig(frames_per_clip=49, clip_rule=ClipRule.gsfixer_windows)
-    RefinementConfig(trajectory=windows, max_clips_per_round=None).validate()
-    with pytest.raises(ConfigError, match="'max_clips_per_round'"):
-        RefinementConfig(trajectory=windows, max_clips_per_round=2).validate()

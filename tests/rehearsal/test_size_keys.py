@@ -53,6 +53,7 @@ SIZE_KEYS = {
     "deploy.total_iters": "iteration budget (paper / 100)",
     "deploy.captions.blip2_path": "no BLIP-2 in the rehearsal's weights tree: captions from caption.txt",
     "deploy.repair_iters": "iteration schedule (paper / 100)",
+    "deploy.trajectory.ellipse_frames": "clips per round (poses per round, cut into windows of the clip's size)",
     "trainer.accelerator": "the device: CPU instead of GPU",
     "trainer.devices": "number of devices",
 }

@@ -302,5 +302,16 @@ def test_gsfixer_windows_refuse_what_they_cannot_make():
         TrajectoryConfig(pitch_degrees=[2.0]).validate()
     with pytest.raises(ConfigError, match="'height_variations'"):
         gsfixer_config(height_variations=[]).validate()
-    with pytest.raises(ValueError, match="max_clips"):
-        round_clips(elliptic_ring(), 0, gsfixer_config(), 2, torch.Generator())
+
+
+def test_gsfixer_windows_capped_per_round_are_a_subset_of_the_round():
+    """``max_clips`` keeps a random subset of a round's windows, in window order (the rehearsal restores one)."""
+    every = round_clips(elliptic_ring(), 0, gsfixer_config(), None, torch.Generator().manual_seed(3))
+    two = round_clips(elliptic_ring(), 0, gsfixer_config(), 2, torch.Generator().manual_seed(3))
+    assert len(two) == 2 and len(every) > 2
+    def centres(cams):
+        return torch.stack([camera.center for camera in cams])
+
+    positions = [next(i for i, (_, cams) in enumerate(every) if torch.equal(centres(cams), centres(clip)))
+                 for _, clip in two]
+    assert positions == sorted(set(positions)) and all(every[i][0] == pair for i, (pair, _) in zip(positions, two))

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from tracegs.data.config import CaptionConfig
 from tracegs.errors import ConfigError
-from tracegs.splat.config import ClipRule, TrajectoryConfig
+from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
 
@@ -26,8 +26,9 @@ class RefinementConfig:
     lambda_reg: float = 1.0  # peak of the half-sine w_reg
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     captions: CaptionConfig = field(default_factory=CaptionConfig)  # the training clips' caption rule
-    # Clips restored per round: None = one per reference pair of the chained captured views (K clips, the
-    # paper's protocol); the embedded default samples 2 per round to keep CPU deployment within minutes.
+    # Clips restored per round: None = every clip of the round's rule (one per reference pair of the chained
+    # captured views, or every GSFixer window: the paper's protocol); n = a random n of them per round (the
+    # embedded default samples 2 to keep CPU deployment within minutes).
     max_clips_per_round: int | None = 2
     clip_batch: int = 4  # clips restored per sampler call (memory knob only; paper scale: 1)
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
@@ -52,9 +53,6 @@ class RefinementConfig:
             self.trajectory.validate()
         except ConfigError as error:
             raise error.under("trajectory") from error
-        if self.trajectory.clip_rule == ClipRule.gsfixer_windows and self.max_clips_per_round is not None:
-            raise ConfigError("max_clips_per_round", f"must be null with trajectory.clip_rule=gsfixer_windows "
-                                                     f"(every window is restored), got {self.max_clips_per_round}")
 
 
 @dataclass

@@ -149,10 +149,16 @@ def reference_pairs(num_views: int, max_clips: int | None, generator: torch.Gene
     if num_views < 2:
         raise ValueError(f"clips need two reference views, but only {num_views} view is given")
     pairs = [(i, (i + 1) % num_views) for i in range(num_views)] if num_views > 2 else [(0, 1), (1, 0)]
-    if max_clips is not None and max_clips < len(pairs):
-        keep = torch.randperm(len(pairs), generator=generator)[:max_clips].sort().values.tolist()
-        pairs = [pairs[i] for i in keep]
-    return pairs
+    return random_subset(pairs, max_clips, generator)
+
+
+def random_subset(items: list, count: int | None, generator: torch.Generator) -> list:
+    """``count`` of ``items`` drawn from ``generator``, in their order (all of them when ``count`` is None or not
+    smaller)."""
+    if count is None or count >= len(items):
+        return items
+    keep = torch.randperm(len(items), generator=generator)[:count].sort().values.tolist()
+    return [items[i] for i in keep]
 
 
 def shorter_arc(start: int, stop: int, n: int) -> list[int]:
@@ -311,13 +317,11 @@ def window_clips(references: Sequence[Camera], round_index: int, cfg: Trajectory
 def round_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryConfig, max_clips: int | None,
                 generator: torch.Generator) -> list[tuple[tuple[int, int], list[Camera]]]:
     """(reference pair, cameras) of every clip of round ``round_index`` given the K reference views, by
-    ``cfg.clip_rule``: GSFixer's windows (``window_clips``, every window: ``max_clips`` must be None), or the
-    round's pairs (``reference_pairs``) and their clips (``round_trajectory``), drawn in that order from
-    ``generator``. Deployment calls it with the captured views, prepare with a training clip's K-view set."""
+    ``cfg.clip_rule``: GSFixer's windows (``window_clips``; with ``max_clips`` a random subset of them, drawn after
+    the windows), or the round's pairs (``reference_pairs``) and their clips (``round_trajectory``), drawn in that
+    order from ``generator``. Deployment calls it with the captured views, prepare with a training clip's K-view
+    set."""
     if cfg.clip_rule == ClipRule.gsfixer_windows:
-        if max_clips is not None:
-            raise ValueError(f"clip_rule=gsfixer_windows restores every window, so max_clips must be None, "
-                             f"got {max_clips}")
-        return window_clips(references, round_index, cfg, generator)
+        return random_subset(window_clips(references, round_index, cfg, generator), max_clips, generator)
     pairs = reference_pairs(len(references), max_clips, generator)
     return list(zip(pairs, round_trajectory(references, pairs, round_index, cfg, generator)))

@@ -42,7 +42,7 @@ from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
-from tracegs.data.datamodule import CacheError, clip_record
+from tracegs.data.datamodule import CacheError, clip_record, repeats_frames
 from tracegs.data.held_out import captured_clips
 from tracegs.data.splits import SceneSplit, require_sparse_in_dense, split_scene, view_set_key
 from tracegs.data.synthetic import (
@@ -383,6 +383,9 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
     metadata = {"scene": plan.scene.name, "clip": str(index), "pseudo_target": cfg.pseudo_target,
                 "psnr_vs_gt": json.dumps(psnr)}
+    if "images" in clip:
+        metadata |= {cache_keys.META_CAPTURED_IMAGES: json.dumps(clip["images"]),
+                     cache_keys.META_CAPTURE_ORDER: clip["capture_order"]}
     write_clip(scene_dir, index, EncodedClip(tensors, views, (a, b), caption, ref_2d, ref_3d, text), metadata,
                settings)
 
@@ -567,11 +570,16 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     for path in shard_paths:
         for key, value in read_shard_psnr(path).items():
             psnr.setdefault(key, []).append(value)
+    captured = {} if plan.captured is None else {
+        "capture_order": clips[0]["capture_order"],  # the rule of tracegs/data/held_out.py that ordered the capture
+        "padded_clips": [c for c, clip in enumerate(clips) if repeats_frames(clip["images"])],
+    }
     return {
         "scene_file": str(scene_file.relative_to(cache_dir)),
         "caption": scene_info["caption"],
         "clips": [str(p.relative_to(cache_dir)) for p in shard_paths],
         "psnr_vs_gt": {k: float(np.mean(v)) for k, v in psnr.items()},
+        **captured,
     }
 
 

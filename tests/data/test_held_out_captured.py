@@ -15,7 +15,7 @@ from scene_builders import tiny_configs, write_scene
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, Split
 from tracegs.data.held_out import NAME_ORDER, between_in_capture_order
-from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, to_uint8
+from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, shard_is_valid, to_uint8
 from tracegs.data.splits import split_scene
 from tracegs.eval.clips import (
     INPUT,
@@ -112,6 +112,10 @@ def test_padded_clips_are_flagged_and_score_each_captured_image_once(tmp_path, b
     clips = held_out_clips(prepare.cache_dir)
     assert [clip.captured_images() for clip in clips] == [planned["images"] for planned in plan.captured]
     assert all(clip.padded for clip in clips)  # 40 images, 9 views: fewer than 7 between consecutive views
+    # A shard records its clip's captured images: one that does not (made in another capture order, or before
+    # the record) is prepared again.
+    images = clips[0].captured_images()
+    assert shard_is_valid(clips[0].path, images=images) and not shard_is_valid(clips[0].path, images=images[::-1])
     entry = json.loads((Path(prepare.cache_dir) / "manifest.json").read_text())["scenes"]["ring"]
     assert entry["padded_clips"] == list(range(9)) and entry["capture_order"] == NAME_ORDER
     quality = clip_restoration_psnr({}, prepare.cache_dir, progress=False)

@@ -313,9 +313,11 @@ def write_clip(scene_dir: Path, index: int, clip: EncodedClip, metadata: dict[st
     return path
 
 
-def shard_is_valid(path: Path, settings: str | None = None) -> bool:
+def shard_is_valid(path: Path, settings: str | None = None, images: list[int] | None = None) -> bool:
     """A shard exists, is readable, matches the checksum written with it, holds only finite numbers, (if
-    given) was made with ``settings``, and the scene files it indexes are there and intact.
+    given) was made with ``settings`` and records the captured ``images`` of a held-out clip (a capture order
+    that changed, or a shard from before the record, is not this clip), and the scene files it indexes are
+    there and intact.
 
     Atomic writes make partial files impossible, but a disk or a user can still change their bytes, a shard
     made with other settings is not a finished unit of this run, and one with NaN would poison training.
@@ -329,7 +331,7 @@ def shard_is_valid(path: Path, settings: str | None = None) -> bool:
         return False
     made_with = metadata.get("settings")
     if not (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)
-            and not non_finite_keys(tensors)):
+            and (images is None or record.captured_images() == images) and not non_finite_keys(tensors)):
         return False
     return all(scene_file_is_valid(file, key, made_with) for file, key in record.conditioning_files())
 
@@ -511,7 +513,8 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
     clips = clip_cameras(plan, cfg)
     shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
-    todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
+    todo = [c for c, p in enumerate(shard_paths)
+            if cfg.force or not shard_is_valid(p, settings, clips[c].get("images"))]
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [
         (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg,

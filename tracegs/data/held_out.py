@@ -64,8 +64,8 @@ def capture_order(image_paths: Sequence[Path], image_names: Sequence[str]) -> tu
 
 
 def between_in_capture_order(first: int, last: int, count: int, excluded: set[int]) -> list[int]:
-    """Image indices strictly after ``first`` and before ``last`` in capture order, going forward around the
-    loop of ``count`` images (the closing pair wraps past the last image), skipping ``excluded``."""
+    """Capture positions (``capture_order``) strictly after ``first`` and before ``last``, going forward around
+    the loop of ``count`` images (the closing pair wraps past the last image), skipping ``excluded``."""
     steps = (last - first) % count or count
     return [index for index in ((first + k) % count for k in range(1, steps)) if index not in excluded]
 

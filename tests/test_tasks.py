@@ -133,6 +133,8 @@ def test_report_per_step_compares_the_trained_variants(demo, held_out, run, tmp_
     curves = json.loads((tmp_path / "per_step_variants.json").read_text())
     assert set(curves) == {"A", "F"} and all(len(c) == 5 for c in curves.values())  # one value per reverse step
     assert (tmp_path / "fig6_per_step_variants.png").is_file()
+    breakdown = (tmp_path / "per_step_breakdown.md").read_text()  # synthetic clips: rendered, never padded
+    assert "| all | mean over K |" in breakdown and "| padded | mean over K | 0 |" in breakdown
 
 
 def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):

@@ -3,8 +3,10 @@ images as ground truth (tracegs/data/held_out.py)."""
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,10 +14,18 @@ from scene_builders import tiny_configs, write_scene
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, Split
-from tracegs.data.held_out import between_in_capture_order
-from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, to_uint8
+from tracegs.data.held_out import NAME_ORDER, between_in_capture_order
+from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, shard_is_valid, to_uint8
 from tracegs.data.splits import split_scene
-from tracegs.eval.clips import held_out_clips, held_out_per_step_curves, load_clip
+from tracegs.eval.clips import (
+    INPUT,
+    clip_restoration_psnr,
+    held_out_clips,
+    held_out_per_step_curves,
+    load_clip,
+    mean_psnr,
+    trajectory_frames,
+)
 from tracegs.io import read_safetensors
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -92,3 +102,33 @@ def test_held_out_cache_holds_the_captured_images_as_ground_truth_and_gives_per_
         assert torch.equal(stored["poses"], torch.stack([c.world_to_camera for c in planned["cameras"]]))
     curves = held_out_per_step_curves({"E": RestorationPipeline(backbone)}, prepare.cache_dir, progress=False)
     assert len(curves["E"]) == backbone.cfg.schedule.deploy_steps and all(map(math.isfinite, curves["E"]))
+
+
+def test_padded_clips_are_flagged_and_score_each_captured_image_once(tmp_path, backbone):
+    source, prepare = held_out_configs(tmp_path, frames_per_clip=9, views=(9,))
+    prepare = replace(prepare, held_out_repeat_frames=True)
+    run_prepare(prepare, source, backbone, progress=False)
+    plan = plan_scene(source, prepare, "ring")
+    clips = held_out_clips(prepare.cache_dir)
+    assert [clip.captured_images() for clip in clips] == [planned["images"] for planned in plan.captured]
+    assert all(clip.padded for clip in clips)  # 40 images, 9 views: fewer than 7 between consecutive views
+    # A shard records its clip's captured images: one that does not (made in another capture order, or before
+    # the record) is prepared again.
+    images = clips[0].captured_images()
+    assert shard_is_valid(clips[0].path, images=images) and not shard_is_valid(clips[0].path, images=images[::-1])
+    entry = json.loads((Path(prepare.cache_dir) / "manifest.json").read_text())["scenes"]["ring"]
+    assert entry["padded_clips"] == list(range(9)) and entry["capture_order"] == NAME_ORDER
+    quality = clip_restoration_psnr({}, prepare.cache_dir, progress=False)
+    expected, plain = [], []
+    for clip in clips:
+        tensors = load_clip(clip)
+        truth = trajectory_frames(tensors, "gt")
+        (condition,) = clip.conditions()
+        per_frame = [mean_psnr(f[None], t[None]) for f, t in zip(trajectory_frames(tensors, condition), truth)]
+        by_image: dict[int, list[float]] = {}
+        for image, value in zip(clip.captured_images()[1:-1], per_frame):
+            by_image.setdefault(image, []).append(value)
+        expected.append(sum(sum(v) / len(v) for v in by_image.values()) / len(by_image))
+        plain.append(sum(per_frame) / len(per_frame))
+    assert quality["mean"][INPUT] == pytest.approx(sum(expected) / len(expected))
+    assert quality["mean"][INPUT] != pytest.approx(sum(plain) / len(plain))  # repeated frames counted once

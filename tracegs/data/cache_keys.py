@@ -41,6 +41,10 @@ INTRINSICS = "intrinsics"  # camera matrices of the clip's frames
 META_VIEWS = "student_views"  # the clip's student view count K
 META_REFS = "refs"  # JSON [a, b]: image indices of the two reference views
 META_TEXT = "text_file"  # the text file of the clip's caption, relative to the scene folder
+# A held-out clip through captured cameras (tracegs/data/held_out.py): JSON, the captured image index of each
+# frame, ends included (a padded clip repeats some), and the capture-order rule the clip was built with.
+META_CAPTURED_IMAGES = "captured_images"
+META_CAPTURE_ORDER = "capture_order"
 
 
 def student_prefix(views: int | None) -> str:

@@ -62,6 +62,12 @@ def read_manifest(cache_dir: str | Path) -> dict:
     return manifest
 
 
+def repeats_frames(images: list[int]) -> bool:
+    """A held-out clip through captured cameras filled by repeating captured images (a padded clip:
+    ``data.prepare.held_out_repeat_frames``)."""
+    return len(set(images)) < len(images)
+
+
 @dataclass(frozen=True)
 class ClipRecord:
     """One cached clip as its header describes it: the tensors it holds, its student view count K, its two
@@ -85,6 +91,17 @@ class ClipRecord:
         prefix = cache_keys.latent(cache_keys.student_prefix(self.views))
         return sorted((k.removeprefix("latent/") for k in self.keys if k.startswith(prefix)),
                       key=cache_keys.student_order)
+
+    def captured_images(self) -> list[int] | None:
+        """The captured image index of each frame (ends included) of a held-out clip through captured cameras,
+        None for a clip with a rendered trajectory (every frame its own)."""
+        images = self.metadata.get(cache_keys.META_CAPTURED_IMAGES)
+        return None if images is None else json.loads(images)
+
+    @property
+    def padded(self) -> bool:
+        images = self.captured_images()
+        return images is not None and repeats_frames(images)
 
     def conditioning_files(self) -> list[tuple[Path, str]]:
         """(file, tensor key) of the 2D tokens of each reference view, the pair's 3D tokens and the text."""

@@ -42,7 +42,7 @@ from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
-from tracegs.data.datamodule import CacheError, clip_record
+from tracegs.data.datamodule import CacheError, clip_record, repeats_frames
 from tracegs.data.held_out import captured_clips
 from tracegs.data.splits import SceneSplit, require_sparse_in_dense, split_scene, view_set_key
 from tracegs.data.synthetic import (
@@ -313,9 +313,11 @@ def write_clip(scene_dir: Path, index: int, clip: EncodedClip, metadata: dict[st
     return path
 
 
-def shard_is_valid(path: Path, settings: str | None = None) -> bool:
+def shard_is_valid(path: Path, settings: str | None = None, images: list[int] | None = None) -> bool:
     """A shard exists, is readable, matches the checksum written with it, holds only finite numbers, (if
-    given) was made with ``settings``, and the scene files it indexes are there and intact.
+    given) was made with ``settings`` and records the captured ``images`` of a held-out clip (a capture order
+    that changed, or a shard from before the record, is not this clip), and the scene files it indexes are
+    there and intact.
 
     Atomic writes make partial files impossible, but a disk or a user can still change their bytes, a shard
     made with other settings is not a finished unit of this run, and one with NaN would poison training.
@@ -329,7 +331,7 @@ def shard_is_valid(path: Path, settings: str | None = None) -> bool:
         return False
     made_with = metadata.get("settings")
     if not (cache_keys.latent(cache_keys.TARGET) in tensors and (settings is None or made_with == settings)
-            and not non_finite_keys(tensors)):
+            and (images is None or record.captured_images() == images) and not non_finite_keys(tensors)):
         return False
     return all(scene_file_is_valid(file, key, made_with) for file, key in record.conditioning_files())
 
@@ -383,6 +385,9 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
         psnr = {key: psnr_on_path(frames, ground_truth) for key, frames in conditions.items()}
     metadata = {"scene": plan.scene.name, "clip": str(index), "pseudo_target": cfg.pseudo_target,
                 "psnr_vs_gt": json.dumps(psnr)}
+    if "images" in clip:
+        metadata |= {cache_keys.META_CAPTURED_IMAGES: json.dumps(clip["images"]),
+                     cache_keys.META_CAPTURE_ORDER: clip["capture_order"]}
     write_clip(scene_dir, index, EncodedClip(tensors, views, (a, b), caption, ref_2d, ref_3d, text), metadata,
                settings)
 
@@ -508,7 +513,8 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
     clips = clip_cameras(plan, cfg)
     shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(len(clips))]
     settings = clip_settings(cfg, backbone)
-    todo = [c for c, p in enumerate(shard_paths) if cfg.force or not shard_is_valid(p, settings)]
+    todo = [c for c, p in enumerate(shard_paths)
+            if cfg.force or not shard_is_valid(p, settings, clips[c].get("images"))]
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [
         (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg,
@@ -567,11 +573,16 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     for path in shard_paths:
         for key, value in read_shard_psnr(path).items():
             psnr.setdefault(key, []).append(value)
+    captured = {} if plan.captured is None else {
+        "capture_order": clips[0]["capture_order"],  # the rule of tracegs/data/held_out.py that ordered the capture
+        "padded_clips": [c for c, clip in enumerate(clips) if repeats_frames(clip["images"])],
+    }
     return {
         "scene_file": str(scene_file.relative_to(cache_dir)),
         "caption": scene_info["caption"],
         "clips": [str(p.relative_to(cache_dir)) for p in shard_paths],
         "psnr_vs_gt": {k: float(np.mean(v)) for k, v in psnr.items()},
+        **captured,
     }
 
 

@@ -7,13 +7,19 @@ belongs to one student view count K; for each of its student conditions R_s (K v
 runs its full deployment schedule from the cached latents; the decoded output and the input R_s are both
 scored against the clip's ground-truth frames. The two end frames are the reference views and are excluded,
 as everywhere in the evaluation. Scene averages come first, then the unweighted mean over scenes (supplement B).
+
+A clip's score is its mean over frames with each distinct ground-truth frame counted once: a padded captured
+clip (``data.prepare.held_out_repeat_frames``) repeats captured images, and each repeated image's copies share
+one frame's weight (``distinct_frame_weights``); Fig. 6 is also reported over the unpadded and the padded
+clips apart, and at K = 3 alone (``per_step_breakdown``).
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
-from collections.abc import Mapping
+from collections import Counter, defaultdict
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from rich.progress import track
@@ -31,6 +37,7 @@ from tracegs.data.datamodule import (
     verify_clip,
 )
 from tracegs.eval.per_step import mean_curves, per_step_psnr
+from tracegs.eval.trajectory import frame_mean
 from tracegs.restorer.sampler import RestorationPipeline
 
 INPUT = "input"  # the row label of the unrestored R_s
@@ -47,9 +54,21 @@ def trajectory_frames(tensors: dict[str, Tensor], name: str) -> Tensor:
     return _pixels(tensors[cache_keys.frames(name)][1:-1])
 
 
-def mean_psnr(frames: Tensor, truth: Tensor) -> float:
-    """PSNR (dB) of each frame against its truth, averaged over the frames."""
-    return float(peak_signal_noise_ratio(frames, truth, data_range=1.0, reduction="none", dim=(1, 2, 3)).mean())
+def mean_psnr(frames: Tensor, truth: Tensor, weights: Tensor | None = None) -> float:
+    """PSNR (dB) of each frame against its truth, averaged over the frames (with ``weights``: ``frame_mean``)."""
+    per_frame = peak_signal_noise_ratio(frames, truth, data_range=1.0, reduction="none", dim=(1, 2, 3))
+    return float(frame_mean(per_frame, weights))
+
+
+def distinct_frame_weights(clip: ClipRecord) -> Tensor | None:
+    """Weights of a clip's trajectory frames (reference ends dropped) that count each distinct captured image
+    once: 1 / (its multiplicity x the number of distinct images); None for a clip whose frames are all distinct
+    (the plain mean)."""
+    if not clip.padded:
+        return None
+    interior = clip.captured_images()[1:-1]
+    multiplicity = Counter(interior)
+    return torch.tensor([1.0 / (multiplicity[i] * len(multiplicity)) for i in interior], dtype=torch.float64)
 
 
 def _scene_mean(per_scene: Mapping[str, list[float]]) -> float:
@@ -103,12 +122,13 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
         scene, conditions = clip.scene, clip.conditions()
         tensors = load_clip(clip)
         truth = trajectory_frames(tensors, cache_keys.GROUND_TRUTH)
+        weights = distinct_frame_weights(clip)
         for cond in conditions:
-            scores[cond][INPUT][scene].append(mean_psnr(trajectory_frames(tensors, cond), truth))
+            scores[cond][INPUT][scene].append(mean_psnr(trajectory_frames(tensors, cond), truth, weights))
         # One batch per clip: every condition of the clip restored together, same seed across restorers.
         for label, pipeline in pipelines.items():
             for cond, frames in zip(conditions, restore_clip(pipeline, tensors, conditions, seed + index)):
-                scores[cond][label][scene].append(mean_psnr(frames, truth))
+                scores[cond][label][scene].append(mean_psnr(frames, truth, weights))
     per_condition = {cond: {label: _scene_mean(by_scene) for label, by_scene in rows.items()}
                      for cond, rows in scores.items()}
     labels = [INPUT, *pipelines]
@@ -133,12 +153,21 @@ def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache
     return view_averaged_curves(unit_curves(held_out_clip_curves(pipelines, cache_dir, seed, progress)))
 
 
-def unit_curves(clip_curves: list[tuple[str, int, dict[str, list[float]]]]
-                ) -> dict[tuple[str, str], dict[str, list[float]]]:
+class ClipCurves(NamedTuple):
+    """One held-out clip's per-step curves (one per pipeline, averaged over its student conditions)."""
+
+    scene: str
+    views: int
+    padded: bool
+    capture_order: str | None  # the rule its captured frames were ordered by; None for a rendered trajectory
+    curves: dict[str, list[float]]
+
+
+def unit_curves(clip_curves: Sequence[ClipCurves]) -> dict[tuple[str, str], dict[str, list[float]]]:
     """Each (scene, K)'s per-step curves, the mean over its clips: the units of the intervals over scenes."""
     units: dict[tuple[str, str], list[dict[str, list[float]]]] = defaultdict(list)
-    for scene, views, curves in clip_curves:
-        units[(scene, str(views))].append(curves)
+    for clip in clip_curves:
+        units[(clip.scene, str(clip.views))].append(clip.curves)
     return {unit: mean_curves(curves) for unit, curves in units.items()}
 
 
@@ -151,9 +180,8 @@ def view_averaged_curves(units: Mapping[tuple[str, str], Mapping[str, list[float
 
 @torch.no_grad()
 def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
-                         seed: int = 0, progress: bool = True) -> list[tuple[str, int, dict[str, list[float]]]]:
-    """(scene, student view count K, each pipeline's per-step curve averaged over the student conditions) of
-    every held-out clip."""
+                         seed: int = 0, progress: bool = True) -> list[ClipCurves]:
+    """Every held-out clip's per-step curves, each distinct ground-truth frame counted once."""
     curves = []
     for index, clip in enumerate(track(held_out_clips(cache_dir), description="per-step curves",
                                        disable=not progress)):
@@ -162,8 +190,48 @@ def held_out_clip_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir
         frames = torch.stack([_pixels(tensors[cache_keys.frames(c)]) for c in conditions])
         truth = _pixels(tensors[cache_keys.frames(cache_keys.GROUND_TRUTH)]).expand(len(conditions), -1, -1, -1, -1)
         refs = _pixels(tensors[cache_keys.frames(cache_keys.REFERENCE)]).expand(len(conditions), -1, -1, -1, -1)
-        caption = clip.metadata.get("caption", "")
-        curves.append((scene, clip.views, {label: per_step_psnr(pipeline, frames, refs, [caption] * len(conditions),
-                                                                truth, seed=seed + index)
-                                           for label, pipeline in pipelines.items()}))
+        captions = [clip.metadata.get("caption", "")] * len(conditions)
+        weights = distinct_frame_weights(clip)
+        curves.append(ClipCurves(scene, clip.views, clip.padded, clip.metadata.get(cache_keys.META_CAPTURE_ORDER),
+                                 {label: per_step_psnr(pipeline, frames, refs, captions, truth, seed=seed + index,
+                                                       frame_weights=weights)
+                                  for label, pipeline in pipelines.items()}))
     return curves
+
+
+BREAKDOWN_VIEWS = 3  # the K reported alone beside Fig. 6's mean over K (the sparsest of the paper's settings)
+
+
+def per_step_breakdown(clip_curves: Sequence[ClipCurves]) -> dict:
+    """Fig. 6's curve (``view_averaged_curves``) and K = 3's alone, over all clips, over the unpadded and over
+    the padded ones: ``{"rows": [{"clips", "views", "count", "curves"}], "capture_order": {rule: [scenes]}}``;
+    ``curves`` is None for a row with no clips."""
+    rows = []
+    for subset, keep in (("all", lambda c: True), ("unpadded", lambda c: not c.padded),
+                         ("padded", lambda c: c.padded)):
+        chosen = [c for c in clip_curves if keep(c)]
+        at_k = [c for c in chosen if c.views == BREAKDOWN_VIEWS]
+        for views, clips in (("mean over K", chosen), (f"K = {BREAKDOWN_VIEWS}", at_k)):
+            rows.append({"clips": subset, "views": views, "count": len(clips),
+                         "curves": view_averaged_curves(unit_curves(clips)) if clips else None})
+    orders: dict[str, list[str]] = defaultdict(list)
+    for clip in clip_curves:
+        rule = clip.capture_order or "rendered trajectory (no capture order)"
+        if clip.scene not in orders[rule]:
+            orders[rule].append(clip.scene)
+    return {"rows": rows, "capture_order": dict(orders)}
+
+
+def per_step_breakdown_markdown(breakdown: Mapping) -> str:
+    """The breakdown as a table: one row per clip subset, view setting and restorer, the whole curve in dB."""
+    lines = ["Per-step PSNR (dB) of the x0 prediction, first reverse step to last; each distinct ground-truth "
+             "frame counted once. Padded clips repeat captured frames (data.prepare.held_out_repeat_frames).", "",
+             "| clips | views | count | restorer | first | last | curve |", "|---|---|---|---|---|---|---|"]
+    for row in breakdown["rows"]:
+        if row["curves"] is None:
+            lines.append(f"| {row['clips']} | {row['views']} | 0 | - | - | - | - |")
+        for label, curve in (row["curves"] or {}).items():
+            lines.append(f"| {row['clips']} | {row['views']} | {row['count']} | {label} | {curve[0]:.2f} | "
+                         f"{curve[-1]:.2f} | {' '.join(f'{v:.2f}' for v in curve)} |")
+    orders = "; ".join(f"{rule} ({', '.join(scenes)})" for rule, scenes in breakdown["capture_order"].items())
+    return "\n".join([*lines, "", f"Capture order: {orders}.", ""])

@@ -42,6 +42,8 @@ class ClipEncodings:
     ref_3d: Tensor
     text: Tensor
     truth: Tensor
+    # Weights of the F - 2 frames in each clip's mean (``frame_mean``); None: the plain mean.
+    frame_weights: Tensor | None = None
 
 
 @dataclass
@@ -62,13 +64,21 @@ class TrajectoryDiagnostics:
         return None if self.teacher is None else [a - b for a, b in zip(self.teacher, self.visited)]
 
 
-def _psnr(backbone: Backbone, latents: Tensor, truth: Tensor) -> float:
+def frame_mean(per_frame: Tensor, weights: Tensor | None) -> Tensor:
+    """Mean over the last (frame) dimension: plain, or with ``weights`` (one per frame, summing to 1), which a
+    padded held-out clip uses to count each distinct ground-truth frame once (``eval.clips.distinct_frame_weights``)."""
+    if weights is None:
+        return per_frame.mean(-1)
+    return (per_frame.double() * weights.to(per_frame.device, torch.float64)).sum(-1)
+
+
+def _psnr(backbone: Backbone, latents: Tensor, truth: Tensor, weights: Tensor | None = None) -> float:
     """PSNR of decoded latents' trajectory frames (the reference frames at the ends dropped) against ``truth``:
-    per clip over its frames, then the mean over the batch."""
+    per clip over its frames (``frame_mean``), then the mean over the batch."""
     frames = backbone.codec.decode(latents).clamp(0, 1)[:, 1:-1]
     per_frame = peak_signal_noise_ratio(frames.flatten(0, 1), truth.flatten(0, 1).to(frames),
                                         data_range=1.0, reduction="none", dim=(1, 2, 3))
-    return float(per_frame.view(frames.shape[0], -1).mean(1).mean())
+    return float(frame_mean(per_frame.view(frames.shape[0], -1), weights).mean())
 
 
 @torch.no_grad()
@@ -92,7 +102,7 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
                                      uncond_text=uncond_text).velocity
 
     def score(z: Tensor, v: Tensor, t: Tensor) -> float:
-        return _psnr(backbone, schedule.predict_clean(z, v.float(), t), shared.truth)
+        return _psnr(backbone, schedule.predict_clean(z, v.float(), t), shared.truth, shared.frame_weights)
 
     noise = initial_noise(student.condition.shape, torch.Generator().manual_seed(seed), device)
     velocities: list[Tensor] = []
@@ -113,5 +123,6 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
             noised.append(score(forward, predict(student, forward, t_batch), t_batch))
         if teacher is not None:
             taught.append(score(z, predict(teacher, z, t_batch), t_batch))
+    final = _psnr(backbone, states[-1], shared.truth, shared.frame_weights)
     return TrajectoryDiagnostics(visited, noised if clean is not None else None,
-                                 taught if teacher is not None else None, _psnr(backbone, states[-1], shared.truth))
+                                 taught if teacher is not None else None, final)

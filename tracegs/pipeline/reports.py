@@ -9,7 +9,14 @@ from omegaconf import DictConfig
 from tracegs.console import show
 from tracegs.data.prepare import merge_manifests
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
-from tracegs.eval.clips import clip_restoration_psnr, held_out_clip_curves, unit_curves, view_averaged_curves
+from tracegs.eval.clips import (
+    clip_restoration_psnr,
+    held_out_clip_curves,
+    per_step_breakdown,
+    per_step_breakdown_markdown,
+    unit_curves,
+    view_averaged_curves,
+)
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 from tracegs.eval.interval_tables import write_per_step_intervals
 from tracegs.eval.merge import merge_results
@@ -111,7 +118,8 @@ def seed_report(cfg: DictConfig) -> Path:
 def per_step_report(cfg: DictConfig) -> Path:
     """Fig. 6 across variants (default: those of the paper's per-step claims, on-policy F vs off-policy E and
     A) on the clips of a prepared cache, with each variant's final restoration scored against its input R_s
-    (``held_out_clips.md``).
+    (``held_out_clips.md``); beside Fig. 6, the curves over the unpadded and the padded clips apart and at K = 3
+    alone, with the capture-order rule of the clips (``per_step_breakdown.{md,json}``).
 
     Any split's cache works: the test split's held-out clips, or the validation split's
     (``tracegs-prepare data.prepare.split=val``), on which the embedded default's settings are chosen.
@@ -123,15 +131,21 @@ def per_step_report(cfg: DictConfig) -> Path:
         variant_cfg = compose_run("report", [f"ablation={variant}"])
         method = variant_cfg.ablation.method
         pipelines[variant] = restorers_for_run(variant_cfg, [method])[method].pipeline
-    units = unit_curves(held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
-                                             progress=cfg.evaluation.progress))
+    clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
+                                       progress=cfg.evaluation.progress)
+    units = unit_curves(clip_curves)
     curves = view_averaged_curves(units)  # Fig. 6: averaged across view settings
     out = Path(cfg.report.output_dir)
     write_json_atomic(curves, out / "per_step_variants.json")
+    breakdown = per_step_breakdown(clip_curves)
+    write_json_atomic(breakdown, out / "per_step_breakdown.json")
+    with atomic_write(out / "per_step_breakdown.md") as tmp:
+        tmp.write_text(per_step_breakdown_markdown(breakdown))
     bands = write_per_step_intervals(units, out, "per_step_variants", pairs=list(PER_STEP_PAIRS))
     figure = plot_per_step_quality(curves, out / "fig6_per_step_variants.png", bands=bands)
     for variant, curve in curves.items():
         show(f"{variant}: " + " ".join(f"{value:.2f}" for value in curve))
+    show((out / "per_step_breakdown.md").read_text())
     quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
                                     progress=cfg.evaluation.progress)
     show(write_held_out_report(quality, out).read_text())

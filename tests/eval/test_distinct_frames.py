@@ -17,10 +17,6 @@ from tracegs.eval.clips import (
     per_step_breakdown,
     per_step_breakdown_markdown,
 )
-from tracegs.eval.per_step import per_step_psnr
-from tracegs.restorer.build import build_backbone
-from tracegs.restorer.config import BackboneConfig
-from tracegs.restorer.sampler import RestorationPipeline
 
 
 def record(images: list[int] | None) -> ClipRecord:
@@ -48,22 +44,6 @@ def test_clip_psnr_scores_each_distinct_ground_truth_frame_once():
     distinct = (sum(per_frame[:3]) / 3 + per_frame[3]) / 2
     assert mean_psnr(frames, truth, weights) == pytest.approx(distinct)
     assert mean_psnr(frames, truth) != pytest.approx(distinct)  # the plain mean counts image 5 three times
-
-
-def test_per_step_curve_is_the_weighted_mean_of_its_frames_curves():
-    pipeline = RestorationPipeline(build_backbone(BackboneConfig()))
-    g = torch.Generator().manual_seed(0)
-    gt = torch.rand(1, 5, 3, 24, 32, generator=g)
-    frames = (gt + 0.1 * torch.randn(gt.shape, generator=g)).clamp(0, 1)
-    refs = gt[:, [0, -1]]
-    weights = torch.tensor([0.25, 0.25, 0.5], dtype=torch.float64)
-
-    def curve(w):
-        return per_step_psnr(pipeline, frames, refs, ["a scene"], gt, seed=5, steps=2, frame_weights=w)
-
-    single = [curve(torch.eye(3, dtype=torch.float64)[j]) for j in range(3)]
-    expected = [sum(float(weights[j]) * single[j][step] for j in range(3)) for step in range(2)]
-    assert curve(weights) == pytest.approx(expected, abs=1e-4)
 
 
 def test_breakdown_reports_padded_and_unpadded_clips_apart_and_k3_alone():

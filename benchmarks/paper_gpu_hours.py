@@ -5,8 +5,9 @@ Usage: ``.venv/bin/python benchmarks/paper_gpu_hours.py [--train-scenes 112] [--
 
 The commands are the pipeline's own: ``tracegs-prepare experiment=paper`` (the training cache with every teacher of
 Table 3), then the Table 3 sweep (``tracegs.pipeline.steps.sweep_steps``, as ``launch/sweep_ablation.sh slurm
-experiment=paper`` runs it), whose evaluations at ``evaluation.views`` (3/6/9) on DL3DV and Mip-NeRF 360 also hold
-Tables 1 and 2's A and TRACE-GS (F); plain 3DGS for Tables 1/2 is one more evaluation per dataset. Each job's config
+experiment=paper`` runs it: evaluations at ``evaluation.views`` (3/6/9) on Table 3's ``report.datasets``, DL3DV and
+Mip-NeRF 360), then Tables 1/2 (``tracegs.pipeline.steps.main_table_steps``): plain 3DGS, A and TRACE-GS (F) in one
+evaluation per dataset of ``report.main_datasets`` (DL3DV, Mip-NeRF 360 and NeRFBusters). Each job's config
 is composed as its command line composes it, and the work it does is counted from that config with the functions
 the code runs (``clip_view_counts``, ``clip_condition_keys``, ``reference_pairs``): 3DGS iterations, rendered frames,
 captions, VAE encodes and decodes, transformer forwards (no gradient) and training forwards (with gradient). The
@@ -42,7 +43,7 @@ from tracegs.config.schema import register_configs
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
 from tracegs.data.prepare import captures_held_out, clip_condition_keys, clip_view_counts
-from tracegs.pipeline.steps import Step, sweep_steps
+from tracegs.pipeline.steps import Step, main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 from tracegs.splat.trajectory import reference_pairs
 
@@ -225,11 +226,7 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
     report = compose(config_name="report", overrides=common)
     others = [d for d in report.report.datasets if d != report.training_data]
     steps += sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], common, others)
-    # Tables 1 and 2: plain 3DGS, A and TRACE-GS (F) in one evaluation per dataset, merged by report.kind=main.
-    for dataset in report.report.datasets:
-        data = () if dataset == report.training_data else (f"data={dataset}",)
-        steps += [Step("evaluate", (*common, *data), f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
-                  Step("report", (*common, *data, "report.kind=main"), f"Tables 1/2 on {dataset}")]
+    steps += main_table_steps(report.report.main_datasets, report.training_data, common)
     rows = []
     for step in steps:
         work = Work()

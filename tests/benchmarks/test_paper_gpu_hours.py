@@ -42,3 +42,23 @@ def test_training_cache_counts_every_teacher_fit_and_pseudo_target(hydra_context
     work = gpu.prepare_work(cfg, scenes=1)
     assert work.fit_iterations == 6 * 30_000
     assert work.forwards == 150 * 50 * 2 and work.decodes == 150 and work.captions == 150
+
+
+def test_tables_1_2_evaluate_nerfbusters_which_table_3_leaves_out(hydra_context):
+    """Paper Table 2 compares on Mip-NeRF 360 and NeRFBusters, Table 3 on DL3DV and Mip-NeRF 360: NeRFBusters' twelve
+    published captures get one evaluation of 3DGS, A and F (the students trained on DL3DV) and its Tables 1/2
+    report, and no step of the Table 3 sweep."""
+    rows, _ = gpu.plan([], train_scenes=112, dl3dv_scenes=28)
+    labels = [label for label, _, _ in rows]
+    assert [label for label in labels if label.startswith("Tables 1/2")] == [
+        "Tables 1/2 on dl3dv", "Tables 1/2 on mipnerf360", "Tables 1/2 on nerfbusters"]
+    on_nerfbusters = [(label, command, work) for label, command, work in rows if "data=nerfbusters" in command]
+    assert [label for label, _, _ in on_nerfbusters] == ["evaluate 3DGS, A and F on nerfbusters (Tables 1/2)",
+                                                        "Tables 1/2 on nerfbusters"]
+    (_, evaluate, work), (_, report, _) = on_nerfbusters
+    assert evaluate.startswith("tracegs-evaluate ") and "ablation=" not in evaluate and "report.kind=main" in report
+    cfg = compose(config_name="evaluate", overrides=[*PAPER, "data=nerfbusters"])
+    assert gpu.test_scenes(cfg, dl3dv=28) == 12 and work == gpu.evaluate_work(cfg, 12) and work.gpu_hours() > 0
+    # Table 3 and Fig. 6 stay on DL3DV and Mip-NeRF 360.
+    assert [label for label in labels if "nerfbusters" in label] == [label for label, _, _ in on_nerfbusters]
+    assert any("data=mipnerf360" in command and "ablation=A," in command for _, command, _ in rows)

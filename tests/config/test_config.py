@@ -191,6 +191,7 @@ def test_wrong_type_names_the_field():
         (["evaluation.methods=[foo]"], "evaluation.methods"),
         (["training_data=dl3dvx"], "training_data"),
         (["report.datasets=[dl3dv,mip360]"], "report.datasets"),
+        (["report.main_datasets=[dl3dv,nerfbuster]"], "report.main_datasets"),
         (["data=custom"], "training_data"),  # training runs on the training data (training_data=custom to train)
         (["data.prepare.dense_views=[]", "data.prepare.pseudo_target=dense"], "data.prepare.dense_views"),
         (["backbone.transformer.prediction=clean", "backbone.schedule.kind=vpred_ddim",

@@ -166,6 +166,9 @@ class ReportConfig:
     inputs: list[str] = field(default_factory=list)  # result folders; empty = the experiment's defaults
     # Table 3's datasets (``data`` options), one column group each: the sweep's evaluations on each of them.
     datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
+    # Tables 1/2's datasets (``data`` options): on each, one evaluation of plain 3DGS, A and TRACE-GS (F) merged by
+    # report.kind=main (tracegs.pipeline.steps.main_table_steps).
+    main_datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
     output_dir: str = "${paths.experiment_dir}/report"
 
 

@@ -72,7 +72,8 @@ def _validate_known_keys(cfg: DictConfig) -> None:
 
 # Config values that become one folder name under a configured root (lists: every item).
 NAME_FIELDS = ("experiment.name", "ablation.name", "data.name", "training_data", "data.source.scenes",
-               "data.datamodule.val_scenes", "evaluation.scenes", "report.datasets", "stage.deployment_eval.scenes")
+               "data.datamodule.val_scenes", "evaluation.scenes", "report.datasets", "report.main_datasets",
+               "stage.deployment_eval.scenes")
 
 
 def validate_names(cfg: DictConfig) -> None:
@@ -137,10 +138,11 @@ def _validate_data(cfg: DictConfig) -> None:
 
 
 def _validate_training_data(cfg: DictConfig) -> None:
-    """``training_data`` and Table 3's datasets are ``data`` options; training runs on the training data, whose
-    scenes are never benchmark scenes."""
+    """``training_data`` and the datasets of Tables 1-3 are ``data`` options; training runs on the training data,
+    whose scenes are never benchmark scenes."""
     options = sorted(path.stem for path in (Path(CONF_DIR) / "data").glob("*.yaml"))
-    for field, names in (("training_data", [cfg.training_data]), ("report.datasets", cfg.report.datasets)):
+    for field, names in (("training_data", [cfg.training_data]), ("report.datasets", cfg.report.datasets),
+                         ("report.main_datasets", cfg.report.main_datasets)):
         for name in names:
             _require(name in options, field, f"{name!r} is not a data option (conf/data/<name>.yaml); choose from "
                                              f"{options}")

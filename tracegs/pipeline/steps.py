@@ -78,6 +78,20 @@ def out_of_domain_steps(variant: str, datasets: Sequence[str], common: Sequence[
             for dataset in datasets]
 
 
+def main_table_steps(datasets: Sequence[str], training_data: str, common: Sequence[str] = ()) -> list[Step]:
+    """Tables 1/2 (paper Table 1 on DL3DV, Table 2 out of domain: ``report.main_datasets``): on each of
+    ``datasets``, one evaluation of plain 3DGS, A and TRACE-GS (F), the restorers trained on ``training_data``,
+    merged by ``report.kind=main``. On another dataset (``data=<name>``) the steps leave out ``common``'s data
+    settings, which describe the training data."""
+    steps = []
+    for dataset in datasets:
+        own = tuple(common) if dataset == training_data else (
+            *(o for o in common if not describes_the_dataset(o)), f"data={dataset}")
+        steps += [Step("evaluate", own, f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
+                  Step("report", (*own, "report.kind=main"), f"Tables 1/2 on {dataset}")]
+    return steps
+
+
 # The embedded benchmark's cache holds only the all-view teacher (F); Table 3's C and D need 12 and 18 views and
 # B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there).
 SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student_final_fits=true")

@@ -163,4 +163,8 @@ def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, as_hydra
                                   f"evaluation.held_out_cache={tmp_path}"])
     with pytest.raises(ConfigError, match=r"report.inputs.*\['G'\] are not variants"):
         diagnostics_report(cfg)
+    cfg = as_hydra_job("report", ["report.kind=diagnostics", "report.inputs=[A]", "report.stage1_row=true",
+                                  f"paths.root_dir={tmp_path}", f"evaluation.held_out_cache={tmp_path}"])
+    with pytest.raises(ConfigError, match="report.stage1_row.*needs a distilled variant"):
+        diagnostics_report(cfg)
     assert not any(tmp_path.iterdir())  # refused before any work

@@ -154,3 +154,16 @@ def test_one_seeds_diagnostics_are_summarised_with_the_mechanism_figures():
     assert _cells(text, "| (F) | 15")[2:] == ["+2.30 [+2.30, +2.30]", "+0.50 [+0.50, +0.50]"]  # F learned +0.3
     figures = json.loads(text.strip().splitlines()[-1])
     assert figures["a_minus_input_db"] == [0.5, 0.5, 0.5] and figures["exposure_gap_late_db"]["F"] == [0.5, 0.5, 0.5]
+
+
+def test_the_students_are_set_against_the_stage1_adapter_they_start_from():
+    """``report.stage1_row``: the Stage-1 adapter is a row of its own and each student's final sample is paired
+    with it over scenes (here the adapter scores as A, and F learned +0.3 dB from it)."""
+    diagnostics = {"per_scene": {s: {"A": _diagnostics("A", c, 0), "stage1": _diagnostics("A", c, 0),
+                                     "F": _diagnostics("F", c, 0)} for s, c in zip(SCENES, CONTENT)},
+                   "conditions": ["s3_it140"], "clips": 8, "steps": STEPS}
+    text = diagnostics_markdown(diagnostics, ["stage1", "A", "F"], start="stage1")
+    assert "| variant | restored [95% CI over scenes] | − input R_s | − (A) | − Stage-1 adapter |" in text
+    assert _cells(text, "| (F) | 1")[3:] == ["+0.30 [+0.30, +0.30]", "+0.30 [+0.30, +0.30]"]
+    assert _cells(text, "| Stage-1 adapter | 1")[3:] == ["+0.00 [+0.00, +0.00]", ""]
+    assert _cells(text, "| (A) | 1")[3:] == ["", "+0.00 [+0.00, +0.00]"]

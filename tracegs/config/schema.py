@@ -169,6 +169,9 @@ class ReportConfig:
     # Tables 1/2's datasets (``data`` options): on each, one evaluation of plain 3DGS, A and TRACE-GS (F) merged by
     # report.kind=main (tracegs.pipeline.steps.main_table_steps).
     main_datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
+    # report.kind=diagnostics: also restore with the Stage-1 adapter alone (the students' starting point, row
+    # "stage1"), and give each student's final sample against it, paired over scenes.
+    stage1_row: bool = False
     output_dir: str = "${paths.experiment_dir}/report"
 
 

@@ -32,7 +32,7 @@ from tracegs.eval.interval_tables import (
     write_per_step_intervals,
 )
 from tracegs.eval.intervals import Interval, mean_interval, paired_interval, t_interval
-from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS
+from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS, RESTORER_LABELS
 from tracegs.eval.report import plot_per_step_quality
 from tracegs.io import atomic_write
 
@@ -45,8 +45,10 @@ REFERENCE, TRACEGS = REFERENCE_VARIANT, METHOD_VARIANTS["tracegs"]
 
 def label(name: str) -> str:
     """A variant as the paper names it: its name in parentheses, a trailing ``-`` written ``⁻``; plain 3DGS as
-    ``3DGS``."""
-    return "3DGS" if name == PLAIN else f"({name.replace('-', '⁻')})"
+    ``3DGS``, the diagnostics' Stage-1 row by its restorer label."""
+    if name == PLAIN:
+        return "3DGS"
+    return RESTORER_LABELS["stage1"] if name == "stage1" else f"({name.replace('-', '⁻')})"
 
 
 @dataclass
@@ -192,18 +194,20 @@ def _scene_values(diagnostics: Mapping, variant: str, field: str) -> dict[str, A
     return {scene: rows[variant][field] for scene, rows in diagnostics["per_scene"].items()}
 
 
-def held_out_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
-    """Each variant's final sample on the held-out clips, against its input R_s and against the reference."""
-    lines = [f"| variant | restored [95% CI over scenes] | − input R_s | − {label(REFERENCE)} |",
-             "|---|---|---|---|"]
+def held_out_markdown(diagnostics: Mapping, variants: Sequence[str], start: str | None = None) -> str:
+    """Each variant's final sample on the held-out clips, against its input R_s, against the reference and (with
+    ``start``, the row of the Stage-1 adapter) against the adapter the students start from."""
+    references = [REFERENCE] + ([start] if start is not None else [])
+    lines = ["| variant | restored [95% CI over scenes] | − input R_s | "
+             + " | ".join(f"− {label(r)}" for r in references) + " |", "|---|---|---|" + "---|" * len(references)]
     inputs = {scene: rows[variants[0]]["input"] for scene, rows in diagnostics["per_scene"].items()}
-    lines.append(f"| input R_s | {mean_interval(list(inputs.values())).format()} | | |")
+    lines.append(f"| input R_s | {mean_interval(list(inputs.values())).format()} | |" + " |" * len(references))
     for name in variants:
         final = _scene_values(diagnostics, name, "final")
-        to_a = (paired_interval(final, _scene_values(diagnostics, REFERENCE, "final")).format(signed=True)
-                if name != REFERENCE and REFERENCE in variants else "")
+        against = [paired_interval(final, _scene_values(diagnostics, r, "final")).format(signed=True)
+                   if name != r and r in variants else "" for r in references]
         lines.append(f"| {label(name)} | {mean_interval(list(final.values())).format()} | "
-                     f"{paired_interval(final, inputs).format(signed=True)} | {to_a} |")
+                     f"{paired_interval(final, inputs).format(signed=True)} | {' | '.join(against)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -303,10 +307,11 @@ def mechanism_figures(held_out: Mapping, per_seed: Sequence[Mapping], variants: 
     return figures
 
 
-def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
-    """One training seed's diagnostics (``tracegs-report report.kind=diagnostics``): the held-out clip table, each
-    variant's first clean prediction and final sample, the exposure gap per step with its later-half mean, and the
-    mechanism figures of the benchmark's run record (intervals over scenes)."""
+def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str], start: str | None = None) -> str:
+    """One training seed's diagnostics (``tracegs-report report.kind=diagnostics``): the held-out clip table (with
+    ``start``, each student against the Stage-1 adapter's row), each variant's first clean prediction and final
+    sample, the exposure gap per step with its later-half mean, and the mechanism figures of the benchmark's run
+    record (intervals over scenes)."""
     _, _, gap_late = per_step_table(diagnostics, variants, "visited", "noised")
     first = {n: mean_interval([curve[0] for curve in _scene_values(diagnostics, n, "visited").values()])
              for n in variants}
@@ -315,7 +320,7 @@ def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str]) -> str:
                   for n in variants}
     lines = [f"{diagnostics['clips']} held-out clips of {len(diagnostics['per_scene'])} scenes, conditions "
              f"{', '.join(diagnostics['conditions'])}, {diagnostics['steps']} reverse steps; PSNR (dB) against "
-             "ground truth, 95% intervals over scenes.", "", held_out_markdown(diagnostics, variants),
+             "ground truth, 95% intervals over scenes.", "", held_out_markdown(diagnostics, variants, start),
              "| variant | first clean prediction | final − first | exposure gap, later half |", "|---|---|---|---|"]
     lines += [f"| {label(n)} | {first[n].format()} | {trajectory[n].format(signed=True)} | "
               f"{gap_late[n].format(signed=True)} |" for n in variants]

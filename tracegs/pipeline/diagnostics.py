@@ -1,7 +1,7 @@
 """``tracegs-report report.kind=diagnostics``: the trajectory diagnostics of Table 3's variants on held-out clips.
 
 For one training seed (this command line's settings), every variant in ``report.inputs`` (default: every
-variant of conf/ablation/) is restored along its own deployment trajectory on the held-out clips, at the
+variant of conf/ablation/), and with ``report.stage1_row`` the Stage-1 adapter the students start from, is restored along its own deployment trajectory on the held-out clips, at the
 student conditions of ``evaluation.views``: its per-step clean prediction (Fig. 6), the exposure gap and, for
 the distilled variants, the advantage of their teacher (the Stage-1 adapter on the variant's R_d, Eq. 5) at the
 student's states (tracegs.eval.diagnostics). All restorers share one backbone: A's weights, the Stage-1 adapter
@@ -42,6 +42,9 @@ def diagnostics_report(cfg: DictConfig) -> Path:
         raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")
     variants = {name: compose_run("report", [f"ablation={name}"]) for name in names}
     distilled = any(variant.ablation.train_stage2 for variant in variants.values())
+    if cfg.report.stage1_row and not distilled:
+        raise ConfigError("report.stage1_row", "needs a distilled variant in report.inputs (A alone has no Stage-1 "
+                                               "adapter)")
     # A alone needs A's weights only: a restorer design is judged on its trajectory before any adapter exists.
     locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"] if distilled else ["baseline_weights"])
     files: dict[str, AdapterFile | None] = {TEACHER: None}
@@ -63,6 +66,8 @@ def diagnostics_report(cfg: DictConfig) -> Path:
                                     f"tracegs-train stage=stage2 ablation={name} with the same settings)")
         files[name] = AdapterFile(student, "artifacts.student_adapter", name)
         roles[name] = VariantRoles(student=name, teacher=TEACHER, teacher_views=variant.teacher.views, distilled=True)
+    if cfg.report.stage1_row:
+        roles = {TEACHER: VariantRoles(student=TEACHER), **roles}
     restorers = shared_restorers(section(cfg.backbone), cfg.artifacts.baseline_weights, files,
                                  batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps)
     result = held_out_diagnostics(restorers[TEACHER].pipeline.backbone, roles, cfg.evaluation.held_out_cache,
@@ -71,7 +76,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
                                   workers=cfg.evaluation.workers)
     path = Path(cfg.report.output_dir) / "diagnostics.json"
     write_json_atomic(result, path)
-    summary = diagnostics_markdown(result, list(roles))
+    summary = diagnostics_markdown(result, list(roles), start=TEACHER if cfg.report.stage1_row else None)
     with atomic_write(path.with_suffix(".md")) as tmp:
         tmp.write_text(summary)
     show(summary)

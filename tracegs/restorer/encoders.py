@@ -9,6 +9,7 @@ embedding used for caption dropout and the unconditional branch of classifier-fr
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import re
 import zlib
@@ -270,6 +271,13 @@ class TextEncoder:
     def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
         """Prompts as they are (no quality suffix) -> (B, L, D)."""
         raise NotImplementedError
+
+    @functools.cached_property
+    def negative_embedding(self) -> torch.Tensor | None:
+        """(1, L, D): the encoding of ``cfg.negative_prompt``, guided sampling's unconditional branch, encoded once
+        per encoder (every restored clip reuses it); None = no prompt (the all-zero embedding)."""
+        prompt = self.cfg.negative_prompt
+        return None if prompt is None else self.encode_prompts([prompt])
 
 
 class EmbeddedTextEncoder(TextEncoder):

@@ -56,13 +56,12 @@ def guided_prediction(
 def negative_text(backbone: Backbone) -> torch.Tensor | None:
     """The unconditional branch's text embedding (1, L, D) under ``backbone``: the encoding of
     ``text_encoder.negative_prompt``, or None (the all-zero embedding) when no prompt is set."""
-    prompt = backbone.cfg.text_encoder.negative_prompt
-    if prompt is None:
+    if backbone.cfg.text_encoder.negative_prompt is None:
         return None
     if backbone.text_encoder is None:
         raise ValueError("backbone.text_encoder.negative_prompt is set, so guided sampling encodes it, but the "
                          "backbone was built without its text encoder")
-    return backbone.text_encoder.encode_prompts([prompt])
+    return backbone.text_encoder.negative_embedding
 
 
 def initial_noise(shape: torch.Size, generator: torch.Generator, device: torch.device | str) -> torch.Tensor:

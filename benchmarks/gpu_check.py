@@ -1,6 +1,7 @@
 """The first minutes on a GPU: one unattended check that times and loads the paper scale (about 8 min on one H100).
 
-Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-iterations 1000]``
+Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-iterations 1000]
+[--sections restorer,vae,...]``
 
 Sections, each measured on its own (a section that fails records its one-line error and the others still run: the
 minutes on a GPU are few, one failure must not cost the rest):
@@ -19,6 +20,12 @@ minutes on a GPU are few, one failure must not cost the rest):
 - ``weights``: every released model the paper scale reads under ``paths.weights_dir`` (GSFixer, CogVideoX's VAE, T5
   and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing; when the restorer's are all present,
   they are loaded through the pipeline's own loaders and one clip is restored (seconds).
+
+Sections run in the order above except that ``rasterizer`` comes last: on a fresh GPU machine gsplat compiles its
+CUDA kernels at first use (minutes), which must not stand between the transformer's figures and a lease that ends.
+``--sections`` runs some of them (``device`` always runs). ``<out>/gpu_check.json`` is rewritten after every section
+(a run stopped at its time limit keeps what it measured) and merged with the figures already there from the same
+scale (a rerun of one section replaces that section's figures alone).
 
 Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log``; ``benchmarks/paper_gpu_hours.py --measured
 <out>/gpu_check.json`` replaces its assumed seconds with these. Without a CUDA device (``--scale auto``) it prints
@@ -301,12 +308,32 @@ def section(name: str, work: Callable[[], dict], record: dict) -> None:
     log.info("%s: %s", name, json.dumps(record[name], default=str))
 
 
-def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, ...] = ()) -> dict:
-    """Every section at ``scale`` on CUDA (paper) or the CPU (rehearsal); writes ``gpu_check.json`` in ``out``."""
+SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer")
+
+
+def previous_record(target: Path, scale: str) -> dict:
+    """The figures an earlier run left in ``target`` at the same ``scale`` (none from another scale or no file)."""
+    try:
+        record = json.loads(target.read_text())
+    except (OSError, ValueError):
+        return {"scale": scale}
+    return record if isinstance(record, dict) and record.get("scale") == scale else {"scale": scale}
+
+
+def write_record(record: dict, target: Path) -> None:
+    partial = target.with_suffix(".json.tmp")
+    partial.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    partial.replace(target)
+
+
+def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, ...] = (),
+              sections: tuple[str, ...] = SECTIONS) -> dict:
+    """``sections`` at ``scale`` on CUDA (paper) or the CPU (rehearsal), merged into ``out``/gpu_check.json, which
+    is rewritten after each section."""
     from omegaconf import OmegaConf
 
     out.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(out / "gpu_check.log", mode="w")
+    handler = logging.FileHandler(out / "gpu_check.log", mode="a")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     log.addHandler(handler)
     log.setLevel(logging.INFO)
@@ -316,17 +343,18 @@ def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, 
         clock = Clock(device)
         fit = OmegaConf.to_object(cfg.data.prepare.fit)
         backends = ("gsplat", "compiled") if device.type == "cuda" else ("torch", "compiled")
-        record: dict = {"scale": scale}
-        with tempfile.TemporaryDirectory() as scratch:
-            section("device", lambda: device_facts(device), record)
-            section("rasterizer", lambda: rasterizer_section(fit, backends, fit_iterations, Path(scratch)), record)
-            section("restorer", lambda: restorer_section(cfg, device, clock, Path(scratch)), record)
-            section("vae", lambda: vae_section(cfg, device, clock), record)
-            section("weights", lambda: weights_section(cfg, device, clock), record)
         target = out / "gpu_check.json"
-        partial = target.with_suffix(".json.tmp")
-        partial.write_text(json.dumps(record, indent=2, default=str) + "\n")
-        partial.replace(target)
+        record = previous_record(target, scale)
+        with tempfile.TemporaryDirectory() as scratch:
+            work = {"device": lambda: device_facts(device),
+                    "restorer": lambda: restorer_section(cfg, device, clock, Path(scratch)),
+                    "vae": lambda: vae_section(cfg, device, clock),
+                    "weights": lambda: weights_section(cfg, device, clock),
+                    "rasterizer": lambda: rasterizer_section(fit, backends, fit_iterations, Path(scratch))}
+            for name in SECTIONS:
+                if name == "device" or name in sections:
+                    section(name, work[name], record)
+                    write_record(record, target)
         return record
     finally:
         log.removeHandler(handler)
@@ -339,8 +367,14 @@ def main(argv: list[str] | None = None) -> dict | None:
     parser.add_argument("--scale", choices=("auto", "paper", "rehearsal"), default="auto")
     parser.add_argument("--fit-iterations", type=int, default=1000,
                         help="the paper's 30k-iteration fit, every schedule scaled to this many iterations")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help=f"comma-separated, of {', '.join(SECTIONS)} (device always runs)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the composed config (e.g. paths.root_dir=...)")
     args = parser.parse_args(argv)
+    sections = tuple(name.strip() for name in args.sections.split(",") if name.strip())
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        parser.error(f"--sections: unknown {', '.join(unknown)} (known: {', '.join(SECTIONS)})")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.scale == "auto" and not torch.cuda.is_available():
         print("no GPU: nothing measured")
@@ -348,7 +382,7 @@ def main(argv: list[str] | None = None) -> dict | None:
     scale = "paper" if args.scale == "auto" else args.scale
     if scale == "paper" and not torch.cuda.is_available():
         sys.exit("--scale paper needs a CUDA device (--scale rehearsal runs the same sections on the CPU)")
-    record = run_check(scale, Path(args.out), args.fit_iterations, tuple(args.overrides))
+    record = run_check(scale, Path(args.out), args.fit_iterations, tuple(args.overrides), sections)
     print(json.dumps(record, default=str))
     return record
 

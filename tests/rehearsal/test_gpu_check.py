@@ -62,6 +62,24 @@ def test_missing_weights_are_named_and_nothing_is_loaded(tmp_path):
     assert "load_seconds" not in weights
 
 
+def test_a_rerun_of_one_section_replaces_its_figures_alone(checked, rehearsal_root, tmp_path):
+    record, out = checked
+    (tmp_path / "gpu_check.json").write_text((out / "gpu_check.json").read_text())
+    rerun = gpu_check.main(["--scale", "rehearsal", "--sections", "vae", "--out", str(tmp_path),
+                            f"paths.root_dir={rehearsal_root}"])
+    assert rerun["restorer"] == json.loads(json.dumps(record["restorer"]))  # kept from the first run
+    assert json.loads((tmp_path / "gpu_check.json").read_text()) == json.loads(json.dumps(rerun, default=str))
+    assert "vae ..." in (tmp_path / "gpu_check.log").read_text()
+    assert "restorer ..." not in (tmp_path / "gpu_check.log").read_text()  # not run again
+
+
+def test_an_unknown_section_is_refused_in_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        gpu_check.main(["--scale", "rehearsal", "--sections", "vae,raster", "--out", str(tmp_path)])
+    assert "--sections: unknown raster" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_failing_section_is_recorded_and_the_others_still_run(tmp_path):
     record = {}
 

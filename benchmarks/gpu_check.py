@@ -43,14 +43,14 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from stage2_memory import _batch, _make_adapter, _module  # noqa: E402
+from stage2_memory import _base_transformer, _batch, _make_adapter, _module  # noqa: E402
 
 from tracegs.data.colmap import load_scene, test_indices_for  # noqa: E402
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig  # noqa: E402
@@ -165,38 +165,51 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
             "speedup": fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]}
 
 
-def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) -> dict:
-    """Time and memory of the restorer's units of work at ``cfg``'s shapes, random weights."""
+def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) -> Iterator[tuple[str, object]]:
+    """Time and memory of the restorer's units of work at ``cfg``'s shapes, random weights, each figure yielded as
+    soon as it is measured: the forwards first, the Stage-2 iteration (minutes at 5B) last."""
     from omegaconf import OmegaConf
 
+    from tracegs.restorer.adapters import add_adapter
     from tracegs.restorer.sampler import guided_prediction
 
     backbone = OmegaConf.to_object(cfg.backbone)
     backbone.transformer.pretrained_path = None
     kind = device.type
-    adapter = work_dir / "stage1_adapter"
-    _make_adapter(backbone, adapter, kind)
-    module = _module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
-                     cfg.stage.guidance_scale)
+    yield "batch_size", cfg.experiment.batch_size
+    yield "rollout_steps", cfg.stage.rollout_steps
+    yield "deploy_guidance_scale", backbone.sampler.guidance_scale
     frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
     batch = {key: value.to(device) for key, value in _batch(backbone, cfg.experiment.batch_size, frame_size).items()}
-    dtype = next(module.transformer.parameters()).dtype
+    start = time.perf_counter()
+    # The forwards are timed on a base with a freshly added adapter of the configured rank (active, as in every
+    # forward of a trained student): no adapter file to write and verify before the first figure.
+    transformer = _base_transformer(backbone, kind)
+    add_adapter(transformer, "aligned", backbone.lora)
+    yield "build_seconds", time.perf_counter() - start
+    dtype = next(transformer.parameters()).dtype
     one = {key: value[:1].to(dtype) for key, value in batch.items()}
     t = torch.full((1,), 0.5, device=device)
 
     def evaluation(guidance: float) -> Callable[[], object]:
         def run():
             with torch.no_grad(), torch.autocast(kind, dtype=dtype, enabled=dtype != torch.float32):
-                return guided_prediction(module.transformer, one["target"], one["student_cond"], t, one["text"],
+                return guided_prediction(transformer, one["target"], one["student_cond"], t, one["text"],
                                          one["ref_2d"], one["ref_3d"], guidance)
         return run
 
-    figures = {"deploy_step": clock.measure(evaluation(backbone.sampler.guidance_scale), repeats=3),
-               "rollout_step": clock.measure(evaluation(1.0), repeats=3),
-               "stage2_iteration": stage2_iteration(module, batch, cfg.trainer.precision, device),
-               "batch_size": cfg.experiment.batch_size, "rollout_steps": cfg.stage.rollout_steps,
-               "deploy_guidance_scale": backbone.sampler.guidance_scale}
-    return figures
+    yield "deploy_step", clock.measure(evaluation(backbone.sampler.guidance_scale), repeats=3)
+    yield "rollout_step", clock.measure(evaluation(1.0), repeats=3)
+    transformer = None  # freed before the Stage-2 module builds its own base
+    if kind == "cuda":
+        torch.cuda.empty_cache()
+    start = time.perf_counter()
+    adapter = work_dir / "stage1_adapter"
+    _make_adapter(backbone, adapter, kind)
+    module = _module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
+                     cfg.stage.guidance_scale)
+    yield "stage2_setup_seconds", time.perf_counter() - start
+    yield "stage2_iteration", stage2_iteration(module, batch, cfg.trainer.precision, device)
 
 
 def stage2_iteration(module, batch: dict, precision: str, device: torch.device) -> dict:
@@ -229,7 +242,7 @@ def stage2_iteration(module, batch: dict, precision: str, device: torch.device) 
     return probe.figures[-1]
 
 
-def vae_section(cfg, device: torch.device, clock: Clock) -> dict:
+def vae_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
     """The VAE's encode and decode of one clip: the weights folder's architecture when its config is present,
     else diffusers' ``AutoencoderKLCogVideoX`` defaults (CogVideoX's published architecture); random weights."""
     from diffusers import AutoencoderKLCogVideoX
@@ -246,10 +259,10 @@ def vae_section(cfg, device: torch.device, clock: Clock) -> dict:
         vae = AutoencoderKLCogVideoX.from_config(config).to(torch.bfloat16)
     codec = CogVideoXCodec(codec_cfg, device, vae=vae)
     clip = torch.rand(1, frames, 3, *frame_size, device=device)
+    yield "vae_clip", [frames, *frame_size]
     latents = codec.encode(clip)
-    return {"vae_encode": clock.measure(lambda: codec.encode(clip)),
-            "vae_decode": clock.measure(lambda: codec.decode(latents)),
-            "vae_clip": [frames, *frame_size]}
+    yield "vae_encode", clock.measure(lambda: codec.encode(clip))
+    yield "vae_decode", clock.measure(lambda: codec.decode(latents))
 
 
 def weight_paths(cfg) -> dict[str, str | None]:
@@ -293,19 +306,27 @@ def weights_section(cfg, device: torch.device, clock: Clock) -> dict:
     return figures
 
 
-def section(name: str, work: Callable[[], dict], record: dict) -> None:
-    """Run one section; its figures, or its error in one line (the traceback goes to the log), go in ``record``."""
+def section(name: str, work: Callable[[], dict | Iterable[tuple[str, object]]], record: dict,
+            checkpoint: Callable[[], None] = lambda: None) -> None:
+    """Run one section into ``record[name]``: its figures (a dict, or pairs yielded as they are measured, each
+    logged and passed to ``checkpoint`` at once, so a run stopped mid-section keeps them), or its error in one line
+    (the traceback goes to the log) beside the figures measured before it."""
     log.info("%s ...", name)
     start = time.perf_counter()
+    figures = record[name] = {}
     try:
-        record[name] = work()
+        result = work()
+        for key, value in result.items() if isinstance(result, dict) else result:
+            figures[key] = value
+            log.info("%s.%s: %s", name, key, json.dumps(value, default=str))
+            checkpoint()
     except Exception as error:  # noqa: BLE001 (an unattended run records every failure and goes on)
         log.error("%s failed: %s", name, traceback.format_exc())
-        record[name] = {"error": f"{type(error).__name__}: {error}".splitlines()[0]}
+        figures["error"] = f"{type(error).__name__}: {error}".splitlines()[0]
     if torch.cuda.is_available():
         torch.cuda.empty_cache()  # what a section built is gone: the next one measures its own peak
-    record[name]["section_seconds"] = round(time.perf_counter() - start, 2)
-    log.info("%s: %s", name, json.dumps(record[name], default=str))
+    figures["section_seconds"] = round(time.perf_counter() - start, 2)
+    log.info("%s: %s", name, json.dumps(figures, default=str))
 
 
 SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer")
@@ -353,7 +374,7 @@ def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, 
                     "rasterizer": lambda: rasterizer_section(fit, backends, fit_iterations, Path(scratch))}
             for name in SECTIONS:
                 if name == "device" or name in sections:
-                    section(name, work[name], record)
+                    section(name, work[name], record, lambda: write_record(record, target))
                     write_record(record, target)
         return record
     finally:

@@ -86,9 +86,17 @@ def test_a_failing_section_is_recorded_and_the_others_still_run(tmp_path):
     def broken() -> dict:
         raise RuntimeError("CUDA out of memory\nsecond line")
 
-    gpu_check.section("restorer", broken, record)
+    def measured_then_broken():
+        yield "deploy_step", {"seconds": 1.5}
+        raise RuntimeError("CUDA out of memory\nsecond line")
+
+    saved = []
+    gpu_check.section("restorer", measured_then_broken, record, lambda: saved.append(dict(record["restorer"])))
+    gpu_check.section("vae", broken, record)
     gpu_check.section("device", lambda: {"name": "cpu"}, record)
-    assert record["restorer"]["error"] == "RuntimeError: CUDA out of memory"
+    assert saved == [{"deploy_step": {"seconds": 1.5}}]  # written before the failure
+    assert record["restorer"]["deploy_step"] == {"seconds": 1.5}  # what was measured before the failure stays
+    assert record["restorer"]["error"] == record["vae"]["error"] == "RuntimeError: CUDA out of memory"
     assert record["device"]["name"] == "cpu"
 
 

@@ -148,8 +148,10 @@ def fit_and_score(fit: GaussianFitConfig, views: list[View], held_out: list[View
             "iterations_per_s": fit.iterations / seconds, "psnr_held_out": mean_psnr(rendered.cpu(), truth.cpu())}
 
 
-def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterations: int, work_dir: Path) -> dict:
-    """The same shortened fit with ``backends`` (accelerator's, then the CPU reference): speed and PSNR gap."""
+def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterations: int,
+                       work_dir: Path) -> Iterator[tuple[str, object]]:
+    """The same shortened fit with ``backends`` (accelerator's, then the CPU reference): speed and PSNR gap, each
+    fit's figures yielded as soon as it ends."""
     synthetic = SyntheticConfig(root=str(work_dir / "synthetic"))
     generate_scene(SCENE_SEED, synthetic, Path(synthetic.root))
     source = SceneSourceConfig(root=synthetic.root, preset="synthetic")
@@ -159,10 +161,12 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
     training = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
     held_out = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in sorted(test)]
     init = GaussianModel.from_points(*scene.points_seen_by(indices))  # as prepare starts a fit
-    fits = [fit_and_score(replace(shortened(fit, iterations), backend=backend), training, held_out, init)
-            for backend in backends]
-    return {"fits": fits, "psnr_gap_db": fits[0]["psnr_held_out"] - fits[1]["psnr_held_out"],
-            "speedup": fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]}
+    fits = []
+    for backend in backends:
+        fits.append(fit_and_score(replace(shortened(fit, iterations), backend=backend), training, held_out, init))
+        yield "fits", fits
+    yield "psnr_gap_db", fits[0]["psnr_held_out"] - fits[1]["psnr_held_out"]
+    yield "speedup", fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]
 
 
 def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) -> Iterator[tuple[str, object]]:

@@ -1,4 +1,4 @@
-"""The first minutes on a GPU: one unattended check that times and loads the paper scale (about 8 min on one H100).
+"""The first minutes on a GPU: one unattended check that times and loads the paper scale (10-15 min on one H200).
 
 Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-iterations 1000]
 [--sections restorer,vae,...]``
@@ -50,7 +50,12 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from stage2_memory import _base_transformer, _batch, _make_adapter, _module  # noqa: E402
+from stage2_memory import (  # noqa: E402
+    make_random_adapter,
+    paper_shaped_batch,
+    random_base_transformer,
+    stage2_module,
+)
 
 from tracegs.data.colmap import load_scene, test_indices_for  # noqa: E402
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig  # noqa: E402
@@ -184,11 +189,11 @@ def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) ->
     yield "rollout_steps", cfg.stage.rollout_steps
     yield "deploy_guidance_scale", backbone.sampler.guidance_scale
     frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
-    batch = {key: value.to(device) for key, value in _batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
     start = time.perf_counter()
     # The forwards are timed on a base with a freshly added adapter of the configured rank (active, as in every
     # forward of a trained student): no adapter file to write and verify before the first figure.
-    transformer = _base_transformer(backbone, kind)
+    transformer = random_base_transformer(backbone, kind)
     add_adapter(transformer, "aligned", backbone.lora)
     yield "build_seconds", time.perf_counter() - start
     dtype = next(transformer.parameters()).dtype
@@ -209,8 +214,8 @@ def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) ->
         torch.cuda.empty_cache()
     start = time.perf_counter()
     adapter = work_dir / "stage1_adapter"
-    _make_adapter(backbone, adapter, kind)
-    module = _module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
+    make_random_adapter(backbone, adapter, kind)
+    module = stage2_module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
                      cfg.stage.guidance_scale)
     yield "stage2_setup_seconds", time.perf_counter() - start
     yield "stage2_iteration", stage2_iteration(module, batch, cfg.trainer.precision, device)

@@ -53,7 +53,7 @@ def compose_experiment(scale: str):
             (cfg.experiment.frame_height, cfg.experiment.frame_width))
 
 
-def _batch(backbone, batch_size: int, frame_size: tuple[int, int]) -> dict:
+def paper_shaped_batch(backbone, batch_size: int, frame_size: tuple[int, int]) -> dict:
     from tracegs.restorer.encoders import reference_grid
 
     t = backbone.transformer
@@ -62,7 +62,7 @@ def _batch(backbone, batch_size: int, frame_size: tuple[int, int]) -> dict:
     return random_batch(t, frames, 2 * rows * cols, batch_size, seed=0)  # two views of patch-14 tokens
 
 
-def _base_transformer(backbone, device: str):
+def random_base_transformer(backbone, device: str):
     """The frozen base of the measured step, random from seed 0 and built in bf16 directly (no 20 GB float32
     copy at 5B); the Stage-1 adapter is made on this same base, whose identity its file records."""
     import torch
@@ -78,12 +78,12 @@ def _base_transformer(backbone, device: str):
         torch.set_default_dtype(previous)
 
 
-def _module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
+def stage2_module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
     from tracegs.restorer.schedules import build_schedule
     from tracegs.training.config import OptimizerConfig
     from tracegs.training.stage2 import Stage2DistillationModule
 
-    transformer = _base_transformer(backbone, device)
+    transformer = random_base_transformer(backbone, device)
     if backbone.transformer.gradient_checkpointing:
         transformer.enable_gradient_checkpointing()
     return Stage2DistillationModule(
@@ -100,12 +100,12 @@ def _step_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter
     backbone, precision, _, frame_size = compose_experiment(scale)
     cuda = scale == "paper"
     device = "cuda" if cuda else "cpu"
-    module = _module(backbone, mode, rollout, Path(adapter), device, guidance)
+    module = stage2_module(backbone, mode, rollout, Path(adapter), device, guidance)
     probe = _GpuProbe() if cuda else _StepProbe()
     trainer = L.Trainer(accelerator="gpu" if cuda else "cpu", devices=1, precision=precision, max_steps=2,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, callbacks=[probe])
-    trainer.fit(module, train_dataloaders=DataLoader([_batch(backbone, batch_size, frame_size)], batch_size=None))
+    trainer.fit(module, train_dataloaders=DataLoader([paper_shaped_batch(backbone, batch_size, frame_size)], batch_size=None))
     if cuda:
         del module, trainer
         torch.cuda.empty_cache()
@@ -142,14 +142,14 @@ def _cpu_peak_mib(scale: str, mode: str, rollout: int, batch_size: int, adapter:
                             mmap_threshold=True)
 
 
-def _make_adapter(backbone, path: Path, device: str) -> None:
+def make_random_adapter(backbone, path: Path, device: str) -> None:
     """A random Stage-1 adapter at the config's rank on the measured step's base (the file records that base's
     identity, which Stage 2 checks); the base is freed before anything is measured."""
     import torch
 
     from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
 
-    model = _base_transformer(backbone, device)
+    model = random_base_transformer(backbone, device)
     add_adapter(model, "aligned", backbone.lora)
     torch.manual_seed(0)
     with torch.no_grad():
@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> dict:
     peaks: dict[float, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         adapter = Path(tmp) / "stage1_adapter.safetensors"
-        _make_adapter(backbone, adapter, "cuda" if scale == "paper" else "cpu")
+        make_random_adapter(backbone, adapter, "cuda" if scale == "paper" else "cpu")
         for guidance in (unguided, guided):
             peaks[guidance] = {
                 mode: (_step_peak_mib(scale, mode, args.rollout, args.batch, str(adapter), guidance)

@@ -68,5 +68,6 @@ def test_a_refused_write_is_one_line_naming_the_file(tmp_path, entry_point, read
         for ply in tmp_path.rglob("*.ply"):
             assert len(load_ply(ply)) > 0
         for shard in tmp_path.rglob("*.safetensors"):
-            with safe_open(str(shard), framework="pt") as handle:
-                assert all(handle.get_tensor(k).numel() >= 0 for k in handle.keys())
+            with safe_open(str(shard), framework="pt") as handle:  # a truncated shard raises on opening or reading
+                for key in handle.keys():
+                    handle.get_tensor(key)

@@ -2,7 +2,9 @@
 
 METHOD_LABELS = {"3dgs": "3DGS", "baseline": "Baseline (A)", "tracegs": "TRACE-GS"}
 # Restorers that appear only in diagnostics (the privileged gap), never as evaluation methods.
-RESTORER_LABELS = {**METHOD_LABELS, "stage1": "Stage-1 adapter", "tracegs": "Stage-2 student (TRACE-GS)"}
+# The Stage-1 adapter's name as a restorer of its own (the diagnostics' row and teacher, the privileged report's row).
+STAGE1 = "stage1"
+RESTORER_LABELS = {**METHOD_LABELS, STAGE1: "Stage-1 adapter", "tracegs": "Stage-2 student (TRACE-GS)"}
 METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
 METRIC_DECIMALS = {"psnr": 2, "ssim": 3, "lpips": 3}
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False}

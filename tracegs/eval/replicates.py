@@ -32,7 +32,7 @@ from tracegs.eval.interval_tables import (
     write_per_step_intervals,
 )
 from tracegs.eval.intervals import Interval, mean_interval, paired_interval, t_interval
-from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS, RESTORER_LABELS
+from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS, RESTORER_LABELS, STAGE1
 from tracegs.eval.report import plot_per_step_quality
 from tracegs.io import atomic_write
 
@@ -48,7 +48,7 @@ def label(name: str) -> str:
     ``3DGS``, the diagnostics' Stage-1 row by its restorer label."""
     if name == PLAIN:
         return "3DGS"
-    return RESTORER_LABELS["stage1"] if name == "stage1" else f"({name.replace('-', '⁻')})"
+    return RESTORER_LABELS[STAGE1] if name == STAGE1 else f"({name.replace('-', '⁻')})"
 
 
 @dataclass

@@ -94,7 +94,7 @@ def trajectory_diagnostics(backbone: Backbone, student: Role, shared: ClipEncodi
     guidance = backbone.cfg.sampler.guidance_scale
     grid = schedule.timesteps(steps or backbone.cfg.schedule.deploy_steps)
     ref_2d, ref_3d, text = (x.to(device) for x in (shared.ref_2d, shared.ref_3d, shared.text))
-    uncond_text = negative_text(backbone) if guidance != 1.0 else None
+    uncond_text = negative_text(backbone, guidance)
 
     def predict(role: Role, z: Tensor, t: Tensor) -> Tensor:
         with using_adapter(model, role.adapter):

@@ -23,12 +23,13 @@ from tracegs.console import show
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
 from tracegs.errors import ConfigError
 from tracegs.eval.diagnostics import VariantRoles, held_out_diagnostics
+from tracegs.eval.labels import STAGE1
 from tracegs.eval.replicates import diagnostics_markdown
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.upstream import compose_run, locate_artifacts, section
 from tracegs.pipeline.variants import in_table_order, table3_variants
 
-TEACHER = "stage1"  # the adapter name of the frozen Stage-1 teacher on the shared backbone
+TEACHER = STAGE1  # the adapter name of the frozen Stage-1 teacher on the shared backbone
 
 
 def diagnostics_report(cfg: DictConfig) -> Path:

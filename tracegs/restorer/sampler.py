@@ -53,10 +53,11 @@ def guided_prediction(
                           retrieval=retrieval)
 
 
-def negative_text(backbone: Backbone) -> torch.Tensor | None:
-    """The unconditional branch's text embedding (1, L, D) under ``backbone``: the encoding of
-    ``text_encoder.negative_prompt``, or None (the all-zero embedding) when no prompt is set."""
-    if backbone.cfg.text_encoder.negative_prompt is None:
+def negative_text(backbone: Backbone, guidance_scale: float) -> torch.Tensor | None:
+    """The unconditional branch's text embedding (1, L, D) under ``backbone`` at ``guidance_scale``: the encoding of
+    ``text_encoder.negative_prompt``, or None (the all-zero embedding) when no prompt is set or the sampling is
+    unguided (scale 1: no unconditional branch is evaluated)."""
+    if guidance_scale == 1.0 or backbone.cfg.text_encoder.negative_prompt is None:
         return None
     if backbone.text_encoder is None:
         raise ValueError("backbone.text_encoder.negative_prompt is set, so guided sampling encodes it, but the "
@@ -223,7 +224,7 @@ class RestorationPipeline:
         cfg, device = self.backbone.cfg, self.device
         generator = torch.Generator().manual_seed(cfg.sampler.seed if seed is None else seed)
         guidance_scale = cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale
-        uncond_text = negative_text(self.backbone) if guidance_scale != 1.0 else None
+        uncond_text = negative_text(self.backbone, guidance_scale)
         with using_adapter(self.backbone.transformer, self.adapter):
             return sample(
                 self.backbone.transformer,

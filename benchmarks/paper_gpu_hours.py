@@ -42,7 +42,7 @@ from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
-from tracegs.data.prepare import captures_held_out, clip_condition_keys, clip_view_counts
+from tracegs.data.prepare import captures_held_out, clip_condition_keys, clip_view_counts, trajectory_count
 from tracegs.pipeline.steps import Step, main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 from tracegs.splat.trajectory import reference_pairs
@@ -148,9 +148,12 @@ def prepare_work(cfg: DictConfig, scenes: int) -> Work:
     for views in clip_views(cfg):
         conditions = len(clip_condition_keys(prepare, views))
         per_scene += Work(rendered_frames=conditions * frames, captions=1, encodes=conditions + 1)
-        if prepare.pseudo_target == "restorer":
-            # The pseudo-target: R_d encoded, denoised over the M-step schedule, decoded.
-            per_scene += Work(encodes=1, decodes=1, forwards=steps * guided(prepare.pseudo_target_guidance))
+    if prepare.pseudo_target == "restorer":
+        # One pseudo-target per trajectory: R_d encoded, denoised over the M-step schedule, decoded (and, shared by
+        # several clips, captioned from R_d).
+        restoration = Work(encodes=1, decodes=1, forwards=steps * guided(prepare.pseudo_target_guidance),
+                           captions=int(prepare.shared_trajectories))
+        per_scene += restoration.scaled(trajectory_count(prepare))
     return per_scene.scaled(scenes)
 
 

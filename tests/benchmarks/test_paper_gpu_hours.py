@@ -36,12 +36,18 @@ def test_evaluation_counts_guided_restorations_of_every_reference_pair(hydra_con
 
 
 def test_training_cache_counts_every_teacher_fit_and_pseudo_target(hydra_context):
-    """Per training scene: the 3/6/9-view fits and the 12/18/all-view teachers at 30k iterations, and 150 clips each
-    restored once from R_d (the pseudo-target) over M = 50 guided steps."""
+    """Per training scene: the 3/6/9-view fits and the 12/18/all-view teachers at 30k iterations, and "150 paired
+    clips" as 25 trajectories x 3 K x 2 snapshots: 75 clips (each captioned), 150 student conditions, and 25
+    pseudo-targets, each R_d restored once (and captioned) over M = 50 guided steps; without shared trajectories
+    every clip is restored."""
     cfg = compose(config_name="prepare", overrides=PAPER)
     work = gpu.prepare_work(cfg, scenes=1)
     assert work.fit_iterations == 6 * 30_000
-    assert work.forwards == 150 * 50 * 2 and work.decodes == 150 and work.captions == 150
+    assert len(gpu.clip_views(cfg)) * len(cfg.data.prepare.student_snapshots) == 150
+    assert work.forwards == 25 * 50 * 2 and work.decodes == 25 and work.captions == 75 + 25
+    apart = gpu.prepare_work(compose(config_name="prepare", overrides=[*PAPER, "data.prepare.shared_trajectories=false"]),
+                             scenes=1)
+    assert apart.forwards == 75 * 50 * 2 and apart.decodes == 75 and apart.captions == 75
 
 
 def test_tables_1_2_evaluate_nerfbusters_which_table_3_leaves_out(hydra_context):

@@ -300,3 +300,50 @@ def test_a_training_cache_holds_latents_only(tmp_path, prepared, backbone):
         kept, lean_file = load_file(str(Path(full.cache_dir) / rel)), load_file(str(tmp_path / "cache" / rel))
         assert kept.keys() == lean_file.keys() and all(torch.equal(kept[k], lean_file[k]) for k in kept)
     assert (tmp_path / "cache" / "scene_000" / "contact_sheet.png").is_file()
+
+
+def test_shared_trajectories_restore_each_trajectory_once_for_every_k(tmp_path, prepared, backbone, monkeypatch):
+    """``shared_trajectories``: each trajectory, drawn on the 3 views, serves K = 3 and 6 (consecutive clips with the
+    same reference views and poses) and is restored into one pseudo-target that both clips hold; a resumed run
+    that lost the second clip of a trajectory restores it again into the same bytes."""
+    from tracegs.restorer.sampler import RestorationPipeline
+
+    restorations = []
+    restore = RestorationPipeline.restore
+    monkeypatch.setattr(RestorationPipeline, "restore",
+                        lambda self, *args, **kwargs: restorations.append(kwargs["seed"]) or restore(self, *args,
+                                                                                                      **kwargs))
+    _, synthetic, source, fitted, _ = prepared
+    shared = replace(fitted, cache_dir=str(tmp_path / "cache"), student_views=[3, 6], dense_views=[None],
+                     clips_per_scene=4, shared_trajectories=True, pseudo_target="restorer")
+    manifest = json.loads(run_prepare(shared, source, backbone, synthetic, progress=False).read_text())
+    scene = json.loads((tmp_path / "cache" / manifest["scenes"]["scene_000"]["scene_file"]).read_text())
+    assert scene["clip_views"] == [3, 6, 3, 6]
+    assert scene["clip_refs"][0] == scene["clip_refs"][1] and scene["clip_refs"][2] == scene["clip_refs"][3]
+    assert len(restorations) == len(set(restorations)) == 2  # one pseudo-target per trajectory
+    shards = [load_file(str(tmp_path / "cache" / rel)) for rel in manifest["scenes"]["scene_000"]["clips"]]
+    for first, second in (shards[0], shards[1]), (shards[2], shards[3]):
+        assert torch.equal(first["poses"], second["poses"])
+        assert torch.equal(first["frames/target"], second["frames/target"])
+        assert torch.equal(first["latent/target"], second["latent/target"])
+    assert not torch.equal(shards[0]["frames/target"], shards[2]["frames/target"])
+    assert {"latent/s3_it8", "latent/s6_it8"} == {k for k in (*shards[0], *shards[1]) if k.startswith("latent/s")}
+    kept = {p.name: p.read_bytes() for p in (tmp_path / "cache" / "scene_000").glob("clip_*.safetensors")}
+    (tmp_path / "cache" / "scene_000" / "clip_001.safetensors").unlink()
+    restorations.clear()
+    run_prepare(shared, source, backbone, synthetic, progress=False)
+    assert len(restorations) == 1
+    assert {p.name: p.read_bytes() for p in (tmp_path / "cache" / "scene_000").glob("clip_*.safetensors")} == kept
+
+
+def test_shared_trajectories_need_nested_view_sets(tmp_path, prepared, backbone):
+    """Trajectories drawn on the 3 views serve K = 4 only where the 3 views are among the 4: the linspace rule picks
+    each set on its own (here views 1, 5, 11 and 1, 4, 7, 11), and preparation refuses in one line,
+    before writing anything."""
+    _, synthetic, source, fitted, _ = prepared
+    shared = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"),
+                     student_views=[3, 4], dense_views=[None], clips_per_scene=2, shared_trajectories=True)
+    with pytest.raises(PrepareError, match=r"scene_000: views \[.*\] of the 3-view set are not in the 4-view set, "
+                                           r"and data.prepare.shared_trajectories"):
+        run_prepare(shared, replace(source, view_rule="linspace"), backbone, synthetic, progress=False)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "work").exists()

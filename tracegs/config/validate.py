@@ -117,6 +117,10 @@ def _validate_data(cfg: DictConfig) -> None:
     _require(0 <= prepare.shard_index < prepare.num_shards, "data.prepare.shard_index",
              f"{prepare.shard_index} must lie in [0, data.prepare.num_shards={prepare.num_shards})")
     _require(len(prepare.student_views) > 0, "data.prepare.student_views", "is empty")
+    _require(not prepare.shared_trajectories or prepare.clips_per_scene % len(prepare.student_views) == 0,
+             "data.prepare.clips_per_scene",
+             f"{prepare.clips_per_scene} is not a multiple of the {len(prepare.student_views)} student view counts, "
+             "which data.prepare.shared_trajectories gives every trajectory to")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
     _require(bool(prepare.dense_views) or prepare.pseudo_target == "gt", "data.prepare.dense_views",
              f"is empty, but data.prepare.pseudo_target={prepare.pseudo_target!r} is made from a dense rendering R_d")

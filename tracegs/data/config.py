@@ -144,8 +144,14 @@ class PrepareConfig:
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
     fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
     workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
-    # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent).
-    clips_per_scene: int = 8  # paper: 150 (a real dataset's held-out split: one clip per reference pair of each K)
+    # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent)
+    # and holds every student snapshot of it (one paired clip per snapshot).
+    clips_per_scene: int = 8  # paper: 75 (a real dataset's held-out split: one clip per reference pair of each K)
+    # True: each trajectory, drawn on the smallest K's views, serves every K (nested view sets, V_3 in V_6 in V_9) and
+    # is restored into one pseudo-target; clips_per_scene counts trajectories x K. False: each clip has its own
+    # trajectory on its own K's views and its own pseudo-target. Paper: "150 paired clips" per scene, read as 25
+    # trajectories x 3 K x 2 snapshots with one pseudo-target each (2,800 restorations for 112 scenes, not 16,800).
+    shared_trajectories: bool = False
     frames_per_clip: int = 9  # paper: 49
     # A real dataset's held-out clip whose two reference views have fewer captured images between them than
     # frames_per_clip - 2: False refuses the scene; True repeats captured frames evenly to fill the clip (each

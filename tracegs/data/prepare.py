@@ -124,6 +124,15 @@ def plan_scene(source: SceneSourceConfig, cfg: PrepareConfig, name: str) -> Scen
         fits[view_set_key(count)] = sorted(snapshots)
     captured = (captured_clips(scene, split, list(cfg.student_views), cfg.frames_per_clip, cfg.held_out_repeat_frames)
                 if captures_held_out(source, cfg) else None)
+    if cfg.shared_trajectories and captured is None:
+        smallest = min(cfg.student_views)
+        for count in cfg.student_views:
+            outside = sorted(set(split.views(smallest)) - set(split.views(count)))
+            if outside:
+                raise PrepareError(f"{scene.root}: views {outside[:5]} of the {smallest}-view set are not in the "
+                                   f"{count}-view set, and data.prepare.shared_trajectories gives each trajectory "
+                                   f"drawn on the {smallest} views to every K: use nested view sets "
+                                   "(data.source.view_rule=nested) or set it to false")
     if cfg.pseudo_target == "gt" and captured is None and not (scene.root / GT_PLY).is_file():
         raise PrepareError(f"{scene.root / GT_PLY}: prepare.pseudo_target='gt' needs a ground-truth scene "
                            "(synthetic scenes, or a real dataset's held-out split); use 'restorer' or 'dense'")
@@ -195,10 +204,19 @@ def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig) -> None:
 
 def clip_view_counts(cfg: PrepareConfig, scene: str) -> list[int]:
     """The student view count K of each clip of a scene: the clips divided evenly among ``student_views``, in
-    an order seeded by the scene (which K gets one clip more differs between scenes)."""
+    an order seeded by the scene (which K gets one clip more differs between scenes); with
+    ``shared_trajectories``, every K in turn for each trajectory."""
+    if cfg.shared_trajectories:
+        return [views for _ in range(trajectory_count(cfg)) for views in cfg.student_views]
     generator = torch.Generator().manual_seed(scene_seed(cfg.seed, f"{scene}/views"))
     order = [cfg.student_views[i] for i in torch.randperm(len(cfg.student_views), generator=generator).tolist()]
     return [order[c % len(order)] for c in range(cfg.clips_per_scene)]
+
+
+def trajectory_count(cfg: PrepareConfig) -> int:
+    """Distinct trajectories of a scene's clips, each restored into one pseudo-target: one per clip, or one per
+    ``len(student_views)`` clips with ``shared_trajectories``."""
+    return cfg.clips_per_scene // len(cfg.student_views) if cfg.shared_trajectories else cfg.clips_per_scene
 
 
 def trajectory_seed(cfg: PrepareConfig, scene: str, views: int) -> int:
@@ -211,24 +229,32 @@ def clip_cameras(plan: ScenePlan, cfg: PrepareConfig) -> list[dict]:
     the deployment's trajectory config) on the K-view set, exactly as deployment from those K captured views
     makes it (every reference pair per round, as the paper scale deploys), rounds 0, 1, ... drawn from one
     generator per (scene, K) until that K has its share of the clips (``clip_view_counts``). A captured scene's
-    held-out clips are its planned clips through captured cameras instead (every reference pair of every K)."""
+    held-out clips are its planned clips through captured cameras instead (every reference pair of every K).
+    With ``shared_trajectories`` the trajectories are drawn on the smallest K's views and each serves every K
+    (its clips consecutive). Each clip names its ``trajectory``: clips of one trajectory share a pseudo-target."""
     if plan.captured is not None:
         return plan.captured
     scene = plan.scene
     counts = clip_view_counts(cfg, scene.name)
-    per_count: dict[int, Iterator[dict]] = {}
-    for views in cfg.student_views:
+
+    def trajectories(views: int, count: int) -> list[dict]:
         indices = plan.split.views(views)
         references = [scene.cameras[i] for i in indices]
         generator = torch.Generator().manual_seed(trajectory_seed(cfg, scene.name, views))
-        clips: list[dict] = []
+        drawn: list[dict] = []
         round_index = 0
-        while len(clips) < counts.count(views):
-            clips += [{"views": views, "refs": [indices[a], indices[b]], "cameras": cameras}
+        while len(drawn) < count:
+            drawn += [{"refs": [indices[a], indices[b]], "cameras": cameras}
                       for (a, b), cameras in round_clips(references, round_index, cfg.trajectory, None, generator)]
             round_index += 1
-        per_count[views] = iter(clips)
-    return [next(per_count[views]) for views in counts]
+        return drawn[:count]
+
+    if cfg.shared_trajectories:
+        drawn = trajectories(min(cfg.student_views), trajectory_count(cfg))
+        return [{**drawn[c // len(cfg.student_views)], "views": views, "trajectory": c // len(cfg.student_views)}
+                for c, views in enumerate(counts)]
+    per_count = {views: iter(trajectories(views, counts.count(views))) for views in cfg.student_views}
+    return [{**next(per_count[views]), "views": views, "trajectory": c} for c, views in enumerate(counts)]
 
 
 def frames_stored(cfg: PrepareConfig) -> bool:
@@ -347,11 +373,38 @@ def restorer_pipeline(backbone: Backbone):
     return RestorationPipeline(backbone)
 
 
+def make_pseudo_target(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
+                       ground_truth: torch.Tensor | None, ref_images: torch.Tensor, caption: str,
+                       cfg: PrepareConfig, pipeline, restored: dict) -> torch.Tensor:
+    """The clip's target frames: ground truth, R_d itself, or R_d restored by the frozen restorer. With
+    ``shared_trajectories`` a trajectory's clips (consecutive) share one restoration, kept in ``restored`` until
+    the next trajectory's; it is captioned from R_d and seeded by the trajectory, which its clips have in common,
+    so a resumed preparation makes the same one."""
+    if cfg.pseudo_target == "gt":
+        return ground_truth
+    dense = conditions[dense_condition(cfg)]
+    if cfg.pseudo_target == "dense":
+        return dense
+    if not cfg.shared_trajectories:
+        seed = scene_seed(cfg.seed, f"{plan.scene.name}/{index}")
+    elif restored.get("trajectory") == clip["trajectory"]:
+        return restored["frames"]
+    else:
+        seed = scene_seed(cfg.seed, f"{plan.scene.name}/trajectory{clip['trajectory']}")
+        caption = clip_caption(cfg.captions, dense[0], plan.scene.caption)
+    target = pipeline.restore(dense[None], ref_images[None], [caption], seed=seed,
+                              guidance_scale=cfg.pseudo_target_guidance)[0].clamp(0, 1).cpu()
+    if cfg.shared_trajectories:
+        restored.update(trajectory=clip["trajectory"], frames=target)
+    return target
+
+
 def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
               ground_truth: torch.Tensor | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-              scene_dir: Path, settings: str, sheet: Path | None = None) -> None:
-    """Pseudo-target, encoding and files of one rendered clip (each condition's PSNR vs GT in its metadata);
-    with ``sheet``, the contact sheet of its frames too (before its shard, so a finished shard has its sheet)."""
+              scene_dir: Path, settings: str, restored: dict, sheet: Path | None = None) -> None:
+    """Pseudo-target (``make_pseudo_target``, ``restored`` its memory of the last shared one), encoding and files
+    of one rendered clip (each condition's PSNR vs GT in its metadata); with ``sheet``, the contact sheet of its
+    frames too (before its shard, so a finished shard has its sheet)."""
     cameras: list[Camera] = clip["cameras"]
     views = clip["views"]
     a, b = clip["refs"]
@@ -360,15 +413,8 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     # the clip's R_s; the most degraded one is what deployment from K views renders first).
     student = condition_key(views, min(cfg.student_snapshots))
     caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
-    if cfg.pseudo_target == "gt":
-        target = ground_truth
-    elif cfg.pseudo_target == "dense":
-        target = conditions[dense_condition(cfg)]
-    else:
-        target = pipeline.restore(conditions[dense_condition(cfg)][None], ref_images[None], [caption],
-                                  seed=scene_seed(cfg.seed, f"{plan.scene.name}/{index}"),
-                                  guidance_scale=cfg.pseudo_target_guidance)[0]
-        target = target.clamp(0, 1).cpu()
+    target = make_pseudo_target(plan, clip, index, conditions, ground_truth, ref_images, caption, cfg, pipeline,
+                                restored)
     tensors, ref_2d, ref_3d, text = encode_clip(backbone, conditions, target, ref_images, caption,
                                                 getattr(torch, cfg.latent_dtype))
     pixels = {**conditions, cache_keys.TARGET: target, cache_keys.REFERENCE: ref_images}
@@ -550,9 +596,10 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     plain = PlainProgress(f"{name}: clips", len(todo))
     sheet = cache_dir / name / "contact_sheet.png" if cfg.contact_sheet else None
+    restored: dict = {}
     for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, scene_clips.rendered), 1):
         save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, cache_dir / name,
-                  scene_clips.settings, sheet if c == 0 else None)
+                  scene_clips.settings, restored, sheet if c == 0 else None)
         progress.advance(clip_task)
         plain.update(done)
     remove_unindexed_scene_files(cache_dir / name, shard_paths)

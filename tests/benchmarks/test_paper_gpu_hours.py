@@ -68,3 +68,11 @@ def test_tables_1_2_evaluate_nerfbusters_which_table_3_leaves_out(hydra_context)
     # Table 3 and Fig. 6 stay on DL3DV and Mip-NeRF 360.
     assert [label for label in labels if "nerfbusters" in label] == [label for label, _, _ in on_nerfbusters]
     assert any("data=mipnerf360" in command and "ablation=A," in command for _, command, _ in rows)
+
+
+def test_the_paper_scope_prepares_only_fs_teacher(hydra_context):
+    """The paper's five days cover one student (F): its cache fits the all-view set to 30k and the 3/6/9-view sets
+    only to their last student snapshot (17k), and restores the same 25 pseudo-targets per scene."""
+    work = gpu.scope_prepare_work([], train_scenes=1)
+    assert work.fit_iterations == 30_000 + 3 * 17_000
+    assert work.forwards == 25 * 50 * 2

@@ -123,3 +123,16 @@ def test_the_sweep_script_launches_the_declared_steps_over_the_config_variants()
     assert len(lines) == 8 and all("-m hydra/launcher=slurm experiment=paper" in line for line in lines)
     assert "ablation=B,C,D,E,F-,F" in lines[2] and "ablation=A,B,C,D,E,F-,F" in lines[3]
     assert "data=mipnerf360" in lines[4] and "Fig. 6 on mipnerf360" in lines[7]  # paper: report.datasets
+
+
+def test_the_teachers_prepared_are_those_the_variants_distil_from(hydra_context):
+    """The embedded sweep's cache holds exactly Table 3's teachers; one variant's run needs only its own (F: the
+    all-view set, whose R_d also feeds the pseudo-targets, and no sparse final fits; B: the 3-view final fit)."""
+    from tracegs.pipeline.variants import table3_configs, teacher_overrides
+
+    assert teacher_overrides(table3_configs()) == SWEEP_TEACHERS
+    assert teacher_overrides(table3_configs(["F"])) == ("data.prepare.dense_views=[null]",
+                                                        "data.prepare.student_final_fits=false")
+    assert teacher_overrides(table3_configs(["A", "B"])) == ("data.prepare.dense_views=[null]",
+                                                             "data.prepare.student_final_fits=true")
+    assert teacher_overrides(table3_configs(["C", "F"]))[0] == "data.prepare.dense_views=[12,null]"

@@ -93,7 +93,8 @@ def main_table_steps(datasets: Sequence[str], training_data: str, common: Sequen
 
 
 # The embedded benchmark's cache holds only the all-view teacher (F); Table 3's C and D need 12 and 18 views and
-# B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there).
+# B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there): what
+# tracegs.pipeline.variants.teacher_overrides derives from Table 3's variants (a test keeps the two equal).
 SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student_final_fits=true")
 # Overrides that leave the embedded synthetic benchmark (its held-out clips are rendered from the known scenes).
 NOT_EMBEDDED = ("experiment", "data")

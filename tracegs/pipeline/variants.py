@@ -59,6 +59,25 @@ def table3_variants() -> list[AblationConfig]:
     return [OmegaConf.to_object(cfg.ablation) for cfg in table3_configs()]
 
 
+def teacher_overrides(configs: Iterable[DictConfig]) -> tuple[str, str]:
+    """The ``data.prepare`` overrides that make the teacher conditions the variants of ``configs`` (their training
+    configs, :func:`table3_configs`) distil from, and no others: each privileged teacher's view set as a dense set,
+    the all-view set always (its R_d feeds the pseudo-targets and the privileged report), and the sparse fits'
+    final snapshots only for a teacher on a student view set (variant B's three views)."""
+    dense: set[int] = set()
+    sparse_final = False
+    for cfg in configs:
+        views = cfg.teacher.views
+        if not cfg.ablation.train_stage2 or views is None:
+            continue
+        if views in cfg.data.prepare.student_views:
+            sparse_final = True
+        else:
+            dense.add(views)
+    listed = ",".join([*(str(views) for views in sorted(dense)), "null"])
+    return f"data.prepare.dense_views=[{listed}]", f"data.prepare.student_final_fits={str(sparse_final).lower()}"
+
+
 def in_table_order(names: Iterable[str]) -> list[str]:
     """``names`` (variants) sorted by their Table 3 rows."""
     wanted = set(names)

@@ -314,8 +314,9 @@ def test_shared_trajectories_restore_each_trajectory_once_for_every_k(tmp_path, 
                         lambda self, *args, **kwargs: restorations.append(kwargs["seed"]) or restore(self, *args,
                                                                                                       **kwargs))
     _, synthetic, source, fitted, _ = prepared
-    shared = replace(fitted, cache_dir=str(tmp_path / "cache"), student_views=[3, 6], dense_views=[None],
-                     clips_per_scene=4, shared_trajectories=True, pseudo_target="restorer")
+    # Its own work folder: the session's prepared one is the reference other tests compare whole folders with.
+    shared = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), student_views=[3, 6],
+                     dense_views=[None], clips_per_scene=4, shared_trajectories=True, pseudo_target="restorer")
     manifest = json.loads(run_prepare(shared, source, backbone, synthetic, progress=False).read_text())
     scene = json.loads((tmp_path / "cache" / manifest["scenes"]["scene_000"]["scene_file"]).read_text())
     assert scene["clip_views"] == [3, 6, 3, 6]

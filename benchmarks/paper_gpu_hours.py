@@ -49,6 +49,7 @@ from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_
 from tracegs.splat.trajectory import reference_pairs
 
 HOUR = 3600.0
+PAPER_JOB = ("experiment=paper", "trainer=ddp")  # what every counted command composes (a cluster job at paper scale)
 
 
 @dataclass(frozen=True)
@@ -224,7 +225,7 @@ def test_scenes(cfg: DictConfig, dl3dv: int) -> int:
 
 def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[list[tuple[str, str, Work]], int]:
     """(label, command, work) of every command, in order, and how many variants train a Stage-2 student."""
-    common = ["experiment=paper", "trainer=ddp", *overrides]
+    common = [*PAPER_JOB, *overrides]
     variants = table3_variants()
     steps = [Step("prepare", tuple(common), "prepare DL3DV training cache (every teacher)")]
     report = compose(config_name="report", overrides=common)
@@ -253,7 +254,7 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
 def scope_prepare_work(overrides: list[str], train_scenes: int) -> Work:
     """The training cache of the paper's own scope, one student (F): only the teacher F distils from
     (``teacher_overrides``), so the sparse fits stop at their last student snapshot."""
-    cfg = compose(config_name="prepare", overrides=["experiment=paper", "trainer=ddp", *overrides,
+    cfg = compose(config_name="prepare", overrides=[*PAPER_JOB, *overrides,
                                                     *teacher_overrides(table3_configs(["F"]))])
     return prepare_work(cfg, train_scenes)
 

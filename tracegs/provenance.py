@@ -16,11 +16,14 @@ from pathlib import Path
 def git_commit() -> str:
     """The commit of the checkout this package runs from (``+dirty`` with local changes), or "unknown"."""
     root = Path(__file__).resolve().parents[1]
+    # `git status` refreshes the index and takes .git/index.lock: a run must not block the user's own git
+    # command in that checkout (nor fail on a read-only one), so optional locks are off.
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
-                                text=True, check=True, timeout=10).stdout.strip()
+                                text=True, check=True, timeout=10, env=env).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+                               capture_output=True, text=True, check=True, timeout=10, env=env).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return f"{commit}+dirty" if dirty else commit

@@ -144,12 +144,25 @@ def misspelt_key_added_with_plus(tmp: Path):
     return "train", ["+stage.rollout_stpes=5"], "'stage.rollout_stpes': is not a field of the schema"
 
 
+def misspelt_key(tmp: Path):
+    return "train", ["stage.max_stepz=3"], "'stage.max_stepz': is not a field of the schema (misspelt?)"
+
+
+def value_of_the_wrong_type(tmp: Path):
+    return "train", ["stage.max_steps=abc"], "'stage.max_steps': Value 'abc' of type 'str' could not be converted"
+
+
+def group_option_that_does_not_exist(tmp: Path):
+    return "train", ["stage=stage3"], "config group 'stage' has no option 'stage3' (one of: baseline, stage1, stage2)"
+
+
 CASES: dict[str, Callable[[Path], tuple[str, list[str], str]]] = {
     f.__name__: f
     for f in (truncated_png, empty_png, scene_without_sparse, truncated_stage1_adapter,
               stage1_adapter_of_another_rank, garbage_student_adapter, truncated_baseline_transformer,
               baseline_directory_without_weights, corrupt_checkpoint, pickled_checkpoint, output_folder_is_a_file,
-              cache_folder_is_a_file, misspelt_key_added_with_plus)
+              cache_folder_is_a_file, misspelt_key_added_with_plus, misspelt_key,
+              value_of_the_wrong_type, group_option_that_does_not_exist)
 }
 
 

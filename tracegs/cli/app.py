@@ -92,6 +92,12 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                     with overrides_for_launched_ranks():
                         return run_task(task, cfg)
                 return run_task(task, cfg)
+            except KeyboardInterrupt:
+                # Every product is written whole or not at all, so an interrupted command has nothing to undo:
+                # one line instead of the tracebacks of every frame it was in, and the shell's code for SIGINT.
+                report_one_line(config_name, "interrupted (Ctrl-C); the same command goes on from the last "
+                                             "finished product")
+                sys.exit(130)
             except (*USER_ERRORS, OSError) as raised:
                 error = user_error(raised, cfg)
                 if error is None or os.environ.get("TRACEGS_TRACEBACK"):

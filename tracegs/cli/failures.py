@@ -26,7 +26,7 @@ def user_error(error: BaseException, cfg: DictConfig) -> BaseException | None:
     return error
 
 
-def report_one_line(app: str, error: BaseException) -> str:
+def report_one_line(app: str, error: BaseException | str) -> str:
     """Print ``error`` as one line on stderr (and into the run's log files); return its message."""
     message = one_line(error.args[0] if isinstance(error, KeyError) and error.args else error, limit=2000)
     line = f"tracegs-{app}: error: {message}"

@@ -12,8 +12,8 @@ import sys
 
 from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from hydra.errors import HydraException, OverrideParseException
-from omegaconf.errors import OmegaConfBaseException
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from tracegs.cli.failures import USER_ERRORS
 from tracegs.config.validate import validate
@@ -76,9 +76,26 @@ def check_command_line(config_dir: str, config_name: str, argv: list[str]) -> st
             validate(compose(config_name=config_name, overrides=overrides))
     except USER_ERRORS as refused:
         return one_line(refused.args[0] if isinstance(refused, KeyError) and refused.args else refused, limit=2000)
-    except (HydraException, OmegaConfBaseException):
-        return None  # Hydra reports its own composition errors, before it writes anything
+    except (HydraException, OmegaConfBaseException) as refused:
+        return composition_error(refused)
     return None
+
+
+def composition_error(error: BaseException) -> str:
+    """One line for an override Hydra cannot compose, naming the field or group. Hydra's own report is 7-12
+    lines and, for a misspelt key, suggests the ``+`` that validation then refuses."""
+    cause = error.__cause__ if error.__cause__ is not None else error
+    if isinstance(error, MissingConfigException) and error.missing_cfg_file:
+        group, _, option = error.missing_cfg_file.rpartition("/")
+        listing = str(error).partition("Available options in")[2].partition("Config search path")[0]
+        options = [line.strip() for line in listing.splitlines()[1:] if line.strip()]
+        return f"config group '{group}' has no option '{option}'" + (f" (one of: {', '.join(options)})" if options else "")
+    field = getattr(cause, "full_key", None)
+    if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and field:
+        return f"config field '{field}': is not a field of the schema (misspelt?); see --cfg job for the valid keys"
+    if isinstance(cause, OmegaConfBaseException) and field:
+        return f"config field '{field}': {one_line(str(cause).splitlines()[0])}"
+    return one_line(error)
 
 
 def refuse_bad_command_line(app: str, config_dir: str, config_name: str, argv: list[str]) -> None:

@@ -22,10 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing
-import os
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -62,7 +59,7 @@ from tracegs.io import (
     save_safetensors_atomic,
     write_json_atomic,
 )
-from tracegs.processes import die_with_parent, run_units
+from tracegs.processes import WorkerPool, run_units
 from tracegs.restorer.build import Backbone
 from tracegs.restorer.config import NOT_IN_RESTORATIONS, cache_sections
 from tracegs.splat.cameras import Camera
@@ -469,25 +466,17 @@ def remove_stale_temporaries(directory: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def _one_thread_worker(parent_pid: int) -> None:
-    die_with_parent(parent_pid)
-    # Each worker process gets one intra-op thread: on CPU, parallel fits use the cores far better than
-    # multi-threaded kernels on these small tensors (measured 23 ms/iteration with 1 thread, 35 with 2).
-    torch.set_num_threads(1)
-
-
-def worker_pool(cfg: PrepareConfig) -> ProcessPoolExecutor | None:
+def worker_pool(cfg: PrepareConfig) -> WorkerPool | None:
     """Processes for generating scenes, the fits and the clip renders (``cfg.workers`` > 1), else None.
 
     "spawn" gives fresh interpreters, so no OpenMP / thread state is inherited through fork.
     """
     if cfg.workers <= 1:
         return None
-    return ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_one_thread_worker, initargs=(os.getpid(),))
+    return WorkerPool(cfg.workers, "spawn")
 
 
-def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: ProcessPoolExecutor | None,
+def fit_all(plans: list[ScenePlan], cfg: PrepareConfig, pool: WorkerPool | None,
             progress: Progress) -> None:
     """Run every unfinished (scene, view set) fit."""
     units = [(plan, key, cfg) for plan in plans for key in plan.fits if cfg.force or not fit_done(plan, key, cfg)]
@@ -554,7 +543,7 @@ class SceneClips:
 
 
 def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
-                       pool: ProcessPoolExecutor | None) -> SceneClips:
+                       pool: WorkerPool | None) -> SceneClips:
     """Submit the renders of one scene's unfinished clips (to the worker processes when there are some)."""
     clips = clip_cameras(plan, cfg)
     shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(len(clips))]
@@ -569,7 +558,7 @@ def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
 
 
 def prepare_all_scenes(plans: list[ScenePlan], cfg: PrepareConfig, backbone: Backbone, pipeline,
-                       pool: ProcessPoolExecutor | None, progress: Progress) -> dict[str, dict]:
+                       pool: WorkerPool | None, progress: Progress) -> dict[str, dict]:
     """Every scene's clips (fits done); returns the manifest entries. Rendering runs in the worker processes
     and the frozen encoders (paper scale: GPU) in this one; the next scene's renders are submitted before
     this scene's clips are encoded, so the workers do not wait for this process between scenes (and at most
@@ -726,7 +715,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
         torch.set_num_threads(threads)
 
 
-def _run_prepare(pool: ProcessPoolExecutor | None, prepare: PrepareConfig, source: SceneSourceConfig,
+def _run_prepare(pool: WorkerPool | None, prepare: PrepareConfig, source: SceneSourceConfig,
                  backbone: Backbone, synthetic: SyntheticConfig | None, progress: bool) -> Path:
     if synthetic is not None:
         generate_benchmark(synthetic, splits=(prepare.split,), progress=progress, pool=pool)

@@ -19,11 +19,8 @@ The visited-state curve itself is Fig. 6 (``tracegs.eval.per_step``); the trajec
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +33,7 @@ from tracegs.data.cache_keys import condition_key
 from tracegs.data.datamodule import ClipRecord
 from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, trajectory_frames
 from tracegs.eval.trajectory import ClipEncodings, Role, trajectory_diagnostics
-from tracegs.processes import die_with_parent, run_units
+from tracegs.processes import WorkerPool, run_units
 from tracegs.restorer.build import Backbone
 
 
@@ -96,13 +93,6 @@ class _ClipJob:
 _FORKED_JOB: _ClipJob | None = None  # set in the parent just before forking the workers
 
 
-def _start_worker(parent_pid: int) -> None:
-    die_with_parent(parent_pid)
-    # Tiny tensors: one intra-op thread per worker, the workers themselves use the cores (on a loaded machine
-    # two spinning intra-op threads made one process ten times slower).
-    torch.set_num_threads(1)
-
-
 def _forked_clip(index: int, clip: ClipRecord) -> dict[str, dict]:
     return _FORKED_JOB(index, clip)
 
@@ -130,8 +120,7 @@ def held_out_diagnostics(backbone: Backbone, variants: Mapping[str, VariantRoles
     pool = None
     if workers > 1:
         _FORKED_JOB = job
-        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                   initializer=_start_worker, initargs=(os.getpid(),))
+        pool = WorkerPool(workers, "fork")
     sums: dict = defaultdict(lambda: defaultdict(list))  # scene -> variant -> one record per clip
     try:
         results = run_units(pool, job if pool is None else _forked_clip,

@@ -115,7 +115,8 @@ class ClipRecord:
 def clip_record(scene: str, index: int, path: Path) -> ClipRecord:
     """The header of a clip shard (no tensor data is read); ``CacheError`` naming a missing or unreadable one."""
     if not path.is_file():
-        raise CacheError(f"{path}: shard listed in the manifest is missing")
+        raise CacheError(f"{path}: shard listed in the manifest is missing; run prepare again with the same "
+                         "settings to rebuild it")
     try:
         with safe_open(str(path), framework="pt") as f:
             keys, metadata = frozenset(f.keys()), f.metadata() or {}

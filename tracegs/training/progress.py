@@ -10,9 +10,17 @@ from tracegs.console import PlainProgress
 class PlainTrainingProgress(Callback):
     """Step, loss and time left at a fixed interval through :class:`tracegs.console.PlainProgress`."""
 
+    progress: PlainProgress | None = None
+
     def on_train_start(self, trainer, pl_module) -> None:
-        # A resumed run measures its time left on the steps it trains, not on those of the checkpoint.
-        self.progress = PlainProgress("train", trainer.max_steps, first=trainer.global_step)
+        self.progress = None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        # The clock starts with the first batch: what runs before it once (the held-out scoring of the initial
+        # restorer, minutes at Stage 2's start) would otherwise be extrapolated over every step left. A resumed
+        # run measures its time left on the steps it trains, not on those of the checkpoint.
+        if self.progress is None:
+            self.progress = PlainProgress("train", trainer.max_steps, first=trainer.global_step)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         loss = trainer.callback_metrics.get("loss")

@@ -66,11 +66,16 @@ def said_nothing_to_do(result) -> set[str]:
 @pytest.mark.slow
 def test_a_second_demo_changes_no_product_and_trains_nothing(finished, entry_point):
     root, sums, versions = finished
+    records = {path: path.read_bytes() for name in ("run.json", "tables.md") for path in root.rglob(name)}
     again = run_demo(entry_point, root, str(root))
     assert product_sums(root) == sums
     assert trained_versions(root) == versions
     assert said_nothing_to_do(again) == {"baseline", "stage1", "stage2"}
     assert not list(root.rglob("*-v1.ckpt"))
+    # The record of how the products were made stays the first run's; the held-out clips are not scored again.
+    assert records and {path: path.read_bytes() for path in records} == records
+    assert "held-out clip quality: made from the same clips, seed and restorers, kept" in again.stdout
+    assert "every product was already made" in again.stdout
 
 
 @pytest.mark.slow

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from tracegs.console import show
 from tracegs.eval.report import results_table_markdown
 from tracegs.eval.seeds import per_step_points
-from tracegs.io import atomic_write, write_json_atomic
+from tracegs.io import atomic_write, content_digest, write_json_atomic
 from tracegs.pipeline.evaluate import evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.steps import HELD_OUT_SPLIT, Step, data_steps, restorer_steps
@@ -26,6 +26,9 @@ from tracegs.provenance import describe, peak_rss_gib
 log = logging.getLogger("tracegs")
 
 TASKS = {"prepare": prepare, "train": train, "evaluate": evaluate}
+# The evaluation's files the demo's tables are made of (demo_tables_markdown).
+TABLE_SOURCES = ("results.json", "per_scene.json", "intervals.md", "held_out_clips.json", "held_out_clips.md",
+                 "per_step.json", "per_step_intervals.md")
 
 
 def demo_steps(variant: str, views: Sequence[int]) -> list[Step]:
@@ -66,9 +69,22 @@ def demo(cfg: DictConfig) -> Path:
         TASKS[step.app](step_cfg)
         label = " ".join([step.app, *(e for e in extra if not e.startswith("evaluation."))])
         timings[label] = round(time.perf_counter() - step_start, 1)
+    products = {name: content_digest(out_dir / name) for name in TABLE_SOURCES if (out_dir / name).is_file()}
+    record = out_dir / "run.json"
+    earlier = json.loads(record.read_text()) if record.is_file() else None
+    if earlier is not None and earlier.get("products") == products:
+        # Nothing the tables show was made again: run.json keeps how the products were made (the first run's
+        # commit, machine and timings), not how long it took to find them finished.
+        show((out_dir / "tables.md").read_text())
+        show(f"tracegs-demo: every product was already made ({earlier['wall_s']:.0f} s on commit "
+             f"{earlier['commit']}, recorded in run.json); nothing recomputed in "
+             f"{time.perf_counter() - start:.0f} s")
+        return out_dir
     run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
-           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings}
-    write_json_atomic(run, out_dir / "run.json")
+           "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "products": products}
+    if earlier is not None:  # part of the products made again: this run's figures, beside the earlier runs'
+        run["earlier"] = [*earlier.pop("earlier", []), earlier]
+    write_json_atomic(run, record)
     with atomic_write(out_dir / "tables.md") as tmp:
         tmp.write_text(demo_tables_markdown(out_dir, run))
     show((out_dir / "tables.md").read_text())

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
 from omegaconf import DictConfig
 
+from tracegs.data.cache_keys import MANIFEST
 from tracegs.deploy.scenes import deploy_scenes
 from tracegs.eval.clips import clip_restoration_psnr
 from tracegs.eval.evaluate import evaluate as run_evaluation
 from tracegs.eval.report import write_held_out_report
+from tracegs.io import content_digest
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
 from tracegs.pipeline.restorers import (
     generate_test_scenes,
@@ -30,7 +33,7 @@ def evaluate(cfg: DictConfig) -> dict:
     scenes = test_scenes(cfg)  # worked out (and checked held out) once, before any restorer is loaded
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     generate_test_scenes(cfg)
-    check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
+    finished = check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
     with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
         results = run_evaluation(
@@ -43,18 +46,28 @@ def evaluate(cfg: DictConfig) -> dict:
             gt_renderer=ground_truth_renderer(cfg),
         )
         if cfg.evaluation.held_out_cache is not None:
-            held_out_quality(cfg, restorers)
+            held_out_quality(cfg, restorers, finished)
         write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     log.info("evaluation written to %s", cfg.evaluation.out_dir)
     return results
 
 
-def held_out_quality(cfg: DictConfig, restorers: dict) -> Path:
-    """Score each diffusion restorer against its input R_s on the held-out clips (eval/clips.py)."""
+def held_out_quality(cfg: DictConfig, restorers: dict, finished: bool = False) -> Path:
+    """Score each diffusion restorer against its input R_s on the held-out clips (eval/clips.py).
+
+    A finished score is a product. In a ``finished`` evaluation folder (its record holds these settings and the
+    restorers' contents) the score records the held-out cache's manifest, the seed and the methods it was made
+    from, so a rerun with the same ones keeps it (minutes of restoration) and anything else scores again."""
     pipelines = {method: r.pipeline for method, r in restorers.items() if r is not None}
+    made_from = {"held_out_manifest": content_digest(Path(cfg.evaluation.held_out_cache) / MANIFEST),
+                 "seed": cfg.deploy.seed, "methods": sorted(pipelines)}
+    scored = Path(cfg.evaluation.out_dir) / "held_out_clips.json"
+    if finished and scored.is_file() and json.loads(scored.read_text()).get("made_from") == made_from:
+        log.info("held-out clip quality: made from the same clips, seed and restorers, kept (%s)", scored)
+        return scored.with_suffix(".md")
     quality = clip_restoration_psnr(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,
                                     progress=cfg.evaluation.progress)
-    table = write_held_out_report(quality, cfg.evaluation.out_dir)
+    table = write_held_out_report({**quality, "made_from": made_from}, cfg.evaluation.out_dir)
     log.info("held-out clip quality: %s", table)
     return table
 

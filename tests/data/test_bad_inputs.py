@@ -171,12 +171,13 @@ def files_under(root: Path) -> set[Path]:
 
 
 def assert_refused(result, app: str, expected: str, written: set[Path]) -> None:
-    """Exit code 2, one line on stderr naming ``expected``, and no file ``written`` but Hydra's run record."""
+    """Exit code 2, one line on stderr naming ``expected``, and no file ``written`` (the run folder the command
+    made for itself, Hydra's record and the log in it, removed again)."""
     lines = result.stderr_lines()
     assert result.returncode == 2, result.stderr[-3000:]
     assert len(lines) == 1, result.stderr[-3000:]
     assert lines[0].startswith(f"tracegs-{app}: error: ") and expected in lines[0], lines[0]
-    assert [p for p in written if ".hydra" not in p.parts and p.suffix != ".log"] == []
+    assert written == set()
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -185,6 +186,7 @@ def test_bad_input_gives_one_line_exit_2_and_writes_nothing(tmp_path, entry_poin
     before = files_under(tmp_path)
     result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}"], tmp_path)
     assert_refused(result, app, expected, files_under(tmp_path) - before)
+    assert not (tmp_path / "outputs").exists() or case == "output_folder_is_a_file"
 
 
 def test_read_only_output_folder_is_named(tmp_path, entry_point, read_only):
@@ -198,9 +200,15 @@ def test_read_only_output_folder_is_named(tmp_path, entry_point, read_only):
     assert list(runs.iterdir()) == []
 
 
-def test_the_error_line_reaches_the_run_log(tmp_path, entry_point):
+def test_a_run_folder_that_held_something_keeps_it_and_gets_the_error_line(tmp_path, entry_point):
+    """A refused command removes only a run folder it made itself; in one that held something before (an
+    explicit ``run_dir`` of the user's), the error line reaches the run's log beside it."""
     app, overrides, expected = corrupt_checkpoint(tmp_path)
-    result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}"], tmp_path)
+    run_dir = tmp_path / "my_run"
+    run_dir.mkdir()
+    (run_dir / "notes.txt").write_text("the user's own file")
+    result = entry_point(app, [*overrides, f"paths.root_dir={tmp_path}", f"run_dir={run_dir}"], tmp_path)
     assert result.returncode == 2
-    logs = list((tmp_path / "outputs").rglob("*.log"))
+    assert (run_dir / "notes.txt").read_text() == "the user's own file"
+    logs = list(run_dir.rglob("*.log"))
     assert logs and any(expected in log.read_text() for log in logs)

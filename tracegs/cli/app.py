@@ -12,15 +12,19 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import shutil
 import sys
+import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import hydra
 import lightning
 from diffusers.utils import logging as diffusers_logging
+from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
 from tracegs.cli.precheck import refuse_bad_command_line
@@ -72,6 +76,38 @@ class OutputsWritable(Callback):
             exit_with_one_line(app, error)
 
 
+# What a run folder holds before it holds a product: Hydra's record of the command, the log, empty logger folders.
+_ATTEMPT_RECORDS = (".hydra", "csv", "tensorboard")
+
+
+_STARTED = time.time()
+
+
+def remove_attempt_records(cfg: DictConfig) -> None:
+    """Remove the run folder of this single run if this command created it and it holds only records of the
+    attempt: a refused command writes nothing, and a retry starts from a clean folder (its logger at version_0).
+
+    Created by this command: every file in it is younger than this process. (Hydra names the folder from the
+    command line only once the job starts, so its path is read here, from the job's runtime config.) The
+    folders above it that are left empty go too, up to the root."""
+    if sweeping() or not HydraConfig.initialized():
+        return
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    files = [p for p in run_dir.rglob("*") if not p.is_dir()]
+    if all((f.relative_to(run_dir).parts[0] in _ATTEMPT_RECORDS or f.suffix == ".log")
+           and f.stat().st_mtime >= _STARTED for f in files):
+        logging.shutdown()  # the log file's handler lets go of it first
+        shutil.rmtree(run_dir, ignore_errors=True)
+        root = Path(OmegaConf.select(cfg, "paths.root_dir", default=".")).absolute()
+        for parent in run_dir.parents:
+            if parent == root or root not in parent.parents:
+                break
+            try:
+                parent.rmdir()
+            except OSError:  # not empty: something else lives there
+                break
+
+
 def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """What every entry point does with its composed config: validate the cross-field rules, route the
     libraries' messages through Hydra's logging, seed everything from ``cfg.seed``, run ``task``."""
@@ -97,6 +133,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                 # one line instead of the tracebacks of every frame it was in, and the shell's code for SIGINT.
                 report_one_line(config_name, "interrupted (Ctrl-C); the same command goes on from the last "
                                              "finished product")
+                remove_attempt_records(cfg)
                 sys.exit(130)
             except (*USER_ERRORS, OSError) as raised:
                 error = user_error(raised, cfg)
@@ -105,6 +142,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                 message = report_one_line(config_name, error)
                 if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end
                     return JobFailed(message)
+                remove_attempt_records(cfg)
                 sys.exit(2)
 
         register_configs()

@@ -6,28 +6,29 @@ Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-i
 Sections, each measured on its own (a section that fails records its one-line error and the others still run: the
 minutes on a GPU are few, one failure must not cost the rest):
 - ``device``: GPU name, memory, torch and CUDA versions;
+- ``restorer``: the paper's restorer at its real shapes with random weights (nothing is read: a benchmark of time
+  and memory, not of quality), built in bf16 with fp32 LoRA adapters of the paper's rank on the supplement's
+  targets: seconds and peak memory of one guided deployment step (``backbone.sampler.guidance_scale``: two
+  forwards) and one unguided rollout step (one forward, no gradient);
+- ``vae``: the VAE's encode and decode of one clip (49 x 480 x 720);
+- ``weights``: every released model the paper scale reads under ``paths.weights_dir`` (GSFixer, CogVideoX's VAE, T5
+  and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing; when the restorer's are all present,
+  they are loaded through the pipeline's own loaders and one clip is restored (seconds);
 - ``rasterizer``: one 3DGS fit of a procedural scene (embedded resolution) at the paper's fit settings
   (``conf/splat/paper.yaml``) with every iteration-based schedule scaled to ``--fit-iterations``, once on the GPU
   (gsplat) and once with the compiled CPU backend, same scene and seed: iterations per second of each, and the
   PSNR of each fit on the scene's held-out views (the two should agree within 0.2 dB);
-- ``restorer``: the paper's restorer at its real shapes with random weights (nothing is read: a benchmark of time
-  and memory, not of quality), built in bf16 with fp32 LoRA adapters of the paper's rank on the supplement's
-  targets and gradient checkpointing as configured: seconds and peak memory of one guided deployment step
-  (``backbone.sampler.guidance_scale``: two forwards), one unguided rollout step (one forward, no gradient), one
-  Stage-2 iteration at the paper's batch (N student forwards with gradient, N teacher forwards without, the
-  optimiser step; the second iteration is timed, the first allocates AdamW's state), and the VAE's encode and
-  decode of one clip (49 x 480 x 720) in the ``vae`` section;
-- ``weights``: every released model the paper scale reads under ``paths.weights_dir`` (GSFixer, CogVideoX's VAE, T5
-  and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing; when the restorer's are all present,
-  they are loaded through the pipeline's own loaders and one clip is restored (seconds).
+- ``stage2``: two Stage-2 training iterations at the paper's batch (N student forwards with gradient and gradient
+  checkpointing as configured, N teacher forwards without, the optimiser step), each timed as it ends: the
+  second is the figure (the first allocates AdamW's state). Minutes each at 5B, so it runs last.
 
-Sections run in the order above except that ``rasterizer`` comes last: on a fresh GPU machine gsplat compiles its
-CUDA kernels at first use (minutes), which must not stand between the transformer's figures and a lease that ends.
-``--sections`` runs some of them (``device`` always runs). ``<out>/gpu_check.json`` is rewritten after every section
-(a run stopped at its time limit keeps what it measured) and merged with the figures already there from the same
-scale (a rerun of one section replaces that section's figures alone).
+Sections run in the order above. On a fresh GPU machine gsplat compiles its CUDA kernels at first use (minutes): a
+child process builds them on the CPU from the start while the transformer is timed on the GPU, and the rasterizer
+section waits for it. ``--sections`` runs some of them (``device`` always runs). ``<out>/gpu_check.json`` is
+rewritten after every figure (a run stopped at its time limit keeps what it measured) and merged with the figures
+already there from the same scale (a rerun of one section replaces that section's figures alone).
 
-Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log``; ``benchmarks/paper_gpu_hours.py --measured
+Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log`` (and ``rasterizer_build.log`` on a GPU); ``benchmarks/paper_gpu_hours.py --measured
 <out>/gpu_check.json`` replaces its assumed seconds with these. Without a CUDA device (``--scale auto``) it prints
 "no GPU: nothing measured" and exits 0; ``--scale rehearsal`` runs every section on the CPU at the rehearsal's
 tiny shapes (``experiment=rehearsal``: what the test suite does). The last printed line is the JSON object.
@@ -39,6 +40,7 @@ import argparse
 import json
 import logging
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -174,9 +176,9 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
     yield "speedup", fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]
 
 
-def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) -> Iterator[tuple[str, object]]:
-    """Time and memory of the restorer's units of work at ``cfg``'s shapes, random weights, each figure yielded as
-    soon as it is measured: the forwards first, the Stage-2 iteration (minutes at 5B) last."""
+def restorer_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
+    """Time and memory of the restorer's forwards at ``cfg``'s shapes, random weights, each figure yielded as soon
+    as it is measured (the Stage-2 iteration is its own section: minutes at 5B)."""
     from omegaconf import OmegaConf
 
     from tracegs.restorer.adapters import add_adapter
@@ -185,11 +187,8 @@ def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) ->
     backbone = OmegaConf.to_object(cfg.backbone)
     backbone.transformer.pretrained_path = None
     kind = device.type
-    yield "batch_size", cfg.experiment.batch_size
-    yield "rollout_steps", cfg.stage.rollout_steps
     yield "deploy_guidance_scale", backbone.sampler.guidance_scale
     frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
-    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
     start = time.perf_counter()
     # The forwards are timed on a base with a freshly added adapter of the configured rank (active, as in every
     # forward of a trained student): no adapter file to write and verify before the first figure.
@@ -197,7 +196,7 @@ def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) ->
     add_adapter(transformer, "aligned", backbone.lora)
     yield "build_seconds", time.perf_counter() - start
     dtype = next(transformer.parameters()).dtype
-    one = {key: value[:1].to(dtype) for key, value in batch.items()}
+    one = {key: value.to(device, dtype) for key, value in paper_shaped_batch(backbone, 1, frame_size).items()}
     t = torch.full((1,), 0.5, device=device)
 
     def evaluation(guidance: float) -> Callable[[], object]:
@@ -209,27 +208,45 @@ def restorer_section(cfg, device: torch.device, clock: Clock, work_dir: Path) ->
 
     yield "deploy_step", clock.measure(evaluation(backbone.sampler.guidance_scale), repeats=3)
     yield "rollout_step", clock.measure(evaluation(1.0), repeats=3)
-    transformer = None  # freed before the Stage-2 module builds its own base
-    if kind == "cuda":
-        torch.cuda.empty_cache()
+
+
+def stage2_section(cfg, device: torch.device, work_dir: Path, publish: Callable[[str, object], None]) -> dict:
+    """Set-up seconds and the first two Stage-2 training iterations at ``cfg``'s shapes (minutes each at 5B), each
+    figure published as soon as it is measured: ``iteration`` is the last one finished (the second, once the
+    first has allocated AdamW's state), ``iterations`` all of them."""
+    from omegaconf import OmegaConf
+
+    backbone = OmegaConf.to_object(cfg.backbone)
+    backbone.transformer.pretrained_path = None
+    publish("batch_size", cfg.experiment.batch_size)
+    publish("rollout_steps", cfg.stage.rollout_steps)
+    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
+    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
     start = time.perf_counter()
     adapter = work_dir / "stage1_adapter"
-    make_random_adapter(backbone, adapter, kind)
-    module = stage2_module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, kind,
-                     cfg.stage.guidance_scale)
-    yield "stage2_setup_seconds", time.perf_counter() - start
-    yield "stage2_iteration", stage2_iteration(module, batch, cfg.trainer.precision, device)
+    make_random_adapter(backbone, adapter, device.type)
+    module = stage2_module(backbone, cfg.stage.memory_mode, cfg.stage.rollout_steps, adapter, device.type,
+                           cfg.stage.guidance_scale)
+    publish("setup_seconds", time.perf_counter() - start)
+    iterations: list[dict] = []
+
+    def finished(figures: dict) -> None:
+        iterations.append(figures)
+        publish("iterations", list(iterations))
+        publish("iteration", figures)
+
+    train_two_iterations(module, batch, cfg.trainer.precision, device, finished)
+    return {}
 
 
-def stage2_iteration(module, batch: dict, precision: str, device: torch.device) -> dict:
-    """Seconds and peak memory of the second Stage-2 training iteration (the first allocates AdamW's state)."""
+def train_two_iterations(module, batch: dict, precision: str, device: torch.device,
+                         finished: Callable[[dict], None]) -> None:
+    """Two Lightning training iterations on ``batch``; ``finished`` gets the seconds and peak memory of each as it
+    ends."""
     import lightning as L
     from torch.utils.data import DataLoader
 
     class Probe(L.Callback):
-        def __init__(self):
-            self.figures: list[dict] = []
-
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
@@ -240,15 +257,13 @@ def stage2_iteration(module, batch: dict, precision: str, device: torch.device) 
             cuda = device.type == "cuda"
             if cuda:
                 torch.cuda.synchronize(device)
-            self.figures.append({"seconds": time.perf_counter() - self.start,
-                                 "peak_mib": torch.cuda.max_memory_allocated(device) / MIB if cuda else None})
+            finished({"seconds": time.perf_counter() - self.start,
+                      "peak_mib": torch.cuda.max_memory_allocated(device) / MIB if cuda else None})
 
-    probe = Probe()
     trainer = L.Trainer(accelerator="gpu" if device.type == "cuda" else "cpu", devices=1, precision=precision,
                         max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[probe])
+                        enable_model_summary=False, callbacks=[Probe()])
     trainer.fit(module, train_dataloaders=DataLoader([batch], batch_size=None))
-    return probe.figures[-1]
 
 
 def vae_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
@@ -315,20 +330,25 @@ def weights_section(cfg, device: torch.device, clock: Clock) -> dict:
     return figures
 
 
-def section(name: str, work: Callable[[], dict | Iterable[tuple[str, object]]], record: dict,
-            checkpoint: Callable[[], None] = lambda: None) -> None:
-    """Run one section into ``record[name]``: its figures (a dict, or pairs yielded as they are measured, each
-    logged and passed to ``checkpoint`` at once, so a run stopped mid-section keeps them), or its error in one line
-    (the traceback goes to the log) beside the figures measured before it."""
+def section(name: str, work: Callable[[Callable[[str, object], None]], dict | Iterable[tuple[str, object]]],
+            record: dict, checkpoint: Callable[[], None] = lambda: None) -> None:
+    """Run one section into ``record[name]``: its figures (a dict, pairs yielded as they are measured, or pairs
+    handed to the ``publish`` callable it is given; each logged and passed to ``checkpoint`` at once, so a run
+    stopped mid-section keeps them), or its error in one line (the traceback goes to the log) beside the figures
+    measured before it."""
     log.info("%s ...", name)
     start = time.perf_counter()
     figures = record[name] = {}
+
+    def publish(key: str, value: object) -> None:
+        figures[key] = value
+        log.info("%s.%s: %s", name, key, json.dumps(value, default=str))
+        checkpoint()
+
     try:
-        result = work()
+        result = work(publish)
         for key, value in result.items() if isinstance(result, dict) else result:
-            figures[key] = value
-            log.info("%s.%s: %s", name, key, json.dumps(value, default=str))
-            checkpoint()
+            publish(key, value)
     except Exception as error:  # noqa: BLE001 (an unattended run records every failure and goes on)
         log.error("%s failed: %s", name, traceback.format_exc())
         figures["error"] = f"{type(error).__name__}: {error}".splitlines()[0]
@@ -338,7 +358,7 @@ def section(name: str, work: Callable[[], dict | Iterable[tuple[str, object]]], 
     log.info("%s: %s", name, json.dumps(figures, default=str))
 
 
-SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer")
+SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer", "stage2")
 
 
 def previous_record(target: Path, scale: str) -> dict:
@@ -354,6 +374,22 @@ def write_record(record: dict, target: Path) -> None:
     partial = target.with_suffix(".json.tmp")
     partial.write_text(json.dumps(record, indent=2, default=str) + "\n")
     partial.replace(target)
+
+
+# Both rasterizers the rasterizer section compares, built at first use: gsplat's CUDA kernels and the compiled CPU
+# backend.
+BUILD_RASTERIZERS = ("from gsplat.cuda._backend import _C; "
+                     "from tracegs.splat.rasterize_compiled import library; library()")
+
+
+def build_rasterizers_aside(out: Path) -> subprocess.Popen:
+    """The rasterizers compile at first use (gsplat's kernels: minutes on a fresh machine): built in a child process
+    on the CPU while the transformer is timed on the GPU, so the rasterizer section does not spend the lease
+    waiting."""
+    log.info("the rasterizers build aside (%s)", out / "rasterizer_build.log")
+    with open(out / "rasterizer_build.log", "a") as build_log:
+        return subprocess.Popen([sys.executable, "-c", BUILD_RASTERIZERS], stdout=build_log,
+                                stderr=subprocess.STDOUT)
 
 
 def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, ...] = (),
@@ -376,12 +412,16 @@ def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, 
         target = out / "gpu_check.json"
         record = previous_record(target, scale)
         with tempfile.TemporaryDirectory() as scratch:
-            work = {"device": lambda: device_facts(device),
-                    "restorer": lambda: restorer_section(cfg, device, clock, Path(scratch)),
-                    "vae": lambda: vae_section(cfg, device, clock),
-                    "weights": lambda: weights_section(cfg, device, clock),
-                    "rasterizer": lambda: rasterizer_section(fit, backends, fit_iterations, Path(scratch))}
+            work = {"device": lambda publish: device_facts(device),
+                    "restorer": lambda publish: restorer_section(cfg, device, clock),
+                    "vae": lambda publish: vae_section(cfg, device, clock),
+                    "weights": lambda publish: weights_section(cfg, device, clock),
+                    "rasterizer": lambda publish: rasterizer_section(fit, backends, fit_iterations, Path(scratch)),
+                    "stage2": lambda publish: stage2_section(cfg, device, Path(scratch), publish)}
+            compiling = build_rasterizers_aside(out) if device.type == "cuda" and "rasterizer" in sections else None
             for name in SECTIONS:
+                if name == "rasterizer" and compiling is not None:
+                    compiling.wait()  # gsplat clears a build lock it finds: two builds at once would clash
                 if name == "device" or name in sections:
                     section(name, work[name], record, lambda: write_record(record, target))
                     write_record(record, target)

@@ -78,14 +78,14 @@ class UnitSeconds:
     def measured(cls, record: dict) -> tuple[UnitSeconds, dict[str, str]]:
         """The units ``gpu_check.json`` (``record``) measured replace the estimates; returns them and, per unit,
         where its value comes from."""
-        restorer, vae = record.get("restorer", {}), record.get("vae", {})
+        restorer, vae, stage2 = (record.get(name, {}) for name in ("restorer", "vae", "stage2"))
         device = record.get("device", {}).get("name", "unknown device")
         values: dict[str, float] = {}
         if "rollout_step" in restorer:  # one clip forward, no gradient
             values["transformer_forward"] = restorer["rollout_step"]["seconds"]
-        if "stage2_iteration" in restorer and "rollout_step" in restorer:
+        if "iteration" in stage2 and "rollout_step" in restorer:
             # One iteration = batch x N x (a student forward with gradient and its backward + a teacher forward).
-            per_state = restorer["stage2_iteration"]["seconds"] / (restorer["batch_size"] * restorer["rollout_steps"])
+            per_state = stage2["iteration"]["seconds"] / (stage2["batch_size"] * stage2["rollout_steps"])
             forward = restorer["rollout_step"]["seconds"]
             values["training_forward_factor"] = max(per_state - forward, forward) / forward
         for unit in ("vae_encode", "vae_decode"):
@@ -93,6 +93,8 @@ class UnitSeconds:
                 values[unit] = vae[unit]["seconds"]
         sources = {f.name: (f"measured on {device}" if f.name in values else "assumed (one A100)")
                    for f in fields(cls)}
+        if len(stage2.get("iterations", [])) == 1 and "training_forward_factor" in values:
+            sources["training_forward_factor"] += " (first iteration only: AdamW's state allocated in it)"
         return replace(cls(), **values), sources
 
 

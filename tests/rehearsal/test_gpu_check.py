@@ -40,8 +40,11 @@ def test_every_section_measures_and_the_json_is_what_it_printed(checked):
     assert all(fit["iterations"] == 20 and fit["iterations_per_s"] > 0 and math.isfinite(fit["psnr_held_out"])
                for fit in fits)
     restorer = record["restorer"]
-    assert restorer["batch_size"] == 2 and restorer["rollout_steps"] == 10  # the paper's batch and N
-    assert all(restorer[unit]["seconds"] > 0 for unit in ("deploy_step", "rollout_step", "stage2_iteration"))
+    assert all(restorer[unit]["seconds"] > 0 for unit in ("deploy_step", "rollout_step"))
+    stage2 = record["stage2"]
+    assert stage2["batch_size"] == 2 and stage2["rollout_steps"] == 10  # the paper's batch and N
+    assert len(stage2["iterations"]) == 2 and stage2["iteration"] == stage2["iterations"][1]
+    assert all(iteration["seconds"] > 0 for iteration in stage2["iterations"])
     assert record["vae"]["vae_clip"] == [9, 32, 48] and record["vae"]["vae_decode"]["seconds"] > 0
 
 
@@ -83,19 +86,25 @@ def test_an_unknown_section_is_refused_in_one_line(tmp_path, capsys):
 def test_a_failing_section_is_recorded_and_the_others_still_run(tmp_path):
     record = {}
 
-    def broken() -> dict:
+    def broken(publish) -> dict:
         raise RuntimeError("CUDA out of memory\nsecond line")
 
-    def measured_then_broken():
+    def measured_then_broken(publish):
         yield "deploy_step", {"seconds": 1.5}
         raise RuntimeError("CUDA out of memory\nsecond line")
+
+    def published_then_broken(publish) -> dict:
+        publish("iterations", [{"seconds": 140.0}])
+        raise RuntimeError("killed")
 
     saved = []
     gpu_check.section("restorer", measured_then_broken, record, lambda: saved.append(dict(record["restorer"])))
     gpu_check.section("vae", broken, record)
-    gpu_check.section("device", lambda: {"name": "cpu"}, record)
-    assert saved == [{"deploy_step": {"seconds": 1.5}}]  # written before the failure
+    gpu_check.section("stage2", published_then_broken, record, lambda: saved.append(dict(record["stage2"])))
+    gpu_check.section("device", lambda publish: {"name": "cpu"}, record)
+    assert saved == [{"deploy_step": {"seconds": 1.5}}, {"iterations": [{"seconds": 140.0}]}]  # before the failure
     assert record["restorer"]["deploy_step"] == {"seconds": 1.5}  # what was measured before the failure stays
+    assert record["stage2"]["iterations"] == [{"seconds": 140.0}]
     assert record["restorer"]["error"] == record["vae"]["error"] == "RuntimeError: CUDA out of memory"
     assert record["device"]["name"] == "cpu"
 

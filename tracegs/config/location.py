@@ -7,4 +7,4 @@ import os
 
 # The repository's conf/ folder, installed as the package tracegs.conf (pyproject.toml maps it), so an
 # editable install and a wheel resolve it alike; TRACEGS_CONF points at another config tree if needed.
-CONF_DIR = os.environ.get("TRACEGS_CONF", str(importlib.resources.files("tracegs.conf")))
+CONF_DIR = os.environ.get("TRACEGS_CONF") or str(importlib.resources.files("tracegs.conf"))  # the package only when unset

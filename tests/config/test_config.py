@@ -185,6 +185,9 @@ def test_wrong_type_names_the_field():
         (["backbone.sampler.temperature=1.5"], "backbone.sampler.temperature"),
         (["backbone.sampler.temperature=-0.1"], "backbone.sampler.temperature"),
         (["backbone.schedule.train_time_uniform_share=1.5"], "backbone.schedule.train_time_uniform_share"),
+        (["backbone.schedule.train_loss_weighting=edm"], "backbone.schedule.train_loss_weighting"),  # velocity head
+        (["backbone=tiny_diffusion", "backbone.schedule.train_loss_weighting=snr"],
+         "backbone.schedule.train_loss_weighting"),
         (["backbone.schedule.train_time_logit_normal=[1.0]"], "backbone.schedule.train_time_logit_normal"),
         (["backbone.schedule.train_time_logit_normal=[1.0,0]"], "backbone.schedule.train_time_logit_normal"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),

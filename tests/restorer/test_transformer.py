@@ -264,6 +264,29 @@ def test_preconditioned_velocity_is_that_of_edms_clean_prediction(make_inputs, n
     torch.testing.assert_close(velocity, (inputs["noisy"] - x0) / t, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize(("sigma_data", "noise_scale"), [(0.17, 1.0), (0.3, 0.5)])
+def test_edm_loss_weight_counts_the_network_outputs_error_alike_at_every_t(make_inputs, sigma_data, noise_scale):
+    """EDM's lambda = 1 / c_out^2 in velocity units: two network outputs F1, F2 at the same state give velocities
+    whose weighted squared difference is sigma_data^2 |F1 - F2|^2 at every t (1 at t = 1, sigma_d^2 / sigma_n^2 at 0)."""
+    config = TransformerConfig(prediction="preconditioned", sigma_data=sigma_data, noise_scale=noise_scale)
+    first, second = create_transformer(config), _randomised(create_transformer(config))
+    twin = create_transformer(TransformerConfig())
+    inputs = make_inputs()
+    for t in (1.0, 0.6, 0.1, 0.01):
+        inputs["timestep"] = torch.full((2,), t)
+        weight = second.loss_weight(inputs["timestep"]).reshape(2, 1, 1, 1, 1)
+        shifted = inputs["noisy"] - (1 - t) * inputs["cond"]
+        with torch.no_grad():
+            gap = second(**inputs).velocity - first(**inputs).velocity  # first: the zero-initialised head, F = 0
+            twin.load_state_dict(second.state_dict())
+            output = twin(**{**inputs, "noisy": shifted / ((1 - t) ** 2 * sigma_data**2 + t**2 * noise_scale**2) ** 0.5}).velocity
+        torch.testing.assert_close(weight * gap**2, sigma_data**2 * output**2, rtol=1e-3, atol=1e-5)
+    assert float(second.loss_weight(torch.ones(1))) == pytest.approx(1.0)
+    assert float(second.loss_weight(torch.zeros(1))) == pytest.approx(sigma_data**2 / noise_scale**2)
+    with pytest.raises(ValueError, match="prediction='preconditioned'"):
+        create_transformer(TransformerConfig(prediction="residual")).loss_weight(torch.ones(1))
+
+
 def test_fresh_preconditioned_restorer_predicts_its_rendering_from_pure_noise(make_inputs):
     model = create_transformer(TransformerConfig(prediction="preconditioned", sigma_data=0.2))
     inputs = make_inputs()

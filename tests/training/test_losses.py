@@ -21,6 +21,13 @@ def test_flow_matching_is_mean_squared_error():
     assert flow_matching_loss(pred, target).item() == pytest.approx(21 / 4)
 
 
+def test_weighted_flow_matching_weights_each_samples_mean_squared_error():
+    pred = torch.tensor([[1.0, 3.0], [0.0, 2.0]])
+    target = torch.zeros(2, 2)
+    assert flow_matching_loss(pred, target, torch.tensor([1.0, 0.5])).item() == pytest.approx((5 + 0.5 * 2) / 2)
+    assert flow_matching_loss(pred, target, torch.ones(2)).item() == pytest.approx(flow_matching_loss(pred, target).item())
+
+
 def test_alignment_stops_gradient_into_teacher():
     student = torch.tensor([1.0, -1.0, 0.5], requires_grad=True)
     teacher = torch.tensor([0.0, 1.0, 0.5], requires_grad=True)

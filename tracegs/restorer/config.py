@@ -173,6 +173,12 @@ class ScheduleConfig:
     # above): a density concentrated near t = 1, where the first prediction is made, still trains the low-noise
     # states the last reverse steps visit.
     train_time_uniform_share: float = 0.0
+    # rectified_flow with transformer.prediction=preconditioned: "edm" weights each training state's squared
+    # velocity error by EDM's lambda = 1 / c_out^2 (Karras et al. 2022, Table 1) written in velocity units, so the
+    # network output's error counts alike at every t (transformer.Preconditioning.loss_weight); "uniform" (the
+    # paper's plain L_fm) weights the velocity error alike, which counts the output's error near t = 1, where the
+    # first prediction is made, 1 / sigma_data^2 times less than near t = 0.
+    train_loss_weighting: str = "uniform"
     # rectified_flow: the noise end of the path, z_1 = noise_scale eps (1: the standard path). Near the size of the
     # residual x0 - R, the states carry what the restorer is unsure of through the whole trajectory.
     noise_scale: float = 1.0
@@ -222,7 +228,8 @@ RESTORATION_SECTIONS = ("transformer", "schedule", "sampler")
 # the deployment guidance and seed (pseudo-targets have their own, data.prepare.pseudo_target_guidance, and a
 # seed derived from each clip).
 NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "transformer.skip_stored_keys",
-                       "schedule.train_time_power", "schedule.train_time_uniform_share", "sampler.guidance_scale",
+                       "schedule.train_time_power", "schedule.train_time_uniform_share",
+                       "schedule.train_loss_weighting", "sampler.guidance_scale",
                        "sampler.seed")
 
 

@@ -68,6 +68,12 @@ class Preconditioning:
     def c_in(self, t: torch.Tensor) -> torch.Tensor:
         return self.variance(t).rsqrt()
 
+    def loss_weight(self, t: torch.Tensor) -> torch.Tensor:
+        """EDM's loss weight 1 / c_out^2 for an error measured in velocity units, relative to its value at t = 1:
+        the velocity error is c_out / t times the output's, so D / sigma_n^2 makes the output's error count alike
+        at every t (from sigma_data^2 / sigma_n^2 at t = 0 to 1 at t = 1)."""
+        return self.variance(t) / self.noise_scale**2
+
     def velocity(self, shifted: torch.Tensor, cond: torch.Tensor, output: torch.Tensor,
                  t: torch.Tensor) -> torch.Tensor:
         """v = (z_t - x0_hat) / t of the network output F, in the form without 1 / t."""
@@ -422,3 +428,11 @@ class ReferenceGuidedTransformer(CogVideoXTransformer3DModel):
             velocity = velocity_from_clean(noisy, clean, timestep, self.config.clean_min_time)
         retrieval = sink["retrieval"].to(noisy.dtype) if sink is not None else None
         return RestorerOutput(velocity=velocity, retrieval=retrieval)
+
+    def loss_weight(self, timestep: torch.Tensor) -> torch.Tensor:
+        """Per-sample weight of the squared velocity error at times ``timestep`` (B,) that makes the network
+        output's error count alike at every t (``Preconditioning.loss_weight``; prediction=preconditioned)."""
+        if self.config.prediction != "preconditioned":
+            raise ValueError("an EDM loss weight needs transformer prediction='preconditioned', got "
+                             f"{self.config.prediction!r}")
+        return Preconditioning(self.config.sigma_data, self.config.noise_scale).loss_weight(timestep)

@@ -12,9 +12,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def flow_matching_loss(predicted_velocity: Tensor, target_velocity: Tensor) -> Tensor:
-    """L_fm: MSE between a predicted velocity and the schedule's velocity target (Sec. 3.3)."""
-    return F.mse_loss(predicted_velocity, target_velocity.detach())
+def flow_matching_loss(predicted_velocity: Tensor, target_velocity: Tensor, weight: Tensor | None = None) -> Tensor:
+    """L_fm: MSE between a predicted velocity and the schedule's velocity target (Sec. 3.3); with ``weight`` (B,),
+    each sample's mean squared error is weighted before the batch mean."""
+    if weight is None:
+        return F.mse_loss(predicted_velocity, target_velocity.detach())
+    per_sample = (predicted_velocity - target_velocity.detach()).pow(2).flatten(1).mean(dim=1)
+    return (weight.to(per_sample) * per_sample).mean()
 
 
 def alignment_loss(student_velocity: Tensor, teacher_velocity: Tensor) -> Tensor:

@@ -55,6 +55,17 @@ def test_warm_loss_combines_terms_with_lambda_align():
     torch.testing.assert_close(v_s.grad, torch.tensor([0.0, -1.0]) + 0.5 * torch.tensor([1.0, -2.0]))
 
 
+def test_warm_loss_weights_its_flow_matching_terms_and_leaves_alignment_as_written():
+    v_s = torch.tensor([[1.0, 0.0], [2.0, 2.0]])
+    v_t = torch.tensor([[0.0, 2.0], [1.0, 1.0]])
+    target = torch.ones(2, 2)
+    weight = torch.tensor([2.0, 0.5])
+    plain, weighted = warm_loss(v_s, v_t, target, 0.5), warm_loss(v_s, v_t, target, 0.5, weight)
+    assert weighted["fm_student"].item() == pytest.approx((2 * 0.5 + 0.5 * 1.0) / 2)
+    assert weighted["fm_teacher"].item() == pytest.approx((2 * 1.0 + 0.5 * 0.0) / 2)
+    assert weighted["align"].item() == plain["align"].item()
+
+
 def test_trajectory_term_is_per_state_mse_with_stop_gradient():
     u_s = torch.tensor([[3.0, 0.0]], requires_grad=True)
     u_t = torch.tensor([[0.0, 4.0]], requires_grad=True)

@@ -35,7 +35,6 @@ class BaselineRestorerModule(RestorerTrainingModule):
         t = self.schedule.sample_train_t(target.shape[0], generator).to(self.device)
         noisy = self.schedule.add_noise(target, noise, t)
         velocity = self.predict(noisy, self.latent(batch, "student_cond"), t, batch).velocity
-        weight = self.transformer.loss_weight(t) if self.schedule.cfg.train_loss_weighting == "edm" else None
-        loss = flow_matching_loss(velocity, self.schedule.velocity_target(target, noise, t), weight)
+        loss = flow_matching_loss(velocity, self.schedule.velocity_target(target, noise, t), self.fm_weight(t))
         self.manual_backward(loss)
         return {"loss": loss.detach(), "fm_student": loss.detach()}

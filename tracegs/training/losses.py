@@ -27,15 +27,17 @@ def alignment_loss(student_velocity: Tensor, teacher_velocity: Tensor) -> Tensor
 
 
 def warm_loss(
-    student_velocity: Tensor, teacher_velocity: Tensor, target_velocity: Tensor, lambda_align: float
+    student_velocity: Tensor, teacher_velocity: Tensor, target_velocity: Tensor, lambda_align: float,
+    fm_weight: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """Stage 1 objective L_warm = L_fm^S + L_fm^T + lambda_align L_align (supplement Eq. supp-stage1).
+    """Stage 1 objective L_warm = L_fm^S + L_fm^T + lambda_align L_align (supplement Eq. supp-stage1); ``fm_weight``
+    weights the two L_fm terms per sample as ``flow_matching_loss`` does (L_align stays as written).
 
     Returns every term (keys ``fm_student``, ``fm_teacher``, ``align``, ``loss``) so each can be logged.
     """
     terms = {
-        "fm_student": flow_matching_loss(student_velocity, target_velocity),
-        "fm_teacher": flow_matching_loss(teacher_velocity, target_velocity),
+        "fm_student": flow_matching_loss(student_velocity, target_velocity, fm_weight),
+        "fm_teacher": flow_matching_loss(teacher_velocity, target_velocity, fm_weight),
         "align": alignment_loss(student_velocity, teacher_velocity),
     }
     terms["loss"] = terms["fm_student"] + terms["fm_teacher"] + lambda_align * terms["align"]

@@ -147,6 +147,11 @@ class RestorerTrainingModule(L.LightningModule):
             return_retrieval=return_retrieval,
         )
 
+    def fm_weight(self, t: Tensor) -> Tensor | None:
+        """Per-sample weight of L_fm at training times ``t``: EDM's for a preconditioned restorer with
+        ``schedule.train_loss_weighting=edm`` (``Preconditioning.loss_weight``), else None (the plain L_fm)."""
+        return self.transformer.loss_weight(t) if self.schedule.cfg.train_loss_weighting == "edm" else None
+
     def latent(self, batch: dict, key: str) -> Tensor:
         """A latent tensor of the batch in the training dtype (the cache may store float16)."""
         return self._float(batch[key])

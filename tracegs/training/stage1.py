@@ -53,7 +53,8 @@ class Stage1AlignmentModule(RestorerTrainingModule):
         cond = torch.cat([self.latent(batch, "student_cond"), self.latent(batch, "teacher_cond")])
         velocity = self.predict(torch.cat([noisy, noisy]), cond, torch.cat([t, t]), both).velocity
         v_student, v_teacher = velocity.split(batch_size)
-        terms = warm_loss(v_student, v_teacher, self.schedule.velocity_target(target, noise, t), self.lambda_align)
+        terms = warm_loss(v_student, v_teacher, self.schedule.velocity_target(target, noise, t), self.lambda_align,
+                          self.fm_weight(t))
         self.manual_backward(terms["loss"])
         return {name: value.detach() for name, value in terms.items()}
 

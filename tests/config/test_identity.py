@@ -53,6 +53,24 @@ def test_execution_settings_keep_the_folder(unchanged):
     assert run_dir(["stage=stage2", *unchanged]) == run_dir(["stage=stage2"])
 
 
+def test_inputs_handed_in_by_path_are_known_by_their_content(tmp_path):
+    """Two Stage-2 runs handed different Stage-1 adapters (or caches) are two runs; the same bytes at another
+    path are the same run; a cache is known by its manifest."""
+    first, second, copy = (tmp_path / name for name in ("a.safetensors", "b.safetensors", "c.safetensors"))
+    first.write_bytes(b"adapter one")
+    second.write_bytes(b"adapter two")
+    copy.write_bytes(b"adapter one")
+    named = {path: run_dir(["stage=stage2", f"stage.init_adapter={path}"]) for path in (first, second, copy)}
+    assert named[first] != named[second] and named[first] == named[copy] != run_dir(["stage=stage2"])
+    caches = []
+    for name, manifest in (("x", "{}"), ("y", '{"clips": 1}')):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "manifest.json").write_text(manifest)
+        (tmp_path / name / "shard.bin").write_bytes(name.encode())  # not hashed: the manifest stands for it
+        caches.append(run_dir(["stage=stage2", f"data.datamodule.cache_dir={tmp_path / name}"]))
+    assert caches[0] != caches[1]
+
+
 def test_settings_a_stage_does_not_read_keep_its_folder():
     # Stage 1 reads neither lambda_ret nor the on/off-policy switch: every Table 3 variant shares it.
     assert run_dir(["stage=stage1", "loss.lambda_ret=0"]) == run_dir(["stage=stage1"])

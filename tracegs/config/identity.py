@@ -31,7 +31,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from tracegs.content import root_relative, scene_digest
+from tracegs.content import content_digest, root_relative, scene_digest
 from tracegs.restorer.config import (
     ENCODING_SECTIONS,
     NOT_IN_RESTORATIONS,
@@ -65,6 +65,12 @@ SCOPES["restore"] = (*SCOPES["deploy"], "capture")
 
 # A capture of the user's own is identified by its images and reconstruction, not by where it lies.
 CAPTURE_KEY = "capture.path"
+# Inputs a training run may be handed by path instead of locating them (their defaults interpolate the located
+# upstream product, whose identity the scope already holds). Handed in, each is known by its content, so runs
+# given different weights, adapters or caches are different runs: a cache by its manifest, which records every
+# stored tensor's checksum (hashing the tensors themselves would read the whole cache on every run).
+HANDED_IN_PARTS: dict[str, tuple[str, ...]] = {"stage.base_weights": (), "stage.init_adapter": (),
+                                               "data.datamodule.cache_dir": ("manifest.json",)}
 # Execution settings inside scoped sections: they never change a product.
 EXECUTION_KEYS = frozenset({
     "data.source.root", "data.synthetic.root",
@@ -184,10 +190,25 @@ def _scoped_values(cfg: DictConfig, kind: str, skip: frozenset[str]) -> dict[str
         values.update(_leaves(holder, leaf, key, skip))
     if values.get(CAPTURE_KEY) is not None and Path(values[CAPTURE_KEY]).expanduser().is_dir():
         values[CAPTURE_KEY] = f"content:{scene_digest(values[CAPTURE_KEY])}"
+    values.update(_handed_in(cfg, kind))
     root = OmegaConf.select(cfg, "paths.root_dir")
     if root is not None:
         values = {key: root_relative(value, root) for key, value in values.items()}
     return dict(sorted(values.items()))
+
+
+def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
+    """The content digests of the ``HANDED_IN_PARTS`` inputs this run is given explicitly (not interpolated)."""
+    found = {}
+    for key, parts in HANDED_IN_PARTS.items():
+        parent, _, leaf = key.rpartition(".")
+        holder = OmegaConf.select(cfg, parent)
+        if (not any(key.startswith(f"{section}.") for section in scope(cfg, kind)) or not isinstance(holder, DictConfig)
+                or leaf not in holder or OmegaConf.is_interpolation(holder, leaf) or holder[leaf] is None):
+            continue
+        path = Path(str(holder[leaf])).expanduser()
+        found[key] = f"content:{content_digest(path, parts)}" if path.exists() else str(holder[leaf])
+    return found
 
 
 def digest(values: dict[str, Any]) -> str:

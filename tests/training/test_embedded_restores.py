@@ -1,10 +1,11 @@
-"""The embedded default's restorer on clips of validation scenes (``data.prepare.split=val``, the training
-distribution, never trained on): the clean-frame predictions along variant A's own 20-step reverse trajectory
-(main paper Fig. 6) do not collapse; its restoration beats its input R_s; and its final sample is at least as good as
-its first prediction.
+"""The embedded restorers on clips of validation scenes (``data.prepare.split=val``, the training distribution,
+never trained on): the clean-frame predictions along variant A's own reverse trajectory (main paper Fig. 6) do not
+collapse; its restoration beats its input R_s; and its final sample keeps its first prediction. Both restorers:
+the one-step default (``tiny``) and the multi-step one (``tiny_diffusion``, whose trajectory is real: ten steps,
+the last state before the clean end at t = 0.1).
 
 Runs the commands a user runs (prepare, validation prepare, baseline training, the per-step report on the
-validation cache) at the embedded default, so it takes about fifteen minutes on two cores.
+validation cache), so it takes about fifteen minutes per restorer on two cores.
 """
 
 from __future__ import annotations
@@ -18,6 +19,9 @@ import pytest
 
 # How far a step's clean-frame prediction may fall below the first step's before the curve counts as collapsed.
 COLLAPSE_TOLERANCE_DB = 0.5
+# How far the final sample may lie below the first clean prediction: the one-step default keeps it exactly; the
+# multi-step restorer within 0.1 dB (measured on the eleven validation scenes: docs/settings.md).
+FINAL_TOLERANCE_DB = {"tiny": 0.0, "tiny_diffusion": 0.1}
 
 
 def _run(root: Path, command: str, *overrides: str) -> None:
@@ -25,16 +29,18 @@ def _run(root: Path, command: str, *overrides: str) -> None:
                    cwd=root, check=True, capture_output=True)
 
 
-@pytest.fixture(scope="module")
-def validation_report(tmp_path_factory) -> Path:
-    """The per-step report of a freshly trained embedded baseline on the validation scenes' clips."""
-    root = tmp_path_factory.mktemp("embedded")
-    _run(root, "prepare")
-    _run(root, "prepare", "data.prepare.split=val")
-    _run(root, "train", "stage=baseline")
+@pytest.fixture(scope="module", params=sorted(FINAL_TOLERANCE_DB))
+def validation_report(request, tmp_path_factory) -> tuple[str, Path]:
+    """The per-step report of a freshly trained embedded baseline (each restorer) on the validation scenes' clips."""
+    backbone = f"backbone={request.param}"
+    root = tmp_path_factory.mktemp(request.param)
+    _run(root, "prepare", backbone)
+    _run(root, "prepare", "data.prepare.split=val", backbone)
+    _run(root, "train", "stage=baseline", backbone)
     (validation_cache,) = (root / "data" / "cache").glob("*-val-*")
-    _run(root, "report", "report.kind=per_step", "report.inputs=[A]", f"evaluation.held_out_cache={validation_cache}")
-    return root / "outputs" / "embedded" / "report"
+    _run(root, "report", "report.kind=per_step", "report.inputs=[A]", f"evaluation.held_out_cache={validation_cache}",
+         backbone)
+    return request.param, root / "outputs" / "embedded" / "report"
 
 
 def _quality(report: Path) -> dict[str, float]:
@@ -43,22 +49,27 @@ def _quality(report: Path) -> dict[str, float]:
 
 @pytest.mark.slow
 def test_embedded_baseline_trajectory_does_not_collapse(validation_report):
+    _, validation_report = validation_report
     curve = json.loads((validation_report / "per_step_variants.json").read_text())["A"]
     assert min(curve) >= curve[0] - COLLAPSE_TOLERANCE_DB, f"the per-step curve collapses: {curve}"
 
 
 @pytest.mark.slow
-def test_embedded_baseline_final_sample_is_at_least_its_first_prediction(validation_report):
-    """Measured (seed 0, AMD EPYC 2 cores): 24.31 dB against a first prediction of 24.25; training seeds 1 and 2
-    give +0.03 and +0.04 dB. On the uniform deployment grid (deploy_time_power=0) seed 0 fell 0.15 dB short."""
+def test_embedded_baseline_final_sample_keeps_its_first_prediction(validation_report):
+    """Measured for ``tiny`` (seed 0, AMD EPYC 2 cores): 24.31 dB against a first prediction of 24.25; training
+    seeds 1 and 2 give +0.03 and +0.04 dB. On the uniform deployment grid (deploy_time_power=0) seed 0 fell 0.15 dB
+    short."""
+    backbone, validation_report = validation_report
     first = json.loads((validation_report / "per_step_variants.json").read_text())["A"][0]
     final = _quality(validation_report)["A"]
-    assert final >= first, f"the final sample ({final:.2f} dB) is worse than the first prediction {first:.2f}"
+    assert final >= first - FINAL_TOLERANCE_DB[backbone], (
+        f"the final sample ({final:.2f} dB) is more than {FINAL_TOLERANCE_DB[backbone]} dB below the first "
+        f"prediction {first:.2f}")
 
 
 @pytest.mark.slow
 def test_embedded_baseline_beats_its_input_on_validation_clips(validation_report):
     """Measured (seed 0, 12 training scenes, AMD EPYC 2 cores): A 24.31 dB against the input's 23.86; training
     seeds 1 and 2 give +0.38 and +0.32 dB."""
-    quality = _quality(validation_report)
+    quality = _quality(validation_report[1])
     assert quality["A"] > quality["input"], f"A restores validation clips worse than its input: {quality}"

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from test_tasks import SMALLEST
 
-from tracegs.pipeline.records import LOCK_FILE
+from tracegs.pipeline.records import LOCK_FILE, RUN_RECORD
 
 # The averaged baseline must train more than one step, or its average equals its last weights.
 DEMO = (*(o for o in SMALLEST if not o.startswith("experiment.baseline_steps")), "experiment.baseline_steps=3")
@@ -139,3 +139,16 @@ def test_a_refused_command_writes_nothing(entry_point, tmp_path, app, args, name
     assert line.startswith(f"tracegs-{app}: error:") and named in line
     assert not list(root.rglob("*")) and sorted(p.name for p in tmp_path.iterdir()) == ["root"]
     assert "job:" not in result.stdout and "task:" not in result.stdout  # --cfg job printed nothing
+
+
+def test_an_evaluation_folder_of_another_run_is_refused_before_any_weights_load(entry_point, tmp_path):
+    """Nothing is trained under this root, so loading the restorers would fail: the refusal comes first."""
+    root = tmp_path / "root"
+    other = root / "other"
+    other.mkdir(parents=True)
+    (other / RUN_RECORD).write_text('{"seed": 99}')
+    result = entry_point("evaluate", [f"paths.root_dir={root}", f"evaluation.out_dir={other}"], tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    (line,) = result.stderr_lines()
+    assert "holds a run made with other settings" in line and str(other) in line
+    assert (other / RUN_RECORD).read_text() == '{"seed": 99}'

@@ -31,9 +31,10 @@ def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     scenes = test_scenes(cfg)  # worked out (and checked held out) once, before any restorer is loaded
+    # A folder holding another run's evaluation is refused before minutes of loading weights.
+    finished = check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     generate_test_scenes(cfg)
-    finished = check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
     with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
         results = run_evaluation(
@@ -77,9 +78,9 @@ def deploy(cfg: DictConfig) -> list[Path]:
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     scenes = test_scenes(cfg)
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
+    check_run_record(cfg, "deploy", cfg.run_dir)
     restorer = restorers_for_run(cfg, [method])[method]
     generate_test_scenes(cfg)
-    check_run_record(cfg, "deploy", cfg.run_dir)
     with product_lock(cfg.run_dir, "run_dir", (cfg.evaluation.shard_index, cfg.evaluation.num_shards)):
         written = deploy_scenes(section(cfg.evaluation), section(cfg.data.source), section(cfg.deploy),
                                 section(cfg.data.prepare.fit), restorer, scenes, cfg.run_dir)

@@ -380,3 +380,20 @@ def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(as_hydra_
             (folder / "results.json").write_text("{}")
             written.setdefault(dataset, []).append(folder)
     assert ablation_inputs(as_hydra_job("report", report)) == written
+
+
+def test_one_product_spelled_two_ways_is_one_folder(as_hydra_job, tmp_path):
+    """The readable part of a folder name repeats the typed overrides; a command that types a default out finds
+    the folder its plain spelling made instead of making the same product again beside it. (Names are read at
+    once: a composed config resolves them from the job that runs now.)"""
+    root = f"paths.root_dir={tmp_path}"
+    plain = as_hydra_job("prepare", [root, "data.prepare.split=test"])
+    views, plain_cache = ",".join(str(v) for v in plain.data.prepare.student_views), plain.data.prepare.cache_dir
+    spelled = [root, "data.prepare.split=test", f"data.prepare.student_views=[{views}]"]
+    assert as_hydra_job("prepare", spelled).data.prepare.cache_dir != plain_cache  # two names for one product
+    Path(plain_cache).mkdir(parents=True)
+    assert as_hydra_job("prepare", spelled).data.prepare.cache_dir == plain_cache
+    stage1 = as_hydra_job("train", [root, "stage=stage1"])
+    stage1_dir, lr = stage1.run_dir, stage1.optimizer.lr
+    Path(stage1_dir).mkdir(parents=True)
+    assert as_hydra_job("train", [root, "stage=stage1", f"optimizer.lr={lr}"]).run_dir == stage1_dir

@@ -301,9 +301,22 @@ def register_resolvers() -> None:
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind, command_line_overrides()), replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.cache", lambda split, _root_: cache_name(_root_, split, command_line_overrides()), replace=True)
+    OmegaConf.register_new_resolver("tracegs.product", product_folder, replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
     OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
+
+
+def product_folder(path: str) -> str:
+    """``path`` (a product folder named ``<readable>-<digest>``), or the folder beside it of the same digest that
+    already exists: the readable part repeats the command line's in-scope overrides, so two spellings of one
+    configuration (a group typed or left to its default, a list typed out) would otherwise make the same product
+    twice, in two folders."""
+    folder = Path(path)
+    if folder.exists() or not folder.parent.is_dir():
+        return path
+    same = sorted(p for p in folder.parent.glob(f"*-{folder.name.rsplit('-', 1)[-1]}") if p.is_dir())
+    return str(same[0]) if same else path
 
 
 def gpus_per_node(ranks: int, trainer_gpus: int) -> int:

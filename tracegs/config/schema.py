@@ -92,12 +92,12 @@ class DataConfig:
     source: SceneSourceConfig = field(default_factory=SceneSourceConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     prepare: PrepareConfig = field(default_factory=lambda: PrepareConfig(
-        cache_dir=CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}",
-        work_dir="${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-"
-                 "${tracegs.cache:${data.prepare.split}}",
+        cache_dir="${tracegs.product:" + CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}}",
+        work_dir="${tracegs.product:${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-"
+                 "${tracegs.cache:${data.prepare.split}}}",
         seed=seeded("prepare"), fit=GaussianFitConfig(seed=seeded("fit"))))
     datamodule: DataModuleConfig = field(default_factory=lambda: DataModuleConfig(
-        cache_dir=CACHE_ROOT + "-train-${tracegs.cache:train}", seed=seeded("datamodule")))
+        cache_dir="${tracegs.product:" + CACHE_ROOT + "-train-${tracegs.cache:train}}", seed=seeded("datamodule")))
 
 
 AUTO = "auto"

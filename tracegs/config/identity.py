@@ -200,14 +200,17 @@ def _scoped_values(cfg: DictConfig, kind: str, skip: frozenset[str]) -> dict[str
 def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
     """The content digests of the ``HANDED_IN_PARTS`` inputs this run is given explicitly (not interpolated)."""
     found = {}
+    sections = scope(cfg, kind)
     for key, parts in HANDED_IN_PARTS.items():
         parent, _, leaf = key.rpartition(".")
-        holder = OmegaConf.select(cfg, parent)
-        if (not any(key.startswith(f"{section}.") for section in scope(cfg, kind)) or not isinstance(holder, DictConfig)
-                or leaf not in holder or OmegaConf.is_interpolation(holder, leaf) or holder[leaf] is None):
+        holder = OmegaConf.select(cfg, parent) if any(key.startswith(f"{s}.") for s in sections) else None
+        # The node is read unresolved: resolving the default would locate the upstream product (composing its
+        # config), which the scope already names.
+        node = holder._get_node(leaf) if isinstance(holder, DictConfig) and leaf in holder.keys() else None
+        if node is None or node._is_interpolation() or node._is_none():
             continue
-        path = Path(str(holder[leaf])).expanduser()
-        found[key] = f"content:{content_digest(path, parts)}" if path.exists() else str(holder[leaf])
+        path = Path(str(node._value())).expanduser()
+        found[key] = f"content:{content_digest(path, parts)}" if path.exists() else str(node._value())
     return found
 
 

@@ -76,3 +76,19 @@ def test_the_paper_scope_prepares_only_fs_teacher(hydra_context):
     work = gpu.scope_prepare_work([], train_scenes=1)
     assert work.fit_iterations == 30_000 + 3 * 17_000
     assert work.forwards == 25 * 50 * 2
+
+
+def test_measured_units_replace_the_estimates_and_name_their_source():
+    record = {"device": {"name": "GPU X"}, "restorer": {"rollout_step": {"seconds": 1.0}},
+              "vae": {"vae_encode": {"seconds": 2.0}},
+              "stage2": {"batch_size": 2, "rollout_steps": 10, "iteration": {"seconds": 100.0},
+                         "iterations": [{"seconds": 100.0}]}}
+    unit, sources = gpu.UnitSeconds.measured(record)
+    # 20 states per iteration, 5 s each: a 1 s teacher forward and 4 s of student forward and backward.
+    assert unit.transformer_forward == 1.0 and unit.training_forward_factor == 4.0 and unit.vae_encode == 2.0
+    assert unit.vae_decode == gpu.UnitSeconds().vae_decode and sources["vae_decode"] == "assumed (one A100)"
+    assert sources["transformer_forward"] == "measured on GPU X"
+    # One iteration timed is the first, which allocates AdamW's state: the source says so.
+    assert "first iteration only" in sources["training_forward_factor"]
+    record["stage2"]["iterations"].append({"seconds": 99.0})
+    assert gpu.UnitSeconds.measured(record)[1]["training_forward_factor"] == "measured on GPU X"

@@ -252,11 +252,9 @@ def _validate_backbone(cfg: DictConfig) -> None:
              f"preconditioning is derived from it, got {transformer.noise_scale}")
     _require(0 <= backbone.sampler.temperature <= 1, "backbone.sampler.temperature",
              f"must be in [0, 1] (1: the Gaussian prior itself), got {backbone.sampler.temperature}")
-    _require(schedule.train_loss_weighting == "uniform" or (schedule.train_loss_weighting == "edm"
-                                                            and transformer.prediction == "preconditioned"),
+    _require(schedule.train_loss_weighting == "uniform" or transformer.prediction == "preconditioned",
              "backbone.schedule.train_loss_weighting",
-             f"must be 'uniform', or 'edm' with backbone.transformer.prediction=preconditioned, got "
-             f"'{schedule.train_loss_weighting}' with '{transformer.prediction}'")
+             f"'edm' needs backbone.transformer.prediction=preconditioned, got '{transformer.prediction}'")
     _require(0 <= schedule.train_time_uniform_share <= 1, "backbone.schedule.train_time_uniform_share",
              f"must be in [0, 1], got {schedule.train_time_uniform_share}")
     logit_normal = schedule.train_time_logit_normal

@@ -43,6 +43,13 @@ class TextEncoderKind(Mode):
     t5 = "t5"  # the T5 encoder of CogVideoX (local folder)
 
 
+class LossWeighting(Mode):
+    """How the training states' squared velocity errors are weighted (``schedule.train_loss_weighting``)."""
+
+    uniform = "uniform"  # the paper's plain L_fm (Eq. 1)
+    edm = "edm"  # EDM's 1 / c_out^2 in velocity units (transformer.Preconditioning.loss_weight)
+
+
 class ScheduleKind(Mode):
     rectified_flow = "rectified_flow"  # tiny backbone
     vpred_ddim = "vpred_ddim"  # CogVideoX: v-prediction DDPM training, DDIM deployment
@@ -178,7 +185,7 @@ class ScheduleConfig:
     # network output's error counts alike at every t (transformer.Preconditioning.loss_weight); "uniform" (the
     # paper's plain L_fm) weights the velocity error alike, which counts the output's error near t = 1, where the
     # first prediction is made, 1 / sigma_data^2 times less than near t = 0.
-    train_loss_weighting: str = "uniform"
+    train_loss_weighting: LossWeighting = LossWeighting.uniform
     # rectified_flow: the noise end of the path, z_1 = noise_scale eps (1: the standard path). Near the size of the
     # residual x0 - R, the states carry what the restorer is unsure of through the whole trajectory.
     noise_scale: float = 1.0

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from tracegs.errors import ConfigMismatchError, NonFiniteError
+from tracegs.restorer.config import LossWeighting
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.strategy import ShardedRestorerStrategy
 
@@ -150,7 +151,7 @@ class RestorerTrainingModule(L.LightningModule):
     def fm_weight(self, t: Tensor) -> Tensor | None:
         """Per-sample weight of L_fm at training times ``t``: EDM's for a preconditioned restorer with
         ``schedule.train_loss_weighting=edm`` (``Preconditioning.loss_weight``), else None (the plain L_fm)."""
-        return self.transformer.loss_weight(t) if self.schedule.cfg.train_loss_weighting == "edm" else None
+        return self.transformer.loss_weight(t) if self.schedule.cfg.train_loss_weighting == LossWeighting.edm else None
 
     def latent(self, batch: dict, key: str) -> Tensor:
         """A latent tensor of the batch in the training dtype (the cache may store float16)."""

@@ -247,6 +247,30 @@ def transformer_weights(state: dict) -> dict[str, torch.Tensor]:
     return {k.removeprefix("transformer."): v for k, v in state.items() if k.startswith("transformer.")}
 
 
+def test_stage1_exports_the_moving_average_of_its_adapter(stages):
+    """``stage.ema_decay`` at Stage 1: the exported adapter is e_k = d e_(k-1) + (1 - d) w_k over the adapter
+    weights w_k after each step (e_1 = w_1), not the last step's weights."""
+    from safetensors.torch import load_file
+
+    tmp, cache, baseline, _ = stages
+    decay = 0.5
+    product = train_stage(config(tmp, cache, "stage1", 3, "ema_stage1", ema_decay=decay, keep_checkpoints=-1,
+                                 base_weights=str(baseline)))
+    current = [transformer_weights(torch.load(tmp / "ema_stage1" / "checkpoints" / f"step{k:06d}.ckpt",
+                                              weights_only=True)["current_model_state"]) for k in (1, 2, 3)]
+    expected = dict(current[0])
+    for weights in current[1:]:
+        expected = {k: decay * expected[k] + (1 - decay) * weights[k] for k in expected}
+    exported = load_file(str(product / "adapter_model.safetensors"))
+    # peft writes "base_model.model.<module>.lora_A.weight" for the module's "<module>.lora_A.aligned.weight".
+    averaged = {k.replace(".aligned.", "."): v for k, v in expected.items() if ".aligned." in k}
+    exported = {k.removeprefix("base_model.model."): v for k, v in exported.items()}
+    assert exported.keys() == averaged.keys()
+    assert all(torch.allclose(exported[k], averaged[k], atol=1e-6) for k in averaged)
+    last = {k.replace(".aligned.", "."): v for k, v in current[-1].items() if ".aligned." in k}
+    assert not all(torch.equal(exported[k], last[k]) for k in averaged)
+
+
 def test_the_baseline_exports_the_moving_average_of_its_weights(stages):
     """``stage.ema_decay``: the product is e_k = d e_(k-1) + (1 - d) w_k over the weights w_k after each step
     (e_1 = w_1), not the last step's weights."""
@@ -276,7 +300,7 @@ def test_a_resumed_moving_average_matches_the_uninterrupted_one(stages):
     assert (full / name).read_bytes() == (resumed / name).read_bytes()
 
 
-def test_only_the_baseline_averages_its_weights():
+def test_stage2_does_not_average_its_weights():
     with pytest.raises(ValueError, match="stage.ema_decay"):
         StageConfig(name="stage2", ema_decay=0.99)
     with pytest.raises(ValueError, match="stage.ema_decay"):

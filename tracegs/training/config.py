@@ -152,9 +152,10 @@ class StageConfig:
     keep_checkpoints: int = 1
     # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
     resume_from: str | None = "last"
-    # Baseline and Stage 1: export the exponential moving average of the weights with this decay, updated after
-    # every step (None = the last step's weights). Checkpoints carry the average and the current weights; the
-    # average is a second copy of the module (frozen weights included), so it is for unsharded runs.
+    # Export the exponential moving average of the trained weights (the baseline's, or the adapters') with this
+    # decay, updated after every step (None = the last step's weights). Checkpoints carry the average and the
+    # current weights; held_out_eval scores the current ones. The average is a second copy of the module (frozen
+    # weights included), so it is for unsharded runs.
     ema_decay: float | None = None
     # Deploy the in-training restorer on validation scenes and log its scores (off unless scenes are named).
     deployment_eval: DeploymentEvalConfig = field(default_factory=DeploymentEvalConfig)
@@ -168,13 +169,8 @@ class StageConfig:
             raise ValueError(f"stage.keep_checkpoints must be -1, 0 or 1, got {self.keep_checkpoints}")
         if self.rollout_steps < 1:
             raise ValueError(f"stage.rollout_steps must be >= 1, got {self.rollout_steps}")
-        if self.ema_decay is not None:
-            if self.name == StageName.stage2:
-                # Stage 2's held-out curve scores the student it trains; an exported average would not be that.
-                raise ValueError("stage.ema_decay averages the baseline's or Stage 1's weights; stage2 exports "
-                                 "its last student (set it to null)")
-            if not 0.0 <= self.ema_decay < 1.0:
-                raise ValueError(f"stage.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.ema_decay is not None and not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"stage.ema_decay must be in [0, 1), got {self.ema_decay}")
 
 
 @dataclass

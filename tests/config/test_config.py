@@ -182,12 +182,12 @@ def test_wrong_type_or_choice_names_the_field(override, field):
         (["backbone.transformer.sigma_data=0"], "backbone.transformer.sigma_data"),
         (["backbone.schedule.noise_scale=0"], "backbone.schedule.noise_scale"),
         (["experiment=paper", "backbone.schedule.noise_scale=0.5"], "backbone.schedule.noise_scale"),
-        (["backbone.transformer.prediction=preconditioned", "backbone.schedule.noise_scale=0.2"],
+        (["backbone.schedule.noise_scale=0.2", "backbone.transformer.noise_scale=1.0"],
          "backbone.transformer.noise_scale"),  # the preconditioning must know the noise end
         (["backbone.sampler.temperature=1.5"], "backbone.sampler.temperature"),
         (["backbone.sampler.temperature=-0.1"], "backbone.sampler.temperature"),
         (["backbone.schedule.train_time_uniform_share=1.5"], "backbone.schedule.train_time_uniform_share"),
-        (["backbone.schedule.train_loss_weighting=edm"], "backbone.schedule.train_loss_weighting"),  # velocity head
+        (["backbone.transformer.prediction=residual"], "backbone.schedule.train_loss_weighting"),  # edm on a velocity head
         (["backbone.schedule.train_time_logit_normal=[1.0]"], "backbone.schedule.train_time_logit_normal"),
         (["backbone.schedule.train_time_logit_normal=[1.0,0]"], "backbone.schedule.train_time_logit_normal"),
         (["experiment=paper", "backbone.schedule.deploy_time_power=12"], "backbone.schedule.deploy_time_power"),
@@ -262,17 +262,18 @@ def test_cli_reports_bad_combination_in_one_line(tmp_path):
     assert written == []
 
 
-def test_the_multistep_embedded_restorer_keeps_tinys_encoders_and_ends_its_grid_near_clean():
-    """backbone=tiny_diffusion: the tiny restorer's class, codec and encoders (the same caches), EDM-preconditioned,
-    on a deployment grid whose last state before the clean end is at t <= 0.1."""
+def test_the_embedded_default_restorer_is_multistep_with_tinys_encoders_and_ends_its_grid_near_clean():
+    """The embedded default's restorer (backbone=tiny_diffusion): the one-step restorer's class, codec and encoders
+    (the same caches), EDM-preconditioned, on a deployment grid whose last state before the clean end is at
+    t <= 0.1."""
     from tracegs.pipeline.upstream import section
     from tracegs.restorer.schedules import build_schedule
 
-    tiny, diffusion = (section(compose(config_name="train", overrides=[f"backbone={name}"]).backbone)
-                       for name in ("tiny", "tiny_diffusion"))
+    tiny, diffusion = (section(compose(config_name="train", overrides=overrides).backbone)
+                       for overrides in (["experiment=embedded_onestep"], []))
     for part in ("name", "codec", "reference_encoder", "text_encoder", "lora"):
         assert getattr(tiny, part) == getattr(diffusion, part)
     assert diffusion.transformer.prediction == "preconditioned"
     grid = build_schedule(diffusion.schedule).timesteps()
     assert grid[0] == 1.0 and grid[-1] == 0.0 and float(grid[-2]) == pytest.approx(0.1)  # M = 10 uniform steps
-    assert float(build_schedule(tiny.schedule).timesteps()[-2]) > 0.5  # the one-step default's last state
+    assert float(build_schedule(tiny.schedule).timesteps()[-2]) > 0.5  # the one-step restorer's last state

@@ -37,7 +37,7 @@ def trained(as_hydra_job, root: Path, overrides: list[str], product: str) -> Pat
 
 
 @pytest.mark.parametrize("changed", [
-    ["loss.lambda_ret=0.3"], ["optimizer.lr=1e-4"], ["teacher=v12"], ["policy=off"], ["seed=1"],
+    ["loss.lambda_ret=0.3"], ["optimizer.lr=3e-4"], ["teacher=v12"], ["policy=off"], ["seed=1"],
     ["stage.rollout_steps=3"], ["debug=fdr"], ["debug=limit"], ["data.prepare.clips_per_scene=4"],
     ["backbone.lora.rank=2"], ["experiment.stage1_steps=10"],
 ])
@@ -108,8 +108,8 @@ def test_stage2_finds_the_stage1_and_baseline_runs_it_builds_on(as_hydra_job, tm
 
 
 @pytest.mark.parametrize("stage2_only", [
-    "experiment.stage2_lr=1e-4", "experiment.stage2_steps=40", "stage.rollout_steps=3",
-    "backbone.schedule.deploy_time_power=6", "backbone.schedule.deploy_steps=10", "backbone.sampler.guidance_scale=2",
+    "experiment.stage2_lr=3e-4", "experiment.stage2_steps=40", "stage.rollout_steps=3",
+    "backbone.schedule.deploy_time_power=6", "backbone.schedule.deploy_steps=20", "backbone.sampler.guidance_scale=2",
 ])
 def test_a_stage2_only_setting_reuses_the_baseline_and_stage1_runs(as_hydra_job, stage2_only):
     # The Stage-2 sweep a researcher runs after `train stage=baseline` and `train stage=stage1` with no overrides:

@@ -86,7 +86,7 @@ def test_the_document_states_commit_machine_settings_and_figures(hydra_context, 
     assert f"Commit {provenance['commit']}, seed 0" in document
     assert provenance["machine"]["cpu"] in document and f"{provenance['machine']['cores']} cores" in document
     assert "| train stage=baseline | 42.5 |" in document and "Wall time 1.5 min" in document
-    assert "| `experiment.stage2_steps` | `10` | conf/experiment/embedded.yaml |" in document
+    assert "| `experiment.stage2_steps` | `200` | conf/experiment/embedded.yaml |" in document
     assert "| 3DGS, 3 views | 17.25 |" in document
 
 

@@ -118,6 +118,7 @@ _IGNORED_PER_KIND = {kind: {*_NOT_READ_BY_TRAINING, *other_splits(*_READ_SPLITS[
 # with. A and Stage 1 never read them, so a Stage-2 sweep reuses one A and one Stage-1 adapter. (Keys of *earlier*
 # stages stay in a later stage's scope: its folder is named before the earlier products are located.)
 _STAGE2_ONLY = {"experiment.stage2_steps", "experiment.stage2_lr", "experiment.stage2_warmup_steps",
+                "experiment.stage2_batch_size",
                 "stage.rollout_steps", "stage.memory_mode", "stage.guidance_scale", "loss.trajectory_space",
                 "loss.trajectory_target",
                 "backbone.schedule.deploy_steps", "backbone.schedule.deploy_time_power", "backbone.sampler"}

@@ -135,12 +135,16 @@ class ExperimentConfig:
     stage2_warmup_steps: int = MISSING
     stage1_lr: float = MISSING
     stage2_lr: float = MISSING
-    batch_size: int = MISSING  # per device
+    batch_size: int = MISSING  # per device (A and Stage 1)
+    stage2_batch_size: int = MISSING  # per device; a Stage-2 sample is N rollout states, not one
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
     frame_height: int = MISSING  # rendered frames and resized images
     frame_width: int = MISSING
     frames_per_clip: int = MISSING  # 8k+1 frames per paired clip and deployment clip
-    clips_per_scene: int = MISSING  # paired clips prepared per scene
+    clips_per_scene: int = MISSING  # paired clips prepared per scene (what Stage 2 reads)
+    # A and Stage 1 read only each scene's first n of them (None: all), so Stage 2 can draw fresh clips from
+    # the same cache without changing what A and Stage 1 were trained on.
+    baseline_clips_per_scene: int | None = None
 
 
 @dataclass

@@ -185,6 +185,9 @@ class DataModuleConfig:
     student_views: list[int] = field(default_factory=lambda: [3, 6, 9])  # the clips of these K are served
     student_snapshots: list[int] = field(default_factory=lambda: [140, 340])
     batch_size: int = 2  # paper: 2 per GPU
+    # Serve only the first n clips of each scene (None: every clip the cache holds), so that stages of one
+    # experiment can read different amounts of one cache (experiment.baseline_clips_per_scene).
+    clips_per_scene: int | None = None
     num_workers: int = 0
     val_scenes: list[str] = field(default_factory=list)  # scene names held out for validation
     caption_dropout: float = 0.1  # supplement A.2: zero text embedding, shared by both roles

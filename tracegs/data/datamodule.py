@@ -176,13 +176,16 @@ def read_conditioning(record: ClipRecord) -> dict[str, torch.Tensor]:
 
 
 class PairedClipDataset(Dataset):
-    """Clips of the given scenes whose student view count is listed; items are indices or ``(index,
-    draw_seed)`` pairs from ``EpochSampler``. A sample reads only the tensors it returns."""
+    """Clips of the given scenes whose student view count is listed (with ``clips_per_scene``, only among each
+    scene's first that many); items are indices or ``(index, draw_seed)`` pairs from ``EpochSampler``. A sample
+    reads only the tensors it returns."""
 
     def __init__(self, cache_dir: str | Path, scenes: list[str], manifest: dict, student_views: list[int],
-                 student_snapshots: list[int], teacher_views: int | None, caption_dropout: float, seed: int):
+                 student_snapshots: list[int], teacher_views: int | None, caption_dropout: float, seed: int,
+                 clips_per_scene: int | None = None):
         self.cache_dir = Path(cache_dir)
-        self.clips = [c for c in manifest_clips(cache_dir, manifest, scenes) if c.views in student_views]
+        self.clips = [c for c in manifest_clips(cache_dir, manifest, scenes)
+                      if c.views in student_views and (clips_per_scene is None or c.index < clips_per_scene)]
         if not self.clips:
             raise CacheError(f"{self.cache_dir}: no clip of {student_views} student views in scenes {scenes}")
         self.student_snapshots = list(student_snapshots)
@@ -311,7 +314,7 @@ class PairedClipDataModule(L.LightningDataModule):
 
         def dataset(scenes: list[str]) -> PairedClipDataset:
             return PairedClipDataset(cfg.cache_dir, scenes, manifest, cfg.student_views, cfg.student_snapshots,
-                                     self.teacher_views, cfg.caption_dropout, cfg.seed)
+                                     self.teacher_views, cfg.caption_dropout, cfg.seed, cfg.clips_per_scene)
 
         self.train_set = dataset(train)
         self.val_set = dataset(list(cfg.val_scenes)) if cfg.val_scenes else None

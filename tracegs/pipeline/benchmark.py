@@ -196,9 +196,9 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
 
     data = (prepare_s(train_scenes, len(prepare.student_views), exp.clips_per_scene)
             + prepare_s(test_scenes, len(views), cfg.benchmark.held_out_clips_per_scene))
-    batch = exp.batch_size
-    training = seeds * batch * (exp.baseline_steps * BASELINE_SAMPLE_S + exp.stage1_steps * STAGE1_SAMPLE_S
-                                + trained * exp.stage2_steps * cfg.stage.rollout_steps * STAGE2_SAMPLE_STATE_S)
+    training = seeds * (exp.batch_size * (exp.baseline_steps * BASELINE_SAMPLE_S + exp.stage1_steps * STAGE1_SAMPLE_S)
+                        + exp.stage2_batch_size * trained * exp.stage2_steps * cfg.stage.rollout_steps
+                        * STAGE2_SAMPLE_STATE_S)
     reverse_steps = deploy.steps or cfg.backbone.schedule.deploy_steps
     units = test_scenes * len(views)
     cold_start = deploy.repair_iters[0] * FIT_ITERATION_S

@@ -30,13 +30,20 @@ COMMIT_PREFIX = "Commit "
 
 # The settings whose reasons in the configs point here: (dotted key, the config file that sets it).
 SETTINGS = (
-    ("backbone.schedule.train_time_power", "conf/backbone/tiny.yaml"),
-    ("backbone.schedule.deploy_time_power", "conf/backbone/tiny.yaml"),
+    ("backbone.transformer.sigma_data", "conf/backbone/tiny_diffusion.yaml"),
+    ("backbone.schedule.train_time_logit_normal", "conf/backbone/tiny_diffusion.yaml"),
+    ("backbone.schedule.train_time_uniform_share", "conf/backbone/tiny_diffusion.yaml"),
+    ("backbone.schedule.train_loss_weighting", "conf/backbone/tiny_diffusion.yaml"),
+    ("backbone.schedule.deploy_steps", "conf/backbone/tiny_diffusion.yaml"),
+    ("backbone.sampler.temperature", "conf/backbone/tiny_diffusion.yaml"),
     ("experiment.baseline_steps", "conf/experiment/embedded.yaml"),
     ("experiment.baseline_ema_decay", "conf/experiment/embedded.yaml"),
     ("experiment.stage1_steps", "conf/experiment/embedded.yaml"),
     ("experiment.stage2_steps", "conf/experiment/embedded.yaml"),
     ("experiment.stage2_lr", "conf/experiment/embedded.yaml"),
+    ("experiment.stage2_batch_size", "conf/experiment/embedded.yaml"),
+    ("experiment.clips_per_scene", "conf/experiment/embedded.yaml"),
+    ("stage.rollout_steps", "conf/experiment/embedded.yaml"),
     ("data.prepare.dense_views", "conf/experiment/embedded.yaml"),
     ("data.prepare.student_final_fits", "conf/experiment/embedded.yaml"),
     ("data.synthetic.train_seeds", "conf/data/synthetic.yaml"),

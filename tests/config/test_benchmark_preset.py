@@ -42,7 +42,7 @@ def test_preset_has_enough_scenes_and_seeds():
         assert OmegaConf.select(cfg, key) == OmegaConf.select(embedded, key), key
 
 
-def test_the_default_run_fits_the_hour():
+def test_the_default_run_estimate_is_bounded_and_follows_the_config():
     cfg = compose(config_name="benchmark")
     variants = benchmark_variants()
     steps = benchmark_steps(variants, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))

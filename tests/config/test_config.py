@@ -277,3 +277,17 @@ def test_the_embedded_default_restorer_is_multistep_with_tinys_encoders_and_ends
     grid = build_schedule(diffusion.schedule).timesteps()
     assert grid[0] == 1.0 and grid[-1] == 0.0 and float(grid[-2]) == pytest.approx(0.1)  # M = 10 uniform steps
     assert float(build_schedule(tiny.schedule).timesteps()[-2]) > 0.5  # the one-step restorer's last state
+
+
+def test_a_and_stage1_read_the_first_clips_of_the_cache_stage2_reads_with_its_own_batch():
+    """experiment.baseline_clips_per_scene limits what A and Stage 1 read of the one training cache, whose
+    experiment.clips_per_scene clips Stage 2 reads whole, at experiment.stage2_batch_size."""
+    reads = {stage: compose(config_name="train", overrides=[f"stage={stage}", "experiment.baseline_clips_per_scene=3",
+                                                          "experiment.stage2_batch_size=1"])
+             for stage in ("baseline", "stage1", "stage2")}
+    assert {stage: cfg.data.datamodule.clips_per_scene for stage, cfg in reads.items()} == {
+        "baseline": 3, "stage1": 3, "stage2": None}
+    assert {stage: cfg.data.datamodule.batch_size for stage, cfg in reads.items()} == {
+        "baseline": reads["baseline"].experiment.batch_size, "stage1": reads["stage1"].experiment.batch_size,
+        "stage2": 1}
+    assert len({cfg.data.datamodule.cache_dir for cfg in reads.values()}) == 1

@@ -80,3 +80,23 @@ def test_a_six_view_training_clip_follows_deployment_from_those_six_views(colmap
         for ours, theirs in zip(training["cameras"], deployment.cameras):
             assert torch.equal(ours.world_to_camera, theirs.world_to_camera) and torch.equal(ours.K, theirs.K)
         assert torch.equal(deployment.references[0], plan.scene.load_image(training["refs"][0]))
+
+
+def test_a_larger_cache_begins_with_the_smaller_caches_clips(colmap_scene):
+    """A clip's K and trajectory are drawn per scene and clip index, so preparing more clips per scene appends
+    clips: the first 8 of 32 are the 8 (what lets A and Stage 1 read the first clips of Stage 2's larger cache,
+    experiment.baseline_clips_per_scene)."""
+    root, _ = colmap_scene
+    source = SceneSourceConfig(root=str(root.parent), preset="custom")
+    trajectory = TrajectoryConfig(frames_per_clip=5)
+
+    def cameras(clips_per_scene: int) -> list[dict]:
+        prepare = PrepareConfig(student_views=[3, 6, 9], dense_views=[None], pseudo_target="dense",
+                                clips_per_scene=clips_per_scene, frames_per_clip=5, trajectory=trajectory)
+        return clip_cameras(plan_scene(source, prepare, root.name), prepare)
+
+    few, many = cameras(8), cameras(32)
+    assert len(many) == 32
+    for small, large in zip(few, many[:8], strict=True):
+        assert (small["views"], small["refs"], small["trajectory"]) == (large["views"], large["refs"], large["trajectory"])
+        assert all(torch.equal(a.world_to_camera, b.world_to_camera) for a, b in zip(small["cameras"], large["cameras"]))

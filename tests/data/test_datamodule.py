@@ -227,7 +227,7 @@ def test_a_sample_reads_only_the_tensors_it_returns(prepared, monkeypatch):
 
 def test_clips_of_the_listed_student_view_counts_are_served(tmp_path):
     """A cache with a 3-view and a 6-view clip (written by prepare's writer): each clip serves its own K's
-    snapshot, and ``student_views`` picks the clips."""
+    snapshot, ``student_views`` picks the clips and ``clips_per_scene`` keeps only each scene's first ones."""
     from tracegs.data.cache_keys import CACHE_VERSION
     from tracegs.data.prepare import EncodedClip, write_clip
 
@@ -242,8 +242,9 @@ def test_clips_of_the_listed_student_view_counts_are_served(tmp_path):
         paths.append(str(write_clip(tmp_path / "s", index, clip, {}, "random").relative_to(tmp_path)))
         (tmp_path / "manifest.json").write_text(json.dumps({"version": CACHE_VERSION, "teacher_views": ["all"],
                                                             "scenes": {"s": {"clips": paths}}}))
-    for listed, served in (([6], [6]), ([3, 6], [3, 6])):
-        cfg = DataModuleConfig(cache_dir=str(tmp_path), student_views=listed, student_snapshots=[8])
+    for listed, first, served in (([6], None, [6]), ([3, 6], None, [3, 6]), ([3, 6], 1, [3])):
+        cfg = DataModuleConfig(cache_dir=str(tmp_path), student_views=listed, student_snapshots=[8],
+                               clips_per_scene=first)
         dm = PairedClipDataModule(cfg)
         dm.setup("fit")
         samples = [dm.train_set[i] for i in range(len(dm.train_set))]

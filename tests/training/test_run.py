@@ -247,6 +247,18 @@ def transformer_weights(state: dict) -> dict[str, torch.Tensor]:
     return {k.removeprefix("transformer."): v for k, v in state.items() if k.startswith("transformer.")}
 
 
+def checkpointed_weights_and_their_average(run: Path, steps: int, decay: float
+                                           ) -> tuple[list[dict[str, torch.Tensor]], dict[str, torch.Tensor]]:
+    """The current weights w_1 ... w_steps of a run's step checkpoints and their moving average
+    e_k = d e_(k-1) + (1 - d) w_k (e_1 = w_1), computed here from the checkpoints, independently of the module."""
+    current = [transformer_weights(torch.load(run / "checkpoints" / f"step{k:06d}.ckpt",
+                                              weights_only=True)["current_model_state"]) for k in range(1, steps + 1)]
+    average = dict(current[0])
+    for weights in current[1:]:
+        average = {k: decay * average[k] + (1 - decay) * weights[k] for k in average}
+    return current, average
+
+
 def test_stage1_exports_the_moving_average_of_its_adapter(stages):
     """``stage.ema_decay`` at Stage 1: the exported adapter is e_k = d e_(k-1) + (1 - d) w_k over the adapter
     weights w_k after each step (e_1 = w_1), not the last step's weights."""
@@ -256,11 +268,7 @@ def test_stage1_exports_the_moving_average_of_its_adapter(stages):
     decay = 0.5
     product = train_stage(config(tmp, cache, "stage1", 3, "ema_stage1", ema_decay=decay, keep_checkpoints=-1,
                                  base_weights=str(baseline)))
-    current = [transformer_weights(torch.load(tmp / "ema_stage1" / "checkpoints" / f"step{k:06d}.ckpt",
-                                              weights_only=True)["current_model_state"]) for k in (1, 2, 3)]
-    expected = dict(current[0])
-    for weights in current[1:]:
-        expected = {k: decay * expected[k] + (1 - decay) * weights[k] for k in expected}
+    current, expected = checkpointed_weights_and_their_average(tmp / "ema_stage1", 3, decay)
     exported = load_file(str(product / "adapter_model.safetensors"))
     # peft writes "base_model.model.<module>.lora_A.weight" for the module's "<module>.lora_A.aligned.weight".
     averaged = {k.replace(".aligned.", "."): v for k, v in expected.items() if ".aligned." in k}
@@ -279,12 +287,7 @@ def test_the_baseline_exports_the_moving_average_of_its_weights(stages):
     tmp, cache, _, _ = stages
     decay = 0.5
     product = train_stage(config(tmp, cache, "baseline", 3, "ema", ema_decay=decay, keep_checkpoints=-1))
-    steps = [torch.load(tmp / "ema" / "checkpoints" / f"step{k:06d}.ckpt", weights_only=True)
-             for k in (1, 2, 3)]
-    current = [transformer_weights(ckpt["current_model_state"]) for ckpt in steps]
-    expected = dict(current[0])
-    for weights in current[1:]:
-        expected = {k: decay * expected[k] + (1 - decay) * weights[k] for k in expected}
+    current, expected = checkpointed_weights_and_their_average(tmp / "ema", 3, decay)
     exported = load_state_dict(str(product / "diffusion_pytorch_model.safetensors"))
     assert exported.keys() == expected.keys()
     assert all(torch.allclose(exported[k], expected[k], atol=1e-6) for k in expected)

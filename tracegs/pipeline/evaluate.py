@@ -18,6 +18,7 @@ from tracegs.pipeline.records import check_run_record, product_lock, write_run_r
 from tracegs.pipeline.restorers import (
     generate_test_scenes,
     ground_truth_renderer,
+    locate_deployed_artifacts,
     restorers_for_run,
     test_scenes,
 )
@@ -31,7 +32,9 @@ def evaluate(cfg: DictConfig) -> dict:
     """Deploy every method on the test scenes at each view count; write results.json (+ tables, media)."""
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     scenes = test_scenes(cfg)  # worked out (and checked held out) once, before any restorer is loaded
-    # A folder holding another run's evaluation is refused before minutes of loading weights.
+    # A folder holding another run's evaluation is refused before minutes of loading weights; its record names
+    # the restorers by path, so they are located first.
+    locate_deployed_artifacts(cfg)
     finished = check_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     restorers = restorers_for_run(cfg, list(cfg.evaluation.methods))
     generate_test_scenes(cfg)
@@ -78,6 +81,7 @@ def deploy(cfg: DictConfig) -> list[Path]:
     require_available(cfg.data.prepare.fit.backend, "data.prepare.fit.backend")
     scenes = test_scenes(cfg)
     method = "tracegs" if cfg.ablation.train_stage2 else "baseline"
+    locate_deployed_artifacts(cfg)
     check_run_record(cfg, "deploy", cfg.run_dir)
     restorer = restorers_for_run(cfg, [method])[method]
     generate_test_scenes(cfg)

@@ -15,9 +15,15 @@ from tracegs.pipeline.upstream import locate_artifacts, section
 from tracegs.restorer.memory import holdings_table, loads_pretrained_components
 
 
+def locate_deployed_artifacts(cfg: DictConfig) -> None:
+    """Resolve the restorers' "auto" artifacts to paths (no weights are read), so that a run record, which names
+    them by path, can be checked before anything loads."""
+    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+
+
 def restorers_for_run(cfg: DictConfig, methods: Sequence[str]) -> dict:
     """Method name -> restorer (None = plain 3DGS), the diffusion methods on one backbone (deploy/assembly.py)."""
-    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    locate_deployed_artifacts(cfg)
     backbone = section(cfg.backbone)
     if loads_pretrained_components(backbone):
         show(holdings_table(restorer_holdings(backbone, methods, cfg.deploy.captions.blip2_path)))

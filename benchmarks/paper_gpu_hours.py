@@ -6,8 +6,9 @@ Usage: ``.venv/bin/python benchmarks/paper_gpu_hours.py [--train-scenes 112] [--
 The commands are the pipeline's own: ``tracegs-prepare experiment=paper`` (the training cache with every teacher of
 Table 3), then the Table 3 sweep (``tracegs.pipeline.steps.sweep_steps``, as ``launch/sweep_ablation.sh slurm
 experiment=paper`` runs it: evaluations at ``evaluation.views`` (3/6/9) on Table 3's ``report.datasets``, DL3DV and
-Mip-NeRF 360), then Tables 1/2 (``tracegs.pipeline.steps.main_table_steps``): plain 3DGS, A and TRACE-GS (F) in one
-evaluation per dataset of ``report.main_datasets`` (DL3DV, Mip-NeRF 360 and NeRFBusters). Each job's config
+Mip-NeRF 360), then Tables 1/2 (``tracegs.pipeline.steps.main_table_steps``): plain 3DGS, A and TRACE-GS (F) on each
+dataset of ``report.main_datasets`` (DL3DV, Mip-NeRF 360 and NeRFBusters), A and F read from the sweep's evaluations
+where it made them (only 3DGS evaluated again there), in one evaluation of the three elsewhere. Each job's config
 is composed as its command line composes it, and the work it does is counted from that config with the functions
 the code runs (``clip_view_counts``, ``clip_condition_keys``, ``reference_pairs``): 3DGS iterations, rendered frames,
 captions, VAE encodes and decodes, transformer forwards (no gradient) and training forwards (with gradient). The
@@ -43,7 +44,13 @@ from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
-from tracegs.data.prepare import captures_held_out, clip_condition_keys, clip_view_counts, trajectory_count
+from tracegs.data.prepare import (
+    captures_held_out,
+    clip_condition_keys,
+    clip_view_counts,
+    teacher_view_counts,
+    trajectory_count,
+)
 from tracegs.pipeline.steps import Step, main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, teacher_overrides
 from tracegs.splat.trajectory import reference_pairs
@@ -149,13 +156,18 @@ def prepare_work(cfg: DictConfig, scenes: int) -> Work:
     sparse = fit.iterations if prepare.student_final_fits else max(prepare.student_snapshots)
     per_scene = Work(fit_iterations=len(prepare.student_views) * sparse + len(prepare.dense_views) * fit.iterations)
     frames = prepare.frames_per_clip
+    # A trajectory shared by every K has its teacher conditions (R_d among them) and its target encoded once, by
+    # its first clip; otherwise each clip encodes all of its conditions and its target.
+    shared_encodes = len(teacher_view_counts(prepare)) + 1 if prepare.shared_trajectories else 0
     for views in clip_views(cfg):
         conditions = len(clip_condition_keys(prepare, views))
-        per_scene += Work(rendered_frames=conditions * frames, captions=1, encodes=conditions + 1)
+        per_scene += Work(rendered_frames=conditions * frames, captions=1,
+                          encodes=conditions + 1 - shared_encodes)
+    per_scene += Work(encodes=shared_encodes).scaled(trajectory_count(prepare))
     if prepare.pseudo_target == "restorer":
-        # One pseudo-target per trajectory: R_d encoded, denoised over the M-step schedule, decoded (and, shared by
-        # several clips, captioned from R_d).
-        restoration = Work(encodes=1, decodes=1, forwards=steps * guided(prepare.pseudo_target_guidance),
+        # One pseudo-target per trajectory: R_d's latent (encoded with the clip's conditions) denoised over the
+        # M-step schedule, decoded (and, shared by several clips, captioned from R_d).
+        restoration = Work(decodes=1, forwards=steps * guided(prepare.pseudo_target_guidance),
                            captions=int(prepare.shared_trajectories))
         per_scene += restoration.scaled(trajectory_count(prepare))
     return per_scene.scaled(scenes)
@@ -233,7 +245,7 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
     report = compose(config_name="report", overrides=common)
     others = [d for d in report.report.datasets if d != report.training_data]
     steps += sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], common, others)
-    steps += main_table_steps(report.report.main_datasets, report.training_data, common)
+    steps += main_table_steps(report.report.main_datasets, report.training_data, common, report.report.datasets)
     rows = []
     for step in steps:
         work = Work()

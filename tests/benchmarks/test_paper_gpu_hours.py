@@ -38,16 +38,19 @@ def test_evaluation_counts_guided_restorations_of_every_reference_pair(hydra_con
 def test_training_cache_counts_every_teacher_fit_and_pseudo_target(hydra_context):
     """Per training scene: the 3/6/9-view fits and the 12/18/all-view teachers at 30k iterations, and "150 paired
     clips" as 25 trajectories x 3 K x 2 snapshots: 75 clips (each captioned), 150 student conditions, and 25
-    pseudo-targets, each R_d restored once (and captioned) over M = 50 guided steps; without shared trajectories
-    every clip is restored."""
+    pseudo-targets, each R_d restored once (and captioned) over M = 50 guided steps; a trajectory's four teacher
+    conditions (B's 3-view final snapshot, 12, 18, all views) and its target encoded once, each clip's two R_s on
+    their own; without shared trajectories every clip is restored and encodes all of its conditions."""
     cfg = compose(config_name="prepare", overrides=PAPER)
     work = gpu.prepare_work(cfg, scenes=1)
     assert work.fit_iterations == 6 * 30_000
     assert len(gpu.clip_views(cfg)) * len(cfg.data.prepare.student_snapshots) == 150
     assert work.forwards == 25 * 50 * 2 and work.decodes == 25 and work.captions == 75 + 25
+    assert work.encodes == 75 * 2 + 25 * (4 + 1)
     apart = gpu.prepare_work(compose(config_name="prepare", overrides=[*PAPER, "data.prepare.shared_trajectories=false"]),
                              scenes=1)
     assert apart.forwards == 75 * 50 * 2 and apart.decodes == 75 and apart.captions == 75
+    assert apart.encodes == 75 * (2 + 4 + 1)
 
 
 def test_tables_1_2_evaluate_nerfbusters_which_table_3_leaves_out(hydra_context):
@@ -68,6 +71,12 @@ def test_tables_1_2_evaluate_nerfbusters_which_table_3_leaves_out(hydra_context)
     # Table 3 and Fig. 6 stay on DL3DV and Mip-NeRF 360.
     assert [label for label in labels if "nerfbusters" in label] == [label for label, _, _ in on_nerfbusters]
     assert any("data=mipnerf360" in command and "ablation=A," in command for _, command, _ in rows)
+    # Where the sweep evaluated A and F (DL3DV, Mip-NeRF 360), Tables 1/2 read them and evaluate 3DGS alone.
+    for dataset in ("dl3dv", "mipnerf360"):
+        (_, evaluate, work), (_, report, _) = [row for row in rows if f"on {dataset} " in f"{row[0]} "
+                                               and "Tables 1/2" in row[0]]
+        assert evaluate.endswith("evaluation.methods=[3dgs]") and work.forwards == 0 < work.fit_iterations
+        assert report.endswith("report.kind=main report.main_from_sweep=true")
 
 
 def test_the_paper_scope_prepares_only_fs_teacher(hydra_context):

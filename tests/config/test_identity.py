@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from tracegs.config.identity import derive_seed, scoped_values
 from tracegs.config.validate import ConfigError
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
-from tracegs.pipeline.reports import ablation_inputs
+from tracegs.pipeline.reports import ablation_inputs, swept_method_evaluations
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
 
@@ -380,6 +380,23 @@ def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(as_hydra_
             (folder / "results.json").write_text("{}")
             written.setdefault(dataset, []).append(folder)
     assert ablation_inputs(as_hydra_job("report", report)) == written
+
+
+def test_tables_1_2_take_a_and_f_from_the_sweeps_evaluations(as_hydra_job, tmp_path):
+    """``tracegs-report report.kind=main report.main_from_sweep=true`` reads A's scores from what
+    ``tracegs-evaluate ablation=A`` wrote and F's from ``ablation=F``'s (this command's variant), and names the
+    first evaluation missing in one line."""
+    common = [f"paths.root_dir={tmp_path}", "experiment=paper", "data=mipnerf360"]
+    report = as_hydra_job("report", [*common, "report.kind=main", "report.main_from_sweep=true"])
+    with pytest.raises(FileNotFoundError, match="report.main_from_sweep: no evaluation of variant A on mipnerf360"):
+        swept_method_evaluations(report)
+    written = {}
+    for variant, method in (("A", "baseline"), ("F", "tracegs")):
+        folder = Path(str(as_hydra_job("evaluate", [*common, f"ablation={variant}"]).evaluation.out_dir))
+        (folder / "units").mkdir(parents=True)
+        written[method] = folder
+    assert swept_method_evaluations(as_hydra_job("report", [*common, "report.kind=main",
+                                                            "report.main_from_sweep=true"])) == written
 
 
 def test_one_product_spelled_two_ways_is_one_folder(as_hydra_job, tmp_path):

@@ -21,7 +21,7 @@ from safetensors.torch import load_file
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare
+from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare, teacher_view_counts
 
 
 def test_prepare_builds_the_cache_from_nothing(prepared):
@@ -304,15 +304,18 @@ def test_a_training_cache_holds_latents_only(tmp_path, prepared, backbone):
 
 def test_shared_trajectories_restore_each_trajectory_once_for_every_k(tmp_path, prepared, backbone, monkeypatch):
     """``shared_trajectories``: each trajectory, drawn on the 3 views, serves K = 3 and 6 (consecutive clips with the
-    same reference views and poses) and is restored into one pseudo-target that both clips hold; a resumed run
-    that lost the second clip of a trajectory restores it again into the same bytes."""
+    same reference views and poses) and is restored into one pseudo-target that both clips hold, its R_d and target
+    encoded once (each clip encodes its own R_s only); a resumed run that lost the second clip of a trajectory
+    restores it again into the same bytes."""
     from tracegs.restorer.sampler import RestorationPipeline
 
-    restorations = []
-    restore = RestorationPipeline.restore
-    monkeypatch.setattr(RestorationPipeline, "restore",
+    restorations, encoded = [], []
+    restore = RestorationPipeline.restore_latents
+    monkeypatch.setattr(RestorationPipeline, "restore_latents",
                         lambda self, *args, **kwargs: restorations.append(kwargs["seed"]) or restore(self, *args,
                                                                                                       **kwargs))
+    encode = backbone.codec.encode
+    monkeypatch.setattr(backbone.codec, "encode", lambda frames: encoded.append(len(frames)) or encode(frames))
     _, synthetic, source, fitted, _ = prepared
     # Its own work folder: the session's prepared one is the reference other tests compare whole folders with.
     shared = replace(fitted, cache_dir=str(tmp_path / "cache"), work_dir=str(tmp_path / "work"), student_views=[3, 6],
@@ -322,6 +325,8 @@ def test_shared_trajectories_restore_each_trajectory_once_for_every_k(tmp_path, 
     assert scene["clip_views"] == [3, 6, 3, 6]
     assert scene["clip_refs"][0] == scene["clip_refs"][1] and scene["clip_refs"][2] == scene["clip_refs"][3]
     assert len(restorations) == len(set(restorations)) == 2  # one pseudo-target per trajectory
+    # Per trajectory its teacher conditions (R_d among them) and the target once, per clip its own student snapshots.
+    assert sum(encoded) == 2 * (len(teacher_view_counts(shared)) + 1) + 4 * len(shared.student_snapshots)
     shards = [load_file(str(tmp_path / "cache" / rel)) for rel in manifest["scenes"]["scene_000"]["clips"]]
     for first, second in (shards[0], shards[1]), (shards[2], shards[3]):
         assert torch.equal(first["poses"], second["poses"])

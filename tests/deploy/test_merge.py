@@ -56,3 +56,22 @@ def test_merge_refuses_incomplete_shards(tmp_path):
         merge_results(tmp_path, scenes=["a"], views=[3, 6])
     with pytest.raises(FileNotFoundError, match="no evaluation units"):
         merge_results(tmp_path / "empty")
+
+
+def test_merge_takes_methods_from_other_evaluations_of_the_same_units(tmp_path):
+    """Tables 1/2 from an ablation sweep: 3DGS from this evaluation, A's and F's scores and Fig. 6 curves from the
+    evaluations of variants A and F (each holding its own method only); a method no folder scored is refused."""
+    own, a, f = tmp_path / "main", tmp_path / "A", tmp_path / "F"
+    for folder, method, offset in ((own, "3dgs", 0.0), (a, "baseline", 100.0), (f, "tracegs", 200.0)):
+        for scene in ("a", "b"):
+            unit = _unit(scene, 3, 10.0 + offset)
+            unit["methods"] = {method: unit["methods"][method]}
+            unit["per_step"] = {m: c for m, c in unit["per_step"].items() if m == method}
+            write_json_atomic(unit, unit_path(folder, scene, 3))
+    with pytest.raises(FileNotFoundError, match="evaluation.methods: no scores of baseline"):
+        merge_results(own, methods=["3dgs", "baseline", "tracegs"])
+    results = merge_results(own, methods=["3dgs", "baseline", "tracegs"], sources={"baseline": a, "tracegs": f})
+    assert [results[m]["3"]["psnr"] for m in ("3dgs", "baseline", "tracegs")] == pytest.approx([11.0, 112.0, 213.0])
+    assert results["meta"]["methods_from"] == {"baseline": "../A", "tracegs": "../F"}
+    assert json.loads((own / "per_step.json").read_text()) == {"baseline": [1.0, 2.0], "tracegs": [1.0, 3.0]}
+    assert not (a / "results.json").exists() and not (f / "results.json").exists()  # the sweep's folders untouched

@@ -173,6 +173,9 @@ class ReportConfig:
     # Tables 1/2's datasets (``data`` options): on each, one evaluation of plain 3DGS, A and TRACE-GS (F) merged by
     # report.kind=main (tracegs.pipeline.steps.main_table_steps).
     main_datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
+    # report.kind=main: take A's and the variant's (F) scores from the ablation sweep's evaluations on this dataset
+    # instead of evaluating them again (this command's own evaluation then holds 3DGS only).
+    main_from_sweep: bool = False
     # report.kind=diagnostics: also restore with the Stage-1 adapter alone (the students' starting point, row
     # "stage1"), and give each student's final sample against it, paired over scenes.
     stage1_row: bool = False

@@ -23,7 +23,7 @@ import hashlib
 import json
 import math
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -291,23 +291,30 @@ class EncodedClip:
                 (cache_keys.text_file(self.caption), cache_keys.TEXT, self.text)]
 
 
-def encode_clip(backbone: Backbone, conditions: dict[str, torch.Tensor], target: torch.Tensor,
-                ref_images: torch.Tensor, caption: str, dtype: torch.dtype
-                ) -> tuple[dict[str, torch.Tensor], tuple[torch.Tensor, torch.Tensor], torch.Tensor, torch.Tensor]:
-    """Codec latents of every condition and the target, the 2D tokens of each reference view, the pair's 3D
-    tokens and the text embedding (all frozen encoders)."""
-    keys = list(conditions)
-    device = next(backbone.transformer.parameters()).device  # the accelerator the backbone was built on
-    with torch.no_grad():
-        latents = backbone.codec.encode(torch.stack([conditions[k] for k in keys] + [target.cpu()]).to(device))
-        ref_2d, ref_3d = backbone.reference_encoder(ref_images[None].to(device))
-        text = backbone.text_encoder.encode([caption])
-    out = {cache_keys.latent(k): latents[i].to("cpu", dtype) for i, k in enumerate(keys)}
-    out[cache_keys.latent(cache_keys.TARGET)] = latents[-1].to("cpu", dtype)
+def backbone_device(backbone: Backbone) -> torch.device:
+    """The accelerator the backbone was built on."""
+    return next(backbone.transformer.parameters()).device
+
+
+def encode_frames(backbone: Backbone, frames: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Codec latents of named clips (each (F, 3, H, W) in [0, 1]), encoded as one batch on the backbone's device."""
+    if not frames:
+        return {}
+    latents = backbone.codec.encode(torch.stack([clip.cpu() for clip in frames.values()]).to(backbone_device(backbone)))
+    return dict(zip(frames, latents))
+
+
+def stored_tokens(latents: dict[str, torch.Tensor], references: tuple[torch.Tensor, torch.Tensor],
+                  text: torch.Tensor, dtype: torch.dtype
+                  ) -> tuple[dict[str, torch.Tensor], tuple[torch.Tensor, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """What a shard and its scene files store, in the cache's dtype: the codec latents of every condition and the
+    target, the 2D tokens of each reference view, the pair's 3D tokens and the text embedding."""
+    ref_2d, ref_3d = references
     # The encoder returns both views' 2D tokens concatenated, first view first, each computed from its view
     # alone (DINOv2 per view), so each half is that view's tokens in any pair.
     first, second = ref_2d[0].to("cpu", dtype).chunk(2)
-    return out, (first.clone(), second.clone()), ref_3d[0].to("cpu", dtype), text[0].to("cpu", dtype)
+    return ({cache_keys.latent(k): latent.to("cpu", dtype) for k, latent in latents.items()},
+            (first.clone(), second.clone()), ref_3d[0].to("cpu", dtype), text[0].to("cpu", dtype))
 
 
 def scene_file_is_valid(path: Path, key: str, settings: str) -> bool:
@@ -370,38 +377,78 @@ def restorer_pipeline(backbone: Backbone):
     return RestorationPipeline(backbone)
 
 
-def make_pseudo_target(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
-                       ground_truth: torch.Tensor | None, ref_images: torch.Tensor, caption: str,
-                       cfg: PrepareConfig, pipeline, restored: dict) -> torch.Tensor:
-    """The clip's target frames: ground truth, R_d itself, or R_d restored by the frozen restorer. With
-    ``shared_trajectories`` a trajectory's clips (consecutive) share one restoration, kept in ``restored`` until
-    the next trajectory's; it is captioned from R_d and seeded by the trajectory, which its clips have in common,
-    so a resumed preparation makes the same one."""
+@dataclass
+class SharedTrajectory:
+    """What the clips of one trajectory have in common under ``shared_trajectories`` (paper: 25 trajectories x 3 K
+    per scene): its pseudo-target and the codec latents of its teacher conditions and target. Its first clip makes
+    them, the trajectory's other clips (consecutive) reuse them, so R_d is encoded and restored once per
+    trajectory, not once per clip."""
+
+    trajectory: int | None = None
+    target: torch.Tensor | None = None
+    latents: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def pseudo_target(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
+                  ground_truth: torch.Tensor | None, dense_latent: torch.Tensor | None,
+                  references: tuple[torch.Tensor, torch.Tensor], caption: str, cfg: PrepareConfig,
+                  backbone: Backbone, pipeline) -> torch.Tensor:
+    """The clip's target frames: ground truth, R_d itself, or R_d restored by the frozen restorer from its codec
+    latent ``dense_latent`` (supplement A.4). A restoration shared by a trajectory's clips is captioned from R_d
+    and seeded by the trajectory, which its clips have in common, so a resumed preparation makes the same one."""
     if cfg.pseudo_target == "gt":
         return ground_truth
     dense = conditions[dense_condition(cfg)]
     if cfg.pseudo_target == "dense":
         return dense
-    if not cfg.shared_trajectories:
-        seed = scene_seed(cfg.seed, f"{plan.scene.name}/{index}")
-    elif restored.get("trajectory") == clip["trajectory"]:
-        return restored["frames"]
-    else:
+    if cfg.shared_trajectories:
         seed = scene_seed(cfg.seed, f"{plan.scene.name}/trajectory{clip['trajectory']}")
         caption = clip_caption(cfg.captions, dense[0], plan.scene.caption)
-    target = pipeline.restore(dense[None], ref_images[None], [caption], seed=seed,
-                              guidance_scale=cfg.pseudo_target_guidance)[0].clamp(0, 1).cpu()
-    if cfg.shared_trajectories:
-        restored.update(trajectory=clip["trajectory"], frames=target)
-    return target
+    else:
+        seed = scene_seed(cfg.seed, f"{plan.scene.name}/{index}")
+    latents = pipeline.restore_latents(dense_latent[None], *references, backbone.text_encoder.encode([caption]),
+                                       seed=seed, guidance_scale=cfg.pseudo_target_guidance)
+    return backbone.codec.decode(latents)[0].clamp(0, 1).cpu()
+
+
+def clip_latents(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
+                 ground_truth: torch.Tensor | None, references: tuple[torch.Tensor, torch.Tensor], caption: str,
+                 cfg: PrepareConfig, backbone: Backbone, pipeline, shared: SharedTrajectory
+                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The clip's pseudo-target and the codec latents of its conditions and target (key ``target``).
+
+    Without shared trajectories a clip's conditions and target are one batch (a restored target: the conditions
+    first, R_d's latent restored, then the target). With them, ``shared`` holds the trajectory's teacher
+    latents, pseudo-target and target latent (made as one batch of teacher conditions, then the target, by
+    whichever of its clips comes first, also on a resumed run), and each clip encodes its own student conditions
+    only."""
+    dense = dense_condition(cfg)
+    if not cfg.shared_trajectories:
+        if cfg.pseudo_target != "restorer":
+            target = pseudo_target(plan, clip, index, conditions, ground_truth, None, references, caption, cfg,
+                                   backbone, pipeline)
+            return target, encode_frames(backbone, {**conditions, cache_keys.TARGET: target})
+        latents = encode_frames(backbone, conditions)
+        target = pseudo_target(plan, clip, index, conditions, ground_truth, latents[dense], references, caption, cfg,
+                               backbone, pipeline)
+        return target, latents | encode_frames(backbone, {cache_keys.TARGET: target})
+    teacher = {condition_key(count) for count in teacher_view_counts(cfg)}
+    if shared.trajectory != clip["trajectory"]:
+        latents = encode_frames(backbone, {k: frames for k, frames in conditions.items() if k in teacher})
+        target = pseudo_target(plan, clip, index, conditions, ground_truth, latents.get(dense), references, caption,
+                               cfg, backbone, pipeline)
+        latents |= encode_frames(backbone, {cache_keys.TARGET: target})
+        shared.trajectory, shared.target, shared.latents = clip["trajectory"], target, latents
+    own = encode_frames(backbone, {k: frames for k, frames in conditions.items() if k not in teacher})
+    return shared.target, {k: own[k] if k in own else shared.latents[k] for k in [*conditions, cache_keys.TARGET]}
 
 
 def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, torch.Tensor],
               ground_truth: torch.Tensor | None, cfg: PrepareConfig, backbone: Backbone, pipeline,
-              scene_dir: Path, settings: str, restored: dict, sheet: Path | None = None) -> None:
-    """Pseudo-target (``make_pseudo_target``, ``restored`` its memory of the last shared one), encoding and files
-    of one rendered clip (each condition's PSNR vs GT in its metadata); with ``sheet``, the contact sheet of its
-    frames too (before its shard, so a finished shard has its sheet)."""
+              scene_dir: Path, settings: str, shared: SharedTrajectory, sheet: Path | None = None) -> None:
+    """Pseudo-target and codec latents (``clip_latents``; ``shared``: the trajectory's, reused by its clips), the
+    frozen encoders' tokens and files of one rendered clip (each condition's PSNR vs GT in its metadata); with
+    ``sheet``, the contact sheet of its frames too (before its shard, so a finished shard has its sheet)."""
     cameras: list[Camera] = clip["cameras"]
     views = clip["views"]
     a, b = clip["refs"]
@@ -410,10 +457,12 @@ def save_clip(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, tor
     # the clip's R_s; the most degraded one is what deployment from K views renders first).
     student = condition_key(views, min(cfg.student_snapshots))
     caption = clip_caption(cfg.captions, conditions[student][0], plan.scene.caption)
-    target = make_pseudo_target(plan, clip, index, conditions, ground_truth, ref_images, caption, cfg, pipeline,
-                                restored)
-    tensors, ref_2d, ref_3d, text = encode_clip(backbone, conditions, target, ref_images, caption,
-                                                getattr(torch, cfg.latent_dtype))
+    with torch.no_grad():
+        references = backbone.reference_encoder(ref_images[None].to(backbone_device(backbone)))
+        target, latents = clip_latents(plan, clip, index, conditions, ground_truth, references, caption, cfg,
+                                       backbone, pipeline, shared)
+        tensors, ref_2d, ref_3d, text = stored_tokens(latents, references, backbone.text_encoder.encode([caption]),
+                                                      getattr(torch, cfg.latent_dtype))
     pixels = {**conditions, cache_keys.TARGET: target, cache_keys.REFERENCE: ref_images}
     if ground_truth is not None:
         pixels[cache_keys.GROUND_TRUTH] = ground_truth
@@ -585,10 +634,10 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
     plain = PlainProgress(f"{name}: clips", len(todo))
     sheet = cache_dir / name / "contact_sheet.png" if cfg.contact_sheet else None
-    restored: dict = {}
+    shared = SharedTrajectory()
     for done, (c, (conditions, ground_truth)) in enumerate(zip(todo, scene_clips.rendered), 1):
         save_clip(plan, clips[c], c, conditions, ground_truth, cfg, backbone, pipeline, cache_dir / name,
-                  scene_clips.settings, restored, sheet if c == 0 else None)
+                  scene_clips.settings, shared, sheet if c == 0 else None)
         progress.advance(clip_task)
         plain.update(done)
     remove_unindexed_scene_files(cache_dir / name, shard_paths)

@@ -7,7 +7,8 @@ separate so shards of a SLURM array can be merged by ``tracegs-report`` once all
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from tracegs.deploy.config import METHODS
@@ -21,28 +22,56 @@ from tracegs.io import write_json_atomic
 def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
     return Path(out_dir) / "units" / scene / f"views_{views}.json"
 
+def read_units(folder: str | Path) -> dict[tuple[str, int], dict]:
+    """The evaluation units under ``folder`` by (scene, K)."""
+    units = [json.loads(f.read_text()) for f in sorted((Path(folder) / "units").glob("*/views_*.json"))]
+    if not units:
+        raise FileNotFoundError(f"no evaluation units under {Path(folder) / 'units'}")
+    return {(u["scene"], int(u["views"])): u for u in units}
+
+
+def with_methods_from(units: dict[tuple[str, int], dict], sources: Mapping[str, dict[tuple[str, int], dict]]
+                      ) -> dict[tuple[str, int], dict]:
+    """``units`` with each method of ``sources`` (method -> another evaluation's units) taken from that evaluation:
+    its scores and its Fig. 6 curve, unit by unit; a unit that evaluation lacks stays without the method."""
+    merged = {}
+    for key, unit in units.items():
+        unit = {**unit, "methods": dict(unit["methods"]), "per_step": dict(unit.get("per_step") or {})}
+        for method, other in sources.items():
+            if key in other and method in other[key]["methods"]:
+                unit["methods"][method] = other[key]["methods"][method]
+                unit["lpips"] = "; ".join(sorted({unit["lpips"], other[key]["lpips"]}))
+                if method in (other[key].get("per_step") or {}):
+                    unit["per_step"][method] = other[key]["per_step"][method]
+        merged[key] = unit
+    return merged
+
+
 def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, views: Sequence[int] | None = None,
-                  methods: Sequence[str] | None = None) -> dict:
+                  methods: Sequence[str] | None = None, sources: Mapping[str, Path] | None = None) -> dict:
     """Merge unit files (from one or many shards) into ``results.json``, ``per_scene.json`` and the table.
 
     Each (method, K) cell is the unweighted mean over scenes of the per-scene means over test views.
     Every requested scene must have a unit for every requested K, so no cell silently averages fewer
-    scenes than another. ``None`` selects whatever units exist.
+    scenes than another. ``None`` selects whatever units exist. ``sources`` (method -> evaluation folder) takes
+    those methods from other evaluations of the same scenes and views (Tables 1/2 from an ablation sweep's).
     """
     out_dir = Path(out_dir)
-    files = sorted((out_dir / "units").glob("*/views_*.json"))
-    if not files:
-        raise FileNotFoundError(f"no evaluation units under {out_dir / 'units'}")
-    units = [json.loads(f.read_text()) for f in files]
+    by_key = with_methods_from(read_units(out_dir), {m: read_units(f) for m, f in (sources or {}).items()})
+    units = list(by_key.values())
     scenes = sorted({u["scene"] for u in units}) if scenes is None else list(scenes)
     views = sorted({int(u["views"]) for u in units}) if views is None else [int(v) for v in views]
-    by_key = {(u["scene"], int(u["views"])): u for u in units}
     missing = [f"{s}/views_{k}" for s in scenes for k in views if (s, k) not in by_key]
     if missing:
         raise FileNotFoundError(f"{out_dir / 'units'}: missing evaluation units {missing} (shards not finished?)")
     chosen = [by_key[(s, k)] for s in scenes for k in views]
     if methods is None:
         methods = [m for m in METHODS if all(m in u["methods"] for u in chosen)]
+    lacking = [f"{m} ({sources[m] if m in (sources or {}) else out_dir})" for m in methods
+               if not all(m in u["methods"] for u in chosen)]
+    if lacking:
+        raise FileNotFoundError(f"evaluation.methods: no scores of {', '.join(lacking)} for every scene and view "
+                                "count (run tracegs-evaluate for them first)")
     lpips_labels = sorted({u["lpips"] for u in chosen})
     variants = sorted({u.get("variant") for u in chosen}, key=str)
     results: dict = {}
@@ -60,6 +89,8 @@ def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, view
         "variant": variants[0] if len(variants) == 1 else variants,
         "protocol": "mean over each scene's test views (captured views excluded), then unweighted mean over scenes",
     }
+    if sources:
+        results[META_KEY]["methods_from"] = {m: os.path.relpath(folder, out_dir) for m, folder in sources.items()}
     write_json_atomic(results, out_dir / "results.json")
     write_json_atomic(per_scene, out_dir / "per_scene.json")
     unit_curves = {(u["scene"], str(u["views"])): u["per_step"] for u in chosen if u.get("per_step")}

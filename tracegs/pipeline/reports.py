@@ -37,11 +37,38 @@ def report(cfg: DictConfig) -> Path:
         return merge_manifests(cfg.data.prepare.cache_dir)
     if kind == "main":
         out = Path(cfg.evaluation.out_dir)
-        merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods))
+        sources = swept_method_evaluations(cfg) if cfg.report.main_from_sweep else None
+        merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods), sources=sources)
         return out / "results.json"
     # report.kind is checked at composition (tracegs.config.schema.ReportKind).
     return {"per_step": per_step_report, "seeds": seed_report, "privileged": privileged_report,
             "ablation": ablation_report, "diagnostics": diagnostics_report}[kind](cfg)
+
+
+def variant_evaluation(cfg: DictConfig, variant: str, dataset: str, asked_by: str, product: str = "results.json"
+                       ) -> Path:
+    """The folder of the evaluation of ``variant`` on ``dataset`` that this command line's settings give (what the
+    ablation sweep's evaluate step made), refused in one line naming the field ``asked_by`` when it lacks
+    ``product``."""
+    computed = Path(upstream_config(cfg, "evaluate", variant, data=dataset).evaluation.out_dir)
+    folder = same_identity(computed, product)
+    if not (folder / product).exists():
+        raise FileNotFoundError(f"{asked_by}: no evaluation of variant {variant} on {dataset} ({folder / product}); run "
+                                f"tracegs-evaluate ablation={variant} data={dataset} with this command's settings")
+    return folder
+
+
+def swept_method_evaluations(cfg: DictConfig) -> dict[str, Path]:
+    """Tables 1/2 from the ablation sweep (``report.main_from_sweep``): each restorer method of
+    ``evaluation.methods`` from the sweep's evaluation, on this dataset, of the variant standing for it: this
+    command's variant (default F) for its own method, else the one variant evaluated by that method (A for
+    ``baseline``). 3DGS, which no variant stands for, stays this command's own evaluation."""
+    standing = {v.method: v.name for v in reversed(table3_variants())} | {cfg.ablation.method: cfg.ablation.name}
+    unknown = [m for m in cfg.evaluation.methods if m != "3dgs" and m not in standing]
+    if unknown:
+        raise ValueError(f"report.main_from_sweep: no Table 3 variant is evaluated by {unknown}")
+    return {m: variant_evaluation(cfg, standing[m], cfg.data.name, "report.main_from_sweep", "units")
+            for m in cfg.evaluation.methods if m != "3dgs"}
 
 
 def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
@@ -50,17 +77,8 @@ def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
     give on it, in Table 3's row order (the restorers trained on the training data, evaluated there)."""
     if cfg.report.inputs:
         return {cfg.data.name: [Path(p) for p in cfg.report.inputs]}
-    inputs: dict[str, list[Path]] = {}
-    for dataset in cfg.report.datasets:
-        for variant in table3_variants():
-            computed = Path(upstream_config(cfg, "evaluate", variant.name, data=dataset).evaluation.out_dir)
-            folder = same_identity(computed, "results.json")
-            if not (folder / "results.json").is_file():
-                raise FileNotFoundError(f"report.datasets: no evaluation of variant {variant.name} on {dataset} "
-                                        f"({folder}/results.json); run tracegs-evaluate ablation={variant.name} "
-                                        f"data={dataset} with this command's settings")
-            inputs.setdefault(dataset, []).append(folder)
-    return inputs
+    return {dataset: [variant_evaluation(cfg, variant.name, dataset, "report.datasets") for variant in table3_variants()]
+            for dataset in cfg.report.datasets}
 
 
 def ablation_report(cfg: DictConfig) -> Path:

@@ -78,17 +78,25 @@ def out_of_domain_steps(variant: str, datasets: Sequence[str], common: Sequence[
             for dataset in datasets]
 
 
-def main_table_steps(datasets: Sequence[str], training_data: str, common: Sequence[str] = ()) -> list[Step]:
+def main_table_steps(datasets: Sequence[str], training_data: str, common: Sequence[str] = (),
+                     swept: Sequence[str] = ()) -> list[Step]:
     """Tables 1/2 (paper Table 1 on DL3DV, Table 2 out of domain: ``report.main_datasets``): on each of
-    ``datasets``, one evaluation of plain 3DGS, A and TRACE-GS (F), the restorers trained on ``training_data``,
-    merged by ``report.kind=main``. On another dataset (``data=<name>``) the steps leave out ``common``'s data
-    settings, which describe the training data."""
+    ``datasets``, plain 3DGS, A and TRACE-GS (F), the restorers trained on ``training_data``, merged by
+    ``report.kind=main``: one evaluation of the three, or on a dataset the Table 3 sweep evaluated (``swept``) an
+    evaluation of 3DGS alone with A and F taken from the sweep's (``report.main_from_sweep``). On another dataset
+    (``data=<name>``) the steps leave out ``common``'s data settings, which describe the training data."""
     steps = []
     for dataset in datasets:
         own = tuple(common) if dataset == training_data else (
             *(o for o in common if not describes_the_dataset(o)), f"data={dataset}")
-        steps += [Step("evaluate", own, f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
-                  Step("report", (*own, "report.kind=main"), f"Tables 1/2 on {dataset}")]
+        if dataset in swept:
+            steps += [Step("evaluate", (*own, "evaluation.methods=[3dgs]"),
+                           f"evaluate 3DGS on {dataset} (Tables 1/2: A and F from the Table 3 sweep)"),
+                      Step("report", (*own, "report.kind=main", "report.main_from_sweep=true"),
+                           f"Tables 1/2 on {dataset}")]
+        else:
+            steps += [Step("evaluate", own, f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
+                      Step("report", (*own, "report.kind=main"), f"Tables 1/2 on {dataset}")]
     return steps
 
 

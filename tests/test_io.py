@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 
@@ -35,3 +36,18 @@ def test_products_take_the_umask_permissions(tmp_path, umask, mask, file_mode, d
     assert mode(tmp_path / "adapter.safetensors") == file_mode
     assert mode(tmp_path / "model") == dir_mode
     assert mode(tmp_path / "model" / "config.json") == file_mode
+
+
+def test_a_file_made_again_with_the_same_bytes_is_left_untouched(tmp_path):
+    """A rerun that writes a product again does not touch it (same inode, same modification time); other bytes
+    replace it."""
+    path = tmp_path / "results.json"
+    write_json_atomic({"a": 1}, path)
+    os.utime(path, ns=(1, 1))
+    before = os.stat(path)
+    write_json_atomic({"a": 1}, path)
+    after = os.stat(path)
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, 1)
+    write_json_atomic({"a": 2}, path)
+    assert json.loads(path.read_text()) == {"a": 2} and os.stat(path).st_ino != before.st_ino
+    assert [p.name for p in tmp_path.iterdir()] == ["results.json"]  # no temporary left beside it

@@ -6,15 +6,37 @@ import logging
 import math
 import sys
 import time
+from pathlib import Path
 
 log = logging.getLogger("tracegs")
 
 
+def log_files() -> list[logging.FileHandler]:
+    """The file handlers of the root logger (Hydra's job log)."""
+    return [handler for handler in logging.getLogger().handlers if isinstance(handler, logging.FileHandler)]
+
+
+class LogBookmark:
+    """Where each log file of the run ends now, so that a run which made nothing can leave its logs as they were
+    (a rerun of finished work keeps the record of the run that made it; its own lines went to the console)."""
+
+    def __init__(self) -> None:
+        self.lengths = {Path(h.baseFilename): Path(h.baseFilename).stat().st_size
+                        for h in log_files() if Path(h.baseFilename).is_file()}
+
+    def rewind(self) -> None:
+        """Cut each log file back to its length at the bookmark (handlers append, so they go on from there)."""
+        for handler in log_files():
+            handler.flush()
+        for path, length in self.lengths.items():
+            with path.open("r+b") as file:
+                file.truncate(length)
+
+
 def to_log_files(text: str, level: int = logging.INFO) -> None:
     """Write ``text`` to every file handler of the root logger (Hydra's job log), not to the console."""
-    for handler in logging.getLogger().handlers:
-        if isinstance(handler, logging.FileHandler):
-            handler.emit(log.makeRecord(log.name, level, __file__, 0, text, None, None))
+    for handler in log_files():
+        handler.emit(log.makeRecord(log.name, level, __file__, 0, text, None, None))
 
 
 def show(text: str = "") -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import filecmp
 import hashlib
 import json
 import mmap
@@ -37,7 +38,8 @@ def _with_umask_permissions(path: Path, mode: int) -> None:
 
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success rename it over ``path``.
+    """Yield a temporary path next to ``path``; on success rename it over ``path``, unless ``path`` already holds
+    the same bytes: then it is left as it is (a rerun that makes a file again does not touch it).
 
     The temporary file lives in the same directory so that ``os.replace`` is an atomic rename
     on POSIX. On any exception the temporary file is removed and ``path`` is left untouched.
@@ -52,8 +54,9 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         with refused_writes_named(target):
             yield tmp
             # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
-            _with_umask_permissions(tmp, 0o666)
-            os.replace(tmp, target)
+            if not (target.is_file() and filecmp.cmp(tmp, target, shallow=False)):
+                _with_umask_permissions(tmp, 0o666)
+                os.replace(tmp, target)
     finally:
         if tmp.exists():
             tmp.unlink()

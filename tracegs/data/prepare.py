@@ -584,7 +584,7 @@ def render_conditions(plan: ScenePlan, cameras: list[Camera], paths: dict[str, t
 class SceneClips:
     """One scene's clips, their shard paths, the ones still to make and their renders (submitted, in order)."""
 
-    clips: list[dict]
+    clips: list[dict] | None  # None when every clip is finished
     shard_paths: list[Path]
     settings: str
     todo: list[int]
@@ -593,12 +593,16 @@ class SceneClips:
 
 def render_scene_clips(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone,
                        pool: WorkerPool | None) -> SceneClips:
-    """Submit the renders of one scene's unfinished clips (to the worker processes when there are some)."""
-    clips = clip_cameras(plan, cfg)
-    shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(len(clips))]
+    """Submit the renders of one scene's unfinished clips (to the worker processes when there are some). The
+    clips' trajectories are drawn only when one is unfinished: a finished clip's are in its shard's header, and
+    drawing them is most of the time a rerun of a finished preparation would take."""
+    captured = plan.captured
+    count = len(captured) if captured is not None else len(clip_view_counts(cfg, plan.scene.name))
+    shard_paths = [Path(cfg.cache_dir) / plan.scene.name / cache_keys.clip_file(c) for c in range(count)]
     settings = clip_settings(cfg, backbone)
     todo = [c for c, p in enumerate(shard_paths)
-            if cfg.force or not shard_is_valid(p, settings, clips[c].get("images"))]
+            if cfg.force or not shard_is_valid(p, settings, None if captured is None else captured[c]["images"])]
+    clips = clip_cameras(plan, cfg) if todo else None
     paths = condition_paths(plan, cfg)
     rendered = run_units(pool, render_conditions, [
         (plan, clips[c]["cameras"], {key: paths[key] for key in clip_condition_keys(cfg, clips[c]["views"])}, cfg,
@@ -631,7 +635,7 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
     name = plan.scene.name
     cache_dir = Path(cfg.cache_dir)
     clips, shard_paths, todo = scene_clips.clips, scene_clips.shard_paths, scene_clips.todo
-    clip_task = progress.add_task(f"{name}: clips", total=len(clips), completed=len(clips) - len(todo))
+    clip_task = progress.add_task(f"{name}: clips", total=len(shard_paths), completed=len(shard_paths) - len(todo))
     plain = PlainProgress(f"{name}: clips", len(todo))
     sheet = cache_dir / name / "contact_sheet.png" if cfg.contact_sheet else None
     shared = SharedTrajectory()
@@ -641,6 +645,11 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         progress.advance(clip_task)
         plain.update(done)
     remove_unindexed_scene_files(cache_dir / name, shard_paths)
+    if clips is None:  # every clip finished: its reference views and K are in its shard's header
+        records = [clip_record(name, c, path) for c, path in enumerate(shard_paths)]
+        clip_refs, clip_views = [list(record.refs) for record in records], [record.views for record in records]
+    else:
+        clip_refs, clip_views = [clip["refs"] for clip in clips], [clip["views"] for clip in clips]
     scene_file = cache_dir / name / "scene.json"
     scene_info = {
         "name": name,
@@ -650,8 +659,8 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         "intrinsics": [c.K.tolist() for c in plan.scene.cameras],
         "world_to_camera": [c.world_to_camera.tolist() for c in plan.scene.cameras],
         "size": [plan.scene.cameras[0].height, plan.scene.cameras[0].width],
-        "clip_refs": [clip["refs"] for clip in clips],
-        "clip_views": [clip["views"] for clip in clips],
+        "clip_refs": clip_refs,
+        "clip_views": clip_views,
     }
     write_if_changed(scene_info, scene_file)
     psnr: dict[str, list[float]] = {}
@@ -659,8 +668,9 @@ def prepare_scene(plan: ScenePlan, cfg: PrepareConfig, backbone: Backbone, pipel
         for key, value in read_shard_psnr(path).items():
             psnr.setdefault(key, []).append(value)
     captured = {} if plan.captured is None else {
-        "capture_order": clips[0]["capture_order"],  # the rule of tracegs/data/held_out.py that ordered the capture
-        "padded_clips": [c for c, clip in enumerate(clips) if repeats_frames(clip["images"])],
+        # the rule of tracegs/data/held_out.py that ordered the capture
+        "capture_order": plan.captured[0]["capture_order"],
+        "padded_clips": [c for c, clip in enumerate(plan.captured) if repeats_frames(clip["images"])],
     }
     return {
         "scene_file": str(scene_file.relative_to(cache_dir)),

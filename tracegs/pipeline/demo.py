@@ -12,7 +12,7 @@ from pathlib import Path
 import lightning
 from omegaconf import DictConfig
 
-from tracegs.console import show
+from tracegs.console import LogBookmark, show
 from tracegs.eval.report import results_table_markdown
 from tracegs.eval.seeds import per_step_points
 from tracegs.io import atomic_write, content_digest, write_json_atomic
@@ -50,6 +50,7 @@ def demo(cfg: DictConfig) -> Path:
     refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings) and ``tables.md``.
     """
     start = time.perf_counter()
+    bookmark = LogBookmark()
     out_dir = Path(cfg.run_dir)
     timings: dict[str, float] = {}
     steps = demo_steps(cfg.ablation.name, cfg.evaluation.views)
@@ -73,12 +74,13 @@ def demo(cfg: DictConfig) -> Path:
     record = out_dir / "run.json"
     earlier = json.loads(record.read_text()) if record.is_file() else None
     if earlier is not None and earlier.get("products") == products:
-        # Nothing the tables show was made again: run.json keeps how the products were made (the first run's
-        # commit, machine and timings), not how long it took to find them finished.
-        show((out_dir / "tables.md").read_text())
-        show(f"tracegs-demo: every product was already made ({earlier['wall_s']:.0f} s on commit "
-             f"{earlier['commit']}, recorded in run.json); nothing recomputed in "
-             f"{time.perf_counter() - start:.0f} s")
+        # Nothing the tables show was made again: run.json and the log keep how the products were made (the first
+        # run's commit, machine and timings), not how long it took to find them finished.
+        bookmark.rewind()
+        print((out_dir / "tables.md").read_text())
+        print(f"tracegs-demo: every product was already made ({earlier['wall_s']:.0f} s on commit "
+              f"{earlier['commit']}, recorded in run.json and the log); nothing recomputed in "
+              f"{time.perf_counter() - start:.0f} s", flush=True)
         return out_dir
     run = {**describe(cfg.seed), "wall_s": round(time.perf_counter() - start, 1),
            "peak_rss_gib": round(peak_rss_gib(), 3), "step_s": timings, "products": products}

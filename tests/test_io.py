@@ -8,6 +8,9 @@ import stat
 
 import pytest
 
+from read_only import read_only_view
+
+from tracegs.errors import OutputPathError
 from tracegs.io import atomic_directory, save_safetensors_atomic, write_json_atomic
 
 
@@ -51,3 +54,17 @@ def test_a_file_made_again_with_the_same_bytes_is_left_untouched(tmp_path):
     write_json_atomic({"a": 2}, path)
     assert json.loads(path.read_text()) == {"a": 2} and os.stat(path).st_ino != before.st_ino
     assert [p.name for p in tmp_path.iterdir()] == ["results.json"]  # no temporary left beside it
+
+
+def test_a_read_only_copy_takes_the_same_bytes_and_refuses_others_in_one_line(tmp_path):
+    """A finished product on a read-only file system: writing it again with the same bytes succeeds without a
+    write; other bytes are refused naming the file, and nothing is left anywhere."""
+    source = tmp_path / "root"
+    source.mkdir()
+    write_json_atomic({"a": 1}, source / "results.json")
+    with read_only_view(source, tmp_path / "view") as view:
+        write_json_atomic({"a": 1}, view / "results.json")
+        with pytest.raises(OutputPathError, match=r"results\.json: cannot write \(Read-only file system\)"):
+            write_json_atomic({"a": 2}, view / "results.json")
+    assert json.loads((source / "results.json").read_text()) == {"a": 1}
+    assert [p.name for p in source.iterdir()] == ["results.json"]

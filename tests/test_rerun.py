@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from read_only import read_only_view
 from test_tasks import SMALLEST
 
 from tracegs.pipeline.records import LOCK_FILE, RUN_RECORD
@@ -95,6 +96,27 @@ def test_a_copied_root_spelled_relatively_is_the_same_run(finished, entry_point,
     assert product_sums(copy) == sums
     assert trained_versions(copy) == versions
     assert said_nothing_to_do(again) == {"baseline", "stage1", "stage2"}
+
+
+@pytest.mark.slow
+def test_a_finished_root_on_a_read_only_file_system_reruns_and_refuses_new_work_in_one_line(
+        finished, entry_point, tmp_path):
+    """A second demo on a read-only copy of a finished root finds every product finished and succeeds (no run
+    record, log or lock to write); a command with new work refuses in one line naming the folder."""
+    root, sums, _ = finished
+    copy = tmp_path / "copied"
+    shutil.copytree(root, copy)
+    before = every_file(copy)
+    with read_only_view(copy, tmp_path / "view") as view:
+        again = entry_point("demo", [f"paths.root_dir={view}", *DEMO], tmp_path)
+        assert again.returncode == 0, again.stderr[-3000:]
+        assert "every product was already made" in again.stdout
+        new = entry_point("train", [f"paths.root_dir={view}", *DEMO, "stage=stage1", "experiment.stage1_steps=2"],
+                          tmp_path)
+        assert new.returncode == 2, new.stderr[-2000:]
+        (line,) = new.stderr_lines()
+        assert "Read-only file system" in line and str(view) in line
+    assert every_file(copy) == before
 
 
 @pytest.mark.slow

@@ -65,26 +65,41 @@ def one_line(error: BaseException | str, limit: int = 300) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def require_writable_dir(path: str | os.PathLike, field: str) -> Path:
-    """Check that ``path`` is, or can be created as, a writable directory; raise naming ``field`` otherwise.
-
-    Nothing is created: the probe file goes into ``path`` or, when it does not exist yet, into its nearest
-    existing parent (where it would be created). A probe rather than permission bits, because those do not
-    tell the whole story (read-only mounts, ACLs, root ignoring the bits).
-    """
+def write_probe_failure(path: str | os.PathLike) -> tuple[Path, OSError | None]:
+    """(the folder a file under ``path`` would be created in: ``path`` or its nearest existing parent, why a file
+    cannot be created there or None). Nothing is left behind. A probe rather than permission bits, because those do
+    not tell the whole story (read-only mounts, ACLs, root ignoring the bits)."""
     directory = Path(path)
     existing = next((p for p in (directory, *directory.parents) if p.exists()), Path("."))
     if not existing.is_dir():
-        raise OutputPathError(existing, f"is a file, but {field} needs a directory here",
-                              f"move the file away or choose another {field}")
+        return existing, None
     probe = existing / f".write-probe-{os.getpid()}"
     try:
         probe.touch()
         probe.unlink()
     except OSError as error:
+        return existing, error
+    return existing, None
+
+
+def writable(path: str | os.PathLike) -> bool:
+    """Whether a file can be created in ``path`` (or, when it does not exist yet, where it would be created)."""
+    return write_probe_failure(path)[1] is None
+
+
+def require_writable_dir(path: str | os.PathLike, field: str, finished_ok: bool = False) -> Path:
+    """Check that ``path`` is, or can be created as, a writable directory; raise naming ``field`` otherwise.
+    Nothing is created (:func:`write_probe_failure`). ``finished_ok``: an existing folder nothing can be written
+    to passes (a read-only copy of a finished root): a step that finds its products finished writes nothing there,
+    and one that would write refuses at its first write, naming the file."""
+    existing, error = write_probe_failure(path)
+    if not existing.is_dir():
+        raise OutputPathError(existing, f"is a file, but {field} needs a directory here",
+                              f"move the file away or choose another {field}")
+    if error is not None and not (finished_ok and existing == Path(path)):
         raise OutputPathError(existing, f"not writable ({error.strerror or error})",
                               f"fix the folder's permissions or choose another {field}") from error
-    return directory
+    return Path(path)
 
 
 def plain_name_problem(name: str) -> str | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import filecmp
 import hashlib
 import json
@@ -42,21 +43,34 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     the same bytes: then it is left as it is (a rerun that makes a file again does not touch it).
 
     The temporary file lives in the same directory so that ``os.replace`` is an atomic rename
-    on POSIX. On any exception the temporary file is removed and ``path`` is left untouched.
+    on POSIX. On any exception the temporary file is removed and ``path`` is left untouched. An existing ``path``
+    in a folder nothing can be written to (a read-only copy of a finished root) is made again in the system's
+    temporary folder and compared: the same bytes need no write, other bytes are refused in one line.
     """
     target = Path(path)
+    aside = False
     with refused_writes_named(target):
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        if not target.parent.is_dir():
+            target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        except OSError:
+            if not target.is_file():
+                raise
+            aside = True
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp")
     os.close(fd)
     tmp = Path(tmp_name)
     try:
         with refused_writes_named(target):
             yield tmp
+            if target.is_file() and filecmp.cmp(tmp, target, shallow=False):
+                return
+            if aside:
+                raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(target))
             # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
-            if not (target.is_file() and filecmp.cmp(tmp, target, shallow=False)):
-                _with_umask_permissions(tmp, 0o666)
-                os.replace(tmp, target)
+            _with_umask_permissions(tmp, 0o666)
+            os.replace(tmp, target)
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -24,7 +24,7 @@ import lightning
 from diffusers.utils import logging as diffusers_logging
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
 from tracegs.cli.precheck import refuse_bad_command_line
@@ -33,7 +33,7 @@ from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
-from tracegs.errors import ConfigError, TraceGSError, require_writable_dir
+from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
 
 
 def log_libraries_through_hydra() -> None:
@@ -56,10 +56,19 @@ class OutputsWritable(Callback):
     writable directory, before Hydra writes into it.
 
     Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
-    would only see Hydra's own traceback for an output path that is a file or read-only.
+    would only see Hydra's own traceback for an output path that is a file or read-only. A single run whose
+    folder already exists where nothing can be written (a read-only copy of a finished root) is let through
+    with Hydra's records and log file off (the log goes to the console): a step with nothing to do writes
+    nothing, and one that would write refuses in one line naming the file.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        run_dir = Path(config.hydra.run.dir)
+        if run_dir.is_dir() and not writable(run_dir):
+            with open_dict(config):
+                config.hydra.output_subdir = None
+                config.hydra.job_logging = CONSOLE_LOGGING
+            return
         self._check(config, "run", "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -74,6 +83,16 @@ class OutputsWritable(Callback):
             if os.environ.get("TRACEGS_TRACEBACK"):
                 raise
             exit_with_one_line(app, error)
+
+
+# Hydra's job logging without its file handler: the console alone (a read-only run folder).
+CONSOLE_LOGGING = {
+    "version": 1,
+    "formatters": {"simple": {"format": "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"}},
+    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "simple", "stream": "ext://sys.stdout"}},
+    "root": {"level": "INFO", "handlers": ["console"]},
+    "disable_existing_loggers": False,
+}
 
 
 # What a run folder holds before it holds a product: Hydra's record of the command, the log, empty logger folders.

@@ -757,10 +757,10 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     anything is written, so bad input fails without side effects.
     """
     require_inputs(prepare)
-    require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir")
-    require_writable_dir(prepare.work_dir, "data.prepare.work_dir")
+    require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir", finished_ok=True)
+    require_writable_dir(prepare.work_dir, "data.prepare.work_dir", finished_ok=True)
     if synthetic is not None:
-        require_writable_dir(synthetic.root, "data.synthetic.root")
+        require_writable_dir(synthetic.root, "data.synthetic.root", finished_ok=True)
     threads = torch.get_num_threads()
     if prepare.workers > 1:
         # The workers take the other cores; oversubscribed intra-op threads are much slower (5x measured).

@@ -308,7 +308,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     require_captioner(refine_cfg.captions, "deploy.captions")
     refine_cfg.validate()
-    require_writable_dir(cfg.out_dir, "evaluation.out_dir")
+    require_writable_dir(cfg.out_dir, "evaluation.out_dir", finished_ok=True)
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights)
     # The LPIPS label says whether LPIPS was computed: a unit scored without it is scored again once it can be.

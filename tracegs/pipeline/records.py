@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import differing_keys, scoped_values
 from tracegs.content import content_digest, root_relative
-from tracegs.errors import ConfigError, require_writable_dir
+from tracegs.errors import ConfigError, require_writable_dir, writable
 from tracegs.io import atomic_write, write_json_atomic
 
 log = logging.getLogger("tracegs")
@@ -84,7 +84,9 @@ def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)
     Only a job's first process (rank 0) takes the lock: the other ranks of a multi-process training job run the
     same command, and one waiting here for rank 0 while rank 0 waits for it to join the process group would
     deadlock."""
-    if rank_zero_only.rank != 0:
+    if rank_zero_only.rank != 0 or (Path(folder).is_dir() and not writable(folder)):
+        # (A folder nothing can write to, e.g. a read-only copy of a finished root, needs no lock: no job can
+        # change it; the step finds its product finished, or refuses in one line where it would write.)
         yield
         return
     folder = require_writable_dir(folder, field)  # a file or a read-only folder: one line naming ``field``
@@ -103,10 +105,21 @@ def product_lock(folder: str | Path, field: str, shard: tuple[int, int] = (0, 1)
         raise
 
 
+def relative_to_root(node: object, root: str | Path) -> object:
+    """A resolved config container with every absolute path inside ``root`` written relative to it
+    (``root_relative``; relative paths, and text that only holds a '/', stay as they are)."""
+    if isinstance(node, dict):
+        return {key: relative_to_root(value, root) for key, value in node.items()}
+    if isinstance(node, list):
+        return [relative_to_root(value, root) for value in node]
+    return root_relative(node, root) if isinstance(node, str) and node.startswith("/") else node
+
+
 def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
-    """Keep beside a finished product the settings that determine it (paths relative to the root), the contents
-    of the inputs it was made from, and the whole resolved config."""
+    """Keep beside a finished product the settings that determine it, the contents of the inputs it was made from,
+    and the whole resolved config, paths relative to the root: a copy of the root elsewhere keeps the same bytes."""
     folder = Path(folder)
     write_json_atomic({**scoped_values(cfg, kind), **input_digests(cfg, kind)}, folder / RUN_RECORD)
+    resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
     with atomic_write(folder / "config.yaml") as tmp:
-        tmp.write_text(OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True))
+        tmp.write_text(OmegaConf.to_yaml(relative_to_root(resolved, cfg.paths.root_dir)))

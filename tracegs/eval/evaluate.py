@@ -17,7 +17,7 @@ import math
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -159,6 +159,10 @@ class _UnitJob:
     metrics: ImageMetrics
     gt_renderer: GroundTruthRenderer | None
     fingerprint: str
+    # This process's scenes, each loaded once, and the unit whose parts run now (a unit's parts follow one another
+    # in a process; keeping every unit would hold every scene's test images at once).
+    scenes: dict[str, Scene] = field(default_factory=dict)
+    current: tuple[tuple[str, int], SceneUnit] | None = None
 
     def parts(self) -> list[str]:
         """The methods, longest first (restorers run repair rounds; plain 3DGS does not), then the curves."""
@@ -169,8 +173,13 @@ class _UnitJob:
         return methods + ([PER_STEP] if self.cfg.per_step and self.gt_renderer is not None else [])
 
     def unit(self, key: tuple[str, int]) -> SceneUnit:
-        scene_name, views = key
-        return load_unit(load_scene(self.source, scene_name), views, self.source)
+        """The (scene, K) unit, split as prepare splits it (``load_unit``)."""
+        if self.current is None or self.current[0] != key:
+            scene_name, views = key
+            if scene_name not in self.scenes:
+                self.scenes[scene_name] = load_scene(self.source, scene_name)
+            self.current = (key, load_unit(self.scenes[scene_name], views, self.source))
+        return self.current[1]
 
     def cold_start(self, key: tuple[str, int]) -> GaussianFitter:
         return self.unit(key).cold_start(self.refine_cfg, self.fit_cfg)

@@ -16,6 +16,7 @@ from omegaconf.errors import ConfigKeyError
 from tracegs.config.location import CONF_DIR
 from tracegs.data.colmap import require_training_source
 from tracegs.data.config import overlapping_seeds
+from tracegs.data.sources import is_procedural
 from tracegs.data.synthetic import benchmark_scene_names
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
@@ -95,7 +96,7 @@ def _validate_data(cfg: DictConfig) -> None:
         f"clips must have 8k+1 frames (9, 17, 25, 49: the CogVideoX VAE contract), got {prepare.frames_per_clip}",
     )
     _require(
-        prepare.split != "val" or cfg.data.source.preset == "synthetic",
+        prepare.split != "val" or is_procedural(cfg.data.source),
         "data.prepare.split",
         "'val': only the synthetic benchmark has a validation split; a real dataset prepares 'train' or 'test'",
     )
@@ -160,7 +161,7 @@ def _validate_training_data(cfg: DictConfig) -> None:
     source = cfg.data.source
     unlisted = source.scenes is None and source.train_list is None
     preparing_training = cfg.task == "prepare" and cfg.data.prepare.split == "train"
-    if source.preset != "synthetic" and (preparing_training or (cfg.task == "train" and unlisted)):
+    if not is_procedural(source) and (preparing_training or (cfg.task == "train" and unlisted)):
         require_training_source(OmegaConf.to_object(source))
 
 
@@ -212,7 +213,7 @@ def _validate_deployment_eval(cfg: DictConfig) -> None:
     """Training deploys on validation scenes only: on the synthetic benchmark, its val split (never a scene it
     trains on or is tested on)."""
     scenes = list(cfg.stage.deployment_eval.scenes)
-    if scenes and cfg.data.source.preset == "synthetic":
+    if scenes and is_procedural(cfg.data.source):
         validation = benchmark_scene_names(OmegaConf.to_object(cfg.data.synthetic), "val")
         others = sorted(set(scenes) - set(validation))
         _require(not others, "stage.deployment_eval.scenes",
@@ -264,7 +265,7 @@ def _validate_backbone(cfg: DictConfig) -> None:
     # VAE compresses 8x spatially, supplement A.1; the embedded codec by its block size).
     factor = (8 if backbone.codec.kind == "cogvideox" else backbone.codec.block_size) * backbone.transformer.patch_size
     height, width = cfg.data.synthetic.height, cfg.data.synthetic.width
-    if cfg.data.source.preset != "synthetic" and cfg.data.source.height is not None:
+    if not is_procedural(cfg.data.source) and cfg.data.source.height is not None:
         height, width = cfg.data.source.height, cfg.data.source.width
     # The data groups take their frame size from the experiment, so a backbone chosen without its scale
     # fails here: say which experiment sizes frames for it.

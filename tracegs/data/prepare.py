@@ -41,6 +41,7 @@ from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
 from tracegs.data.datamodule import CacheError, clip_record, repeats_frames
 from tracegs.data.held_out import captured_clips
+from tracegs.data.sources import is_procedural
 from tracegs.data.splits import SceneSplit, require_sparse_in_dense, split_scene, view_set_key
 from tracegs.data.synthetic import (
     GT_PLY,
@@ -91,7 +92,7 @@ class ScenePlan:
 def captures_held_out(source: SceneSourceConfig, cfg: PrepareConfig) -> bool:
     """Whether a scene's clips run through its captured cameras (the held-out split of a real dataset, whose only
     ground truth is the capture) rather than along deployment's synthesised trajectory."""
-    return cfg.split == Split.test and source.preset != "synthetic"
+    return cfg.split == Split.test and not is_procedural(source)
 
 
 def _view_counts(cfg: PrepareConfig) -> list[int | None]:

@@ -16,7 +16,7 @@ import logging
 import math
 import multiprocessing
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +29,7 @@ from tracegs.content import content_digest
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
+from tracegs.data.sources import GroundTruthRenderer
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
 from tracegs.deploy.refine import refine, render_round_clips
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
@@ -49,9 +50,6 @@ from tracegs.splat.trajectory import bridge_poses
 
 log = logging.getLogger("tracegs")
 
-# Ground truth at arbitrary poses, where the scene is known (the synthetic benchmark): (scene, cameras) ->
-# [F,3,H,W] in [0,1]. Used for the video's GT column and the per-step (Fig. 6) curves.
-GroundTruthRenderer = Callable[[Scene, Sequence[Camera]], Tensor]
 
 def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
     """A smooth path through the test cameras (bridges between consecutive ones) for the videos."""

@@ -8,6 +8,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from tracegs.data.prepare import require_inputs, run_prepare
+from tracegs.data.sources import SceneSource
 from tracegs.devices import accelerator
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
 from tracegs.pipeline.upstream import section
@@ -23,8 +24,8 @@ def prepare(cfg: DictConfig) -> Path:
     shard = (cfg.data.prepare.shard_index, cfg.data.prepare.num_shards)
     with product_lock(cfg.data.prepare.cache_dir, "data.prepare.cache_dir", shard):
         backbone = build_backbone(section(cfg.backbone), device=accelerator())
-        synthetic = section(cfg.data.synthetic) if cfg.data.source.preset == "synthetic" else None
-        manifest = run_prepare(section(cfg.data.prepare), section(cfg.data.source), backbone, synthetic)
+        scenes = SceneSource.of(cfg.data)
+        manifest = run_prepare(section(cfg.data.prepare), scenes.source, backbone, scenes.procedural)
         write_run_record(cfg, "prepare", cfg.data.prepare.cache_dir)
     log.info("paired-clip cache: %s", manifest)
     return manifest

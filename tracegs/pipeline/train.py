@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from tracegs.data.synthetic import generate_benchmark
+from tracegs.data.sources import SceneSource
 from tracegs.pipeline.records import product_lock, reuse_finished, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts, section
 from tracegs.training.config import TrainConfig
@@ -53,8 +53,8 @@ def train_locked(cfg: DictConfig) -> Path:
         deploy=section(cfg.deploy),
         fit=section(cfg.data.prepare.fit),
     )
-    if train_cfg.stage.deployment_eval.scenes and cfg.data.source.preset == "synthetic":
-        generate_benchmark(section(cfg.data.synthetic), splits=("val",), progress=False)  # the validation scenes
+    if train_cfg.stage.deployment_eval.scenes:
+        SceneSource.of(cfg.data).generate(("val",), progress=False)  # the validation scenes
     product = train_stage(train_cfg)
     write_run_record(cfg, cfg.stage.name, cfg.run_dir)
     log.info("%s product: %s", cfg.stage.name, product)

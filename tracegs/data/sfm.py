@@ -155,8 +155,9 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     work.mkdir(parents=True)
     database = work / "database.db"
     started = time.perf_counter()
-    matcher = Matcher.sequential if cfg.matcher == Matcher.auto and sequential else cfg.matcher
-    matcher = Matcher.exhaustive if matcher == Matcher.auto else Matcher.parse(matcher, "capture.sfm.matcher")
+    matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
+    if matcher == Matcher.auto:
+        matcher = Matcher.sequential if sequential else Matcher.exhaustive
     with _quiet_colmap():
         sizes = _extract(database, images, names, cfg)
         log.info("%s: %d images, %d camera(s) (one per image size: %s); %s matching", scene.name, len(names),
@@ -166,7 +167,7 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
         options.num_threads, options.min_model_size, options.random_seed = cfg.threads, cfg.min_model_size, cfg.seed
         models = pycolmap.incremental_mapping(database, images, work / "models", options)
         record = _findings(database, names, models, options.min_num_matches)
-        record["seconds"] = round(time.perf_counter() - started, 2)
+        record["cameras"], record["seconds"] = [list(size) for size in sizes], round(time.perf_counter() - started, 2)
         _log_findings(scene.name, record)
         _require_registered(record, capture, views, test_every)
         largest = max(models.values(), key=lambda model: model.num_reg_images())
@@ -234,7 +235,9 @@ def _findings(database: Path, names: list[str], models: dict, min_matches: int) 
     ordered = sorted(models.values(), key=lambda model: -model.num_reg_images())
     groups = [sorted(image.name for image in model.images.values() if image.has_pose) for model in ordered]
     registered = groups[0] if groups else []
-    elsewhere = {name for group in groups[1:] for name in group}
+    # COLMAP lets a later model re-register images of an earlier one: only the others are left out.
+    others = [kept for group in groups[1:] if (kept := [name for name in group if name not in registered])]
+    elsewhere = {name for group in others for name in group}
     left_out = {}
     for name in names:
         if name in registered:
@@ -243,7 +246,7 @@ def _findings(database: Path, names: list[str], models: dict, min_matches: int) 
                           else "no matches" if ids[name] not in matched else "too little overlap")
     largest = ordered[0] if ordered else None
     return {
-        "images": len(names), "registered": registered, "left_out": left_out, "other_models": groups[1:],
+        "images": len(names), "registered": registered, "left_out": left_out, "other_models": others,
         "mean_reprojection_error": largest.compute_mean_reprojection_error() if largest else None,
         "points": largest.num_points3D() if largest else 0,
     }
@@ -269,7 +272,7 @@ def _log_findings(name: str, record: dict) -> None:
     if record["other_models"]:
         log.warning("%s: the images form %d disconnected models; the largest (%d images) is used, left out: %s",
                     name, 1 + len(record["other_models"]), registered,
-                    "; ".join(f"a model of {len(group)} ({_names(group)})" for group in record["other_models"]))
+                    "; ".join(f"{len(group)} images of another ({_names(group)})" for group in record["other_models"]))
     if record["left_out"]:
         log.info("%s: not registered: %s", name, _why_left_out(record))
 

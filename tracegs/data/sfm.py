@@ -74,6 +74,8 @@ def _quiet_colmap() -> Iterator[None]:
 
 
 def _product_key(inputs: str, cfg: SfmConfig, **more: object) -> str:
+    """The digest naming a reconstruction's folder: of its inputs' content, its name and the settings that shape it
+    (the name too, so two copies of a capture under other names never replace each other's folder)."""
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in EXECUTION_FIELDS}
     payload = json.dumps({"inputs": inputs, **settings, **more}, sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()[:DIGEST_CHARS]
@@ -90,7 +92,7 @@ def reconstruct_photos(capture: Path, cfg: SfmConfig, views: int, test_every: in
                  _names([p.name for p in others]), " ".join(PHOTO_SUFFIXES))
     names = [p.name for p in photos]
     _require_images(folder, names, "photos", views, test_every)
-    target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg) / capture.name
+    target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg, name=capture.name) / capture.name
     if not _reused(target, views, test_every):
         with atomic_directory(target.parent) as staging:
             _reconstruct(staging / target.name, folder, names, cfg, views, test_every, capture, sequential=False)
@@ -105,7 +107,8 @@ def reconstruct_video(video: Path, frames: int, cfg: SfmConfig, views: int, test
     if not video.is_file():
         raise InputFileError(video, "no such file" if not video.exists() else "is not a file",
                              "give capture.video a video file")
-    target = Path(cfg.dir) / _product_key(content_digest(video), cfg, frames=frames) / video.stem
+    key = _product_key(content_digest(video), cfg, frames=frames, name=video.stem)
+    target = Path(cfg.dir) / key / video.stem
     if not _reused(target, views, test_every):
         with atomic_directory(target.parent) as staging:
             sampled = sample_frames(video, frames, staging / "frames")

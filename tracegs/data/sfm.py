@@ -51,6 +51,7 @@ RECORD = "sfm.json"
 # Settings that change where or how fast a reconstruction is made, not what it is.
 EXECUTION_FIELDS = ("dir", "threads")
 NAMES_SHOWN = 5
+PROGRESS_EVERY = 10  # registered images between two progress lines of the mapper
 
 
 def _names(paths: list[str]) -> str:
@@ -161,6 +162,7 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
     if matcher == Matcher.auto:
         matcher = Matcher.sequential if sequential else Matcher.exhaustive
+    log.info("%s: structure-from-motion of %d images with pycolmap: SIFT features", scene.name, len(names))
     with _quiet_colmap():
         sizes = _extract(database, images, names, cfg)
         log.info("%s: %d images, %d camera(s) (one per image size: %s); %s matching", scene.name, len(names),
@@ -168,7 +170,16 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
         _match(database, matcher, cfg)
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads, options.min_model_size, options.random_seed = cfg.threads, cfg.min_model_size, cfg.seed
-        models = pycolmap.incremental_mapping(database, images, work / "models", options)
+        placed = 0
+
+        def progress() -> None:  # called by the mapper after each image it registers
+            nonlocal placed
+            placed += 1
+            if placed % PROGRESS_EVERY == 0:
+                log.info("%s: mapping, %d images registered so far", scene.name, placed)
+
+        models = pycolmap.incremental_mapping(database, images, work / "models", options,
+                                              next_image_callback=progress)
         record = _findings(database, names, models, options.min_num_matches)
         record["cameras"], record["seconds"] = [list(size) for size in sizes], round(time.perf_counter() - started, 2)
         _log_findings(scene.name, record)

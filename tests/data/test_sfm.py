@@ -17,7 +17,8 @@ from skimage.filters import gaussian
 from test_bad_inputs import assert_refused, files_under
 from test_input_defects import TINY_RESTORE
 
-from tracegs.data.config import SfmConfig
+from tracegs.data.colmap import load_scene
+from tracegs.data.config import SceneSourceConfig, SfmConfig
 from tracegs.data.sfm import RECORD, reconstruct_photos, sample_frames, sharpness
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
@@ -108,6 +109,23 @@ def test_other_files_are_ignored_aloud_and_each_image_size_gets_its_camera(model
     assert len(model_.cameras) == 2 and len(sizes) >= 12
     # Undistortion crops a few pixels; the two sizes stay apart.
     assert all((w > 360) == (int(name[6:9]) % 2 == 1) for name, (w, h) in sizes.items()), sizes
+
+
+def test_photos_taken_upright_are_reconstructed_as_the_loader_reads_them(model, tmp_path):
+    """A phone held upright stores landscape pixels and an EXIF orientation; the loader turns them upright
+    (tracegs.data.images), so the reconstruction must be of the upright photos."""
+    capture = tmp_path / "phone"
+    write_photos(capture, model, orbit(12, arc_deg=120.0))
+    for photo in sorted(capture.iterdir()):
+        image = Image.open(photo)
+        exif = image.getexif()
+        exif[0x0112] = 6  # rotated 90 degrees clockwise to view
+        image.save(photo.with_suffix(".jpg"), exif=exif, quality=95)
+        photo.unlink()
+    scene = reconstruct_photos(capture, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3, test_every=8)
+    loaded = load_scene(SceneSourceConfig(root=str(scene.parent), preset="custom"), scene.name)
+    assert len(loaded) == 12 and {(c.width < c.height) for c in loaded.cameras} == {True}
+    assert loaded.load_image(0).shape[1:] == (loaded.cameras[0].height, loaded.cameras[0].width)
 
 
 def test_disconnected_models_keep_the_largest_and_name_the_rest(model, tmp_path, caplog):

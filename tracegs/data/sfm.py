@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
+from PIL import Image, ImageOps
 
 from tracegs.content import (
     DIGEST_CHARS,
@@ -51,6 +51,7 @@ RECORD = "sfm.json"
 # Settings that change where or how fast a reconstruction is made, not what it is.
 EXECUTION_FIELDS = ("dir", "threads")
 NAMES_SHOWN = 5
+EXIF_ORIENTATION = 0x0112  # the EXIF tag saying how a camera was held
 PROGRESS_EVERY = 10  # registered images between two progress lines of the mapper
 
 
@@ -157,6 +158,7 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
                                                       "use SIMPLE_RADIAL, OPENCV, PINHOLE, ...")
     work = scene.parent / ".work"
     work.mkdir(parents=True)
+    images = _upright(images, names, work / "upright")
     database = work / "database.db"
     started = time.perf_counter()
     matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
@@ -197,6 +199,33 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     write_json_atomic(record, scene / RECORD)
 
 
+def _upright(images: Path, names: list[str], out: Path) -> Path:
+    """The folder of ``names`` as the loader sees them: ``images`` itself, or, when a photo carries an EXIF
+    orientation (a phone held upright), ``out`` with that photo turned upright and links to the others. COLMAP reads
+    the stored pixels and its undistorted images keep the tag, which the loader applies (tracegs.data.images), so a
+    turned photo would no longer fit its camera."""
+    turned = []
+    for name in names:
+        try:
+            with Image.open(images / name) as photo:
+                if photo.getexif().get(EXIF_ORIENTATION, 1) != 1:
+                    turned.append(name)
+        except OSError as error:
+            raise InputFileError(images / name, f"cannot read the photo ({one_line(error)})",
+                                 "replace or remove it") from error
+    if not turned:
+        return images
+    out.mkdir()
+    for name in names:
+        if name in turned:
+            with Image.open(images / name) as photo:
+                ImageOps.exif_transpose(photo).save(out / name, format=photo.format, quality=95)
+        else:
+            (out / name).symlink_to(images / name)
+    log.info("%d photos turned upright by their EXIF orientation (%s)", len(turned), _names(turned))
+    return out
+
+
 def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> list[tuple[int, int]]:
     """SIFT features of ``names`` into ``database``, one camera per image size (COLMAP's AUTO mode gives
     one per image in pycolmap 4.2, so each size is read on its own in SINGLE mode); returns the sizes."""
@@ -204,12 +233,8 @@ def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> 
 
     by_size: dict[tuple[int, int], list[str]] = {}
     for name in names:
-        try:
-            with Image.open(images / name) as image:
-                by_size.setdefault(image.size, []).append(name)  # as stored, as COLMAP reads it
-        except OSError as error:
-            raise InputFileError(images / name, f"cannot read the photo ({one_line(error)})",
-                                 "replace or remove it") from error
+        with Image.open(images / name) as image:  # read once already (_upright)
+            by_size.setdefault(image.size, []).append(name)  # as stored, as COLMAP reads it
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
     extraction = pycolmap.FeatureExtractionOptions()

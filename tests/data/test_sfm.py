@@ -190,6 +190,14 @@ def video_of_two_frames(model, inputs: Path):
         "config field 'capture.frames': 2: structure-from-motion needs at least 3 frames"
 
 
+def video_too_short(model, inputs: Path):
+    """Its frames are sampled (into the reconstruction's temporary folder) before the count is known."""
+    video = inputs / "blink.mp4"
+    iio.imwrite(video, np.stack(render_frames(model, orbit(2, arc_deg=10.0))), plugin="FFMPEG", fps=2)
+    return [f"capture.video={video}"], (f"{video}: 2 frames (frame_000000.png, frame_000001.png); "
+                                        "structure-from-motion needs at least 3; give a longer video")
+
+
 def not_a_video(model, inputs: Path):
     (inputs / "clip.mp4").write_text("not a video")
     return [f"capture.video={inputs / 'clip.mp4'}"], f"{inputs / 'clip.mp4'}: cannot read the video"
@@ -201,7 +209,7 @@ def path_and_video(model, inputs: Path):
 
 
 BAD = {f.__name__: f for f in (two_photos, too_few_registered, fewer_photos_than_views, video_of_two_frames,
-                               not_a_video, path_and_video)}
+                               video_too_short, not_a_video, path_and_video)}
 
 
 @pytest.mark.parametrize("case", list(BAD))

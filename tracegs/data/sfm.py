@@ -126,7 +126,8 @@ def _require_images(where: Path, names: list[str], kind: str, views: int, test_e
     if len(names) < MIN_IMAGES:
         raise InputFileError(where, f"{len(names)} {kind}{f' ({_names(names)})' if names else ''}; "
                                     f"structure-from-motion needs at least {MIN_IMAGES}",
-                             f"capture more of the scene (photos ending in {' '.join(PHOTO_SUFFIXES)})")
+                             f"add photos of the scene (ending in {' '.join(PHOTO_SUFFIXES)})" if kind == "photos"
+                             else "give a longer video")
     needed = images_needed(views, test_every)
     if len(names) < needed:
         raise ConfigError("capture.views", f"{views}: {where} gives {len(names)} {kind}, and {views} training views "

@@ -18,6 +18,9 @@ _CHUNK = 1 << 20
 SCENE_PARTS = ("images", "sparse")
 # Marks a value stored relative to the run's root (paths.root_dir) in a record or an identity.
 ROOT_MARK = "<root>"
+# The photo formats structure-from-motion reads: those pycolmap 4.2's image reader decodes (it skips WebP
+# without a word, so a WebP photo is listed with the other files a capture folder holds, and ignored aloud).
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
 
 def _files(path: Path) -> list[Path]:
@@ -54,6 +57,28 @@ def content_digest(path: str | Path, parts: Iterable[str] = ()) -> str:
 def scene_digest(scene_dir: str | Path) -> str:
     """Digest of a COLMAP scene folder's images and ``sparse/`` reconstruction."""
     return content_digest(scene_dir, SCENE_PARTS)
+
+
+def photo_folder(capture: str | Path) -> Path:
+    """Where a capture folder without a reconstruction keeps its photos: ``images/`` when it has one, else itself."""
+    capture = Path(capture).expanduser().resolve()
+    return capture / "images" if (capture / "images").is_dir() else capture
+
+
+def capture_files(capture: str | Path) -> tuple[list[Path], list[Path]]:
+    """(photos, other files) directly in a capture's :func:`photo_folder`, each in name order."""
+    files = sorted(p for p in photo_folder(capture).iterdir() if p.is_file() and not p.name.startswith("."))
+    photos = [p for p in files if p.suffix.lower() in PHOTO_SUFFIXES]
+    return photos, [p for p in files if p.suffix.lower() not in PHOTO_SUFFIXES]
+
+
+def capture_digest(capture: str | Path) -> str:
+    """Digest of a capture folder: its images and reconstruction when it holds one (``sparse/``), else the names
+    and bytes of its photos alone (the other files in it are not read, so they change nothing)."""
+    capture = Path(capture).expanduser().resolve()
+    if (capture / "sparse").is_dir():
+        return scene_digest(capture)
+    return _digest_of(photo_folder(capture), _stamp(capture_files(capture)[0]))
 
 
 def root_relative(value: object, root: str | Path) -> object:

@@ -104,9 +104,11 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
 
     For products made of several files (a diffusers model directory, a COLMAP model, a scene): a
     complete directory at ``path`` always means a finished product. An existing ``path`` is moved
-    aside first and deleted only after the new one is in place.
+    aside first and deleted only after the new one is in place. A product that fails takes with it the
+    folders made to hold it, where they are still empty: a refused command leaves nothing behind.
     """
     target = Path(path)
+    made = [parent for parent in target.parents if not parent.exists()]
     with refused_writes_named(target):
         target.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
@@ -124,6 +126,9 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if staging.exists():
             shutil.rmtree(staging)
+            for parent in made:  # nearest first
+                with contextlib.suppress(OSError):  # no longer empty: another product lives there now
+                    parent.rmdir()
 
 
 def save_safetensors_atomic(

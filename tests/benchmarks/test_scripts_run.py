@@ -25,6 +25,7 @@ RUNS = {
     "cache_verify.py": ["--scenes", "1", "--repeats", "1", "--out", "{tmp}/cache"],
     "cache_size.py": ["--out", "{tmp}"],
     "paper_gpu_hours.py": [],
+    "sfm.py": [],
 }
 
 

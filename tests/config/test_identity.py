@@ -270,6 +270,27 @@ def test_a_capture_is_known_by_its_images_and_reconstruction(tmp_path):
     assert identity(moved) != before
 
 
+def test_photos_are_known_by_their_bytes_and_a_video_by_its_own(tmp_path):
+    """A folder of photos (no reconstruction yet) is known by its photos alone; a video by its bytes."""
+    def identity(key: str, value: Path) -> str:
+        return scoped_values(compose(config_name="restore", overrides=[f"{key}={value}"]), "restore")[key]
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"a")
+    (photos / "b.png").write_bytes(b"b")
+    before = identity("capture.path", photos)
+    (photos / "notes.txt").write_text("not a photo, never read")
+    assert identity("capture.path", photos) == before
+    (photos / "b.png").write_bytes(b"edited")
+    assert identity("capture.path", photos) != before
+    video = tmp_path / "walk.mp4"
+    video.write_bytes(b"frames")
+    first = identity("capture.video", video)
+    video.write_bytes(b"other frames")
+    assert first.startswith("content:") and identity("capture.video", video) != first
+
+
 def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_path):
     folder = tmp_path / "run"
     write_run_record(compose(config_name="train", overrides=["stage=stage2"]), "stage2", folder)

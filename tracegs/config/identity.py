@@ -31,7 +31,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from tracegs.content import content_digest, root_relative, scene_digest
+from tracegs.content import capture_digest, content_digest, root_relative
 from tracegs.restorer.config import (
     ENCODING_SECTIONS,
     NOT_IN_RESTORATIONS,
@@ -63,8 +63,9 @@ SCOPES["evaluate"] = SCOPES["deploy"]
 # A capture of the user's own (tracegs-restore): deployment's scope plus which capture and views.
 SCOPES["restore"] = (*SCOPES["deploy"], "capture")
 
-# A capture of the user's own is identified by its images and reconstruction, not by where it lies.
-CAPTURE_KEY = "capture.path"
+# A capture of the user's own is identified by its content, not by where it lies: a folder by its images and
+# reconstruction (its photos, when structure-from-motion makes the reconstruction), a video by its bytes.
+CAPTURE_KEYS = ("capture.path", "capture.video")
 # Inputs a training run may be handed by path instead of locating them (their defaults interpolate the located
 # upstream product, whose identity the scope already holds). Handed in, each is known by its content, so runs
 # given different weights, adapters or caches are different runs: a cache by its manifest, which records every
@@ -91,6 +92,8 @@ EXECUTION_KEYS = frozenset({
     # Which extra files to write beside the numbers (grids, videos, frames, PLYs).
     "evaluation.save_media", "evaluation.save_models", "evaluation.save_frames", "evaluation.grid_views",
     "evaluation.video_frames", "evaluation.video_fps",
+    # Where reconstructions are kept and how many threads make them: the reconstruction is keyed by its own inputs.
+    "capture.sfm.dir", "capture.sfm.threads",
 })
 # The keys naming each split's scenes (data.config.Split): a product reads the scenes of the splits it uses only.
 SPLIT_SCENES = {
@@ -189,8 +192,10 @@ def _scoped_values(cfg: DictConfig, kind: str, skip: frozenset[str]) -> dict[str
         parent, _, leaf = key.rpartition(".")
         holder = OmegaConf.select(cfg, parent, throw_on_missing=True) if parent else cfg
         values.update(_leaves(holder, leaf, key, skip))
-    if values.get(CAPTURE_KEY) is not None and Path(values[CAPTURE_KEY]).expanduser().is_dir():
-        values[CAPTURE_KEY] = f"content:{scene_digest(values[CAPTURE_KEY])}"
+    for key in CAPTURE_KEYS:
+        handed = Path(values[key]).expanduser() if values.get(key) is not None else None
+        if handed is not None and handed.exists():
+            values[key] = f"content:{capture_digest(handed) if handed.is_dir() else content_digest(handed)}"
     values.update(_handed_in(cfg, kind))
     root = OmegaConf.select(cfg, "paths.root_dir")
     if root is not None:

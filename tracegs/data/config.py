@@ -192,3 +192,28 @@ class DataModuleConfig:
     val_scenes: list[str] = field(default_factory=list)  # scene names held out for validation
     caption_dropout: float = 0.1  # supplement A.2: zero text embedding, shared by both roles
     seed: int = 0
+
+
+class Matcher(Mode):
+    """Which image pairs structure-from-motion matches (COLMAP's matchers)."""
+
+    auto = "auto"  # sequential for a video's frames, exhaustive for photos
+    exhaustive = "exhaustive"  # every pair: photos in any order (quadratic in their number)
+    sequential = "sequential"  # each image with the next ones in name order: frames of a video
+
+
+@dataclass
+class SfmConfig:
+    """Structure-from-motion with pycolmap for a capture without a COLMAP model (tracegs.data.sfm)."""
+
+    # Reconstructions are kept here, one folder per (photos, settings below): a rerun reuses it.
+    dir: str = "data/captures"
+    matcher: Matcher = Matcher.auto
+    sequential_overlap: int = 10  # images after each one a sequential matcher pairs it with
+    max_image_size: int = 1600  # longest side SIFT sees (photos are downscaled for extraction only)
+    max_features: int = 8192  # SIFT features per image
+    # The lens model fitted, then undone: the images the scene is made of are undistorted to PINHOLE.
+    camera_model: str = "SIMPLE_RADIAL"
+    min_model_size: int = 3  # registered images a disconnected model needs to be reported (COLMAP: 10)
+    threads: int = -1  # -1: every core
+    seed: int = 0  # RANSAC and mapping draws

@@ -72,6 +72,15 @@ def every_nth_test(num_images: int, test_every: int) -> list[int]:
     return list(range(0, num_images, test_every))
 
 
+def images_needed(views: int, test_every: int) -> int:
+    """The fewest images whose every-``test_every``-th split (:func:`every_nth_test`) leaves ``views`` training
+    views: how many images a capture without split files must have for a ``views``-view set."""
+    count = views
+    while count - len(every_nth_test(count, test_every)) < views:
+        count += 1
+    return count
+
+
 def even_centres(n: int, count: int) -> list[float]:
     """Positions ``(i + 1/2) n / count - 1/2`` of the centres of ``count`` equal shares of ``n`` items."""
     return [(i + 0.5) * n / count - 0.5 for i in range(count)]

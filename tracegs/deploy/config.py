@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tracegs.data.config import CaptionConfig
+from tracegs.data.config import CaptionConfig, SfmConfig
 from tracegs.errors import ConfigError
 from tracegs.splat.config import TrajectoryConfig
 
@@ -91,8 +91,12 @@ class EvaluationConfig:
 
 @dataclass
 class CaptureConfig:
-    """A capture of your own for ``tracegs-restore``: a COLMAP scene folder, undistorted (PINHOLE model)."""
+    """A capture of your own for ``tracegs-restore``: a COLMAP scene folder, a folder of photos or a video."""
 
-    # The scene folder: <path>/images/ and <path>/sparse/0 (COLMAP's image_undistorter output layout).
+    # A COLMAP scene folder (<path>/images/ and <path>/sparse/0, undistorted: image_undistorter's layout), or a
+    # folder of photos (in it or in its images/) that structure-from-motion reconstructs first.
     path: str | None = None
+    video: str | None = None  # a video file instead: frames are sampled from it, then reconstructed as photos
+    frames: int = 60  # frames taken from the video: the sharpest of each of this many equal windows
     views: int = 6  # K captured views the 3DGS is fitted from (the split's view-selection rule picks them)
+    sfm: SfmConfig = field(default_factory=SfmConfig)

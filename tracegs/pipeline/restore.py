@@ -1,4 +1,5 @@
-"""``tracegs-restore``: restore and refine a COLMAP capture of the user's own (Algorithm 1, bottom)."""
+"""``tracegs-restore``: restore and refine a capture of the user's own (Algorithm 1, bottom): a COLMAP scene, or
+photos or a video that structure-from-motion reconstructs first (tracegs.data.sfm)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 from omegaconf import DictConfig
 
 from tracegs.console import show
+from tracegs.data.sfm import reconstruct_photos, reconstruct_video
 from tracegs.data.splits import SplitError
 from tracegs.errors import ConfigError
 from tracegs.eval.evaluate import evaluate as run_evaluation
@@ -20,15 +22,31 @@ from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import section
 
 
-def restore(cfg: DictConfig) -> Path:
-    """Restore and refine a COLMAP capture of your own from K of its views (Algorithm 1, bottom), next to
-    plain 3DGS, scored on the views it left out; the evaluation writes the PLYs, the grid and the video."""
+def scene_folder(cfg: DictConfig) -> Path:
+    """The COLMAP scene folder (images/ + sparse/0) the capture is: ``capture.path`` itself when it holds a
+    reconstruction, else the one structure-from-motion makes of its photos, or of ``capture.video``'s frames."""
+    if cfg.capture.path is not None and cfg.capture.video is not None:
+        raise ConfigError("capture.video", "set either capture.path (a scene or photo folder) or capture.video, "
+                                           "not both")
+    sfm, test_every = section(cfg.capture.sfm), cfg.data.source.test_every
+    if cfg.capture.video is not None:
+        video = Path(cfg.capture.video).expanduser().resolve()
+        return reconstruct_video(video, cfg.capture.frames, sfm, cfg.capture.views, test_every)
     if cfg.capture.path is None:
-        raise ValueError("capture.path: name the COLMAP scene folder to restore, "
-                         "e.g. tracegs-restore capture.path=/data/my_scene")
+        raise ValueError("capture.path: name the COLMAP scene folder or the folder of photos to restore, e.g. "
+                         "tracegs-restore capture.path=/data/my_scene (or capture.video=<file>)")
     capture = Path(cfg.capture.path).expanduser().resolve()
     if not capture.is_dir():
         raise FileNotFoundError(f"capture.path: {capture} is not a directory")
+    if (capture / "sparse").is_dir():
+        return capture
+    return reconstruct_photos(capture, sfm, cfg.capture.views, test_every)
+
+
+def restore(cfg: DictConfig) -> Path:
+    """Restore and refine a capture of your own from K of its views (Algorithm 1, bottom), next to plain 3DGS,
+    scored on the views it left out; the evaluation writes the PLYs, the grid and the video."""
+    capture = scene_folder(cfg)
     if not torch.cuda.is_available():
         # One unit of small tensors runs in this process: more intra-op threads only spin (on a shared
         # 2-core machine 2 threads cost 2.5x the CPU time of 1 for the same run).

@@ -1,0 +1,268 @@
+"""Structure-from-motion for captures without a COLMAP model (tracegs.data.sfm), with the real pycolmap on photos
+of a procedural scene rendered with the CPU rasterizer (benchmarks/sfm.py builds it: the embedded benchmark's
+shapes, textured for SIFT), through the photo path and through ``tracegs-restore`` itself."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from PIL import Image
+from skimage.filters import gaussian
+from test_bad_inputs import assert_refused, files_under
+from test_input_defects import TINY_RESTORE
+
+from tracegs.data.colmap import load_scene
+from tracegs.data.config import SceneSourceConfig, SfmConfig
+from tracegs.data.sfm import RECORD, reconstruct_photos, sample_frames, sharpness
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from sfm import camera_errors, orbit, render_frames, textured_scene, write_photos  # noqa: E402
+
+# One thread: the suite runs a test per core.
+SFM = {"threads": 1}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return textured_scene()
+
+
+@pytest.fixture(scope="module")
+def thirty_photos(model, tmp_path_factory) -> tuple[Path, dict]:
+    """30 photos along the embedded benchmark's orbit at 320x240, and each one's true camera."""
+    capture = tmp_path_factory.mktemp("capture") / "garden"
+    return capture, write_photos(capture, model, orbit(30))
+
+
+@pytest.fixture(scope="module")
+def reconstructed(thirty_photos, tmp_path_factory) -> Path:
+    capture, _ = thirty_photos
+    return reconstruct_photos(capture, SfmConfig(dir=str(tmp_path_factory.mktemp("captures")), **SFM), views=6,
+                              test_every=8)
+
+
+def test_photos_give_the_true_cameras_up_to_a_similarity(thirty_photos, reconstructed):
+    """The acceptance bound: after a similarity alignment of the centres, every registered camera within 1 degree
+    of its true orientation and 2% of the scene's extent of its true centre (measured: 0.57 deg, 0.92%)."""
+    _, truth = thirty_photos
+    errors = camera_errors(reconstructed, truth)
+    assert errors["registered_fraction"] == 1.0
+    assert errors["rotation_error_deg"] <= 1.0, errors
+    assert errors["center_error_rel"] <= 0.02, errors
+
+
+def test_the_reconstruction_is_an_undistorted_scene_folder_with_its_record(reconstructed):
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(reconstructed / "sparse" / "0"))
+    assert {camera.model.name for camera in model.cameras.values()} == {"PINHOLE"}
+    assert sorted(p.name for p in (reconstructed / "images").iterdir()) == sorted(
+        image.name for image in model.images.values())
+    record = json.loads((reconstructed / RECORD).read_text())
+    assert len(record["registered"]) == record["images"] == 30 and record["left_out"] == {}
+    assert 0 < record["mean_reprojection_error"] < 1.0 and record["cameras"] == [[320, 240]]
+    assert not [p for p in reconstructed.parent.iterdir() if p.name.startswith(".")]  # no work files kept
+
+
+def test_a_rerun_reuses_the_reconstruction_and_a_changed_photo_makes_another(thirty_photos, reconstructed, tmp_path,
+                                                                            caplog):
+    capture, _ = thirty_photos
+    cfg = SfmConfig(dir=str(reconstructed.parents[1]), **SFM)
+    stamp = (reconstructed / RECORD).stat().st_mtime_ns
+    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"):
+        assert reconstruct_photos(capture, cfg, views=6, test_every=8) == reconstructed
+    assert (reconstructed / RECORD).stat().st_mtime_ns == stamp and "reusing the reconstruction" in caplog.text
+    edited = tmp_path / capture.name
+    edited.mkdir()
+    for photo in sorted(capture.iterdir())[:12]:  # a smaller capture keeps this quick
+        (edited / photo.name).write_bytes(photo.read_bytes())
+    first = reconstruct_photos(edited, cfg, views=3, test_every=8)
+    image = edited / "photo_000.png"
+    iio.imwrite(image, np.ascontiguousarray(iio.imread(image)[:, ::-1]))
+    second = reconstruct_photos(edited, cfg, views=3, test_every=8)
+    assert first != second and first.is_dir() and (second / RECORD).is_file()
+
+
+def test_other_files_are_ignored_aloud_and_each_image_size_gets_its_camera(model, tmp_path, caplog):
+    capture = tmp_path / "mixed" / "images"  # photos in an images/ folder of the capture
+    write_photos(capture, model, orbit(14, arc_deg=140.0))
+    for photo in sorted(capture.iterdir())[1::2]:  # every other photo at another size (another camera)
+        Image.open(photo).resize((400, 300)).save(photo)
+    (capture / "notes.txt").write_text("taken at noon")
+    Image.open(capture / "photo_000.png").save(capture / "extra.webp")  # a format COLMAP's reader skips
+    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"):
+        scene = reconstruct_photos(capture.parent, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3,
+                                   test_every=8)
+    assert "ignored 2 file(s) that are not photos (extra.webp, notes.txt)" in caplog.text
+    record = json.loads((scene / RECORD).read_text())
+    assert record["cameras"] == [[320, 240], [400, 300]] and record["images"] == 14
+    import pycolmap
+
+    model_ = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    sizes = {image.name: (image.camera.width, image.camera.height) for image in model_.images.values()}
+    assert len(model_.cameras) == 2 and len(sizes) >= 12
+    # Undistortion crops a few pixels; the two sizes stay apart.
+    assert all((w > 360) == (int(name[6:9]) % 2 == 1) for name, (w, h) in sizes.items()), sizes
+
+
+def test_photos_taken_upright_are_reconstructed_as_the_loader_reads_them(model, tmp_path):
+    """A phone held upright stores landscape pixels and an EXIF orientation; the loader turns them upright
+    (tracegs.data.images), so the reconstruction must be of the upright photos."""
+    capture = tmp_path / "phone"
+    write_photos(capture, model, orbit(12, arc_deg=120.0))
+    for photo in sorted(capture.iterdir()):
+        image = Image.open(photo)
+        exif = image.getexif()
+        exif[0x0112] = 6  # rotated 90 degrees clockwise to view
+        image.save(photo.with_suffix(".jpg"), exif=exif, quality=95)
+        photo.unlink()
+    scene = reconstruct_photos(capture, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3, test_every=8)
+    loaded = load_scene(SceneSourceConfig(root=str(scene.parent), preset="custom"), scene.name)
+    assert len(loaded) == 12 and {(c.width < c.height) for c in loaded.cameras} == {True}
+    assert loaded.load_image(0).shape[1:] == (loaded.cameras[0].height, loaded.cameras[0].width)
+
+
+def test_disconnected_models_keep_the_largest_and_name_the_rest(model, tmp_path, caplog):
+    """Two scenes with nothing in common: the one with more photos is reconstructed, the other is named."""
+    capture = tmp_path / "two_places"
+    write_photos(capture, model, orbit(8, arc_deg=80.0), prefix="a")
+    elsewhere = textured_scene(ground=(("moon", "page"), ("text", "camera")),
+                               wall=("retina", "immunohistochemistry", "clock", "colorwheel", "cell", "horse"))
+    write_photos(capture, elsewhere, orbit(6, arc_deg=60.0, seed=11), prefix="b")
+    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"):
+        scene = reconstruct_photos(capture, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3, test_every=8)
+    record = json.loads((scene / RECORD).read_text())
+    assert record["registered"] and all(name.startswith("a_") for name in record["registered"]), record
+    left = [name for group in record["other_models"] for name in group]
+    assert left and all(name.startswith("b_") for name in left)
+    assert "disconnected models; the largest" in caplog.text and left[0] in caplog.text
+
+
+def test_the_sharpest_frame_of_each_window_is_kept(model, tmp_path):
+    frames = render_frames(model, orbit(12, arc_deg=60.0))
+    # Each window of three holds one sharp frame between two blurred ones.
+    blurred = [frame if i % 3 == 1 else (gaussian(frame, sigma=2, channel_axis=-1, preserve_range=True)).astype(np.uint8) for i, frame in enumerate(frames)]
+    video = tmp_path / "clip.mp4"
+    iio.imwrite(video, np.stack(blurred), plugin="FFMPEG", fps=6, quality=9)
+    kept = sample_frames(video, 4, tmp_path / "frames")
+    assert [p.name for p in kept] == [f"frame_{i:06d}.png" for i in (1, 4, 7, 10)]
+    assert sharpness(iio.imread(kept[0])) > 2 * sharpness(blurred[0])
+
+
+# --- bad captures through the real entry point: exit 2, one line naming the file or field, nothing written ---
+TINY = [*TINY_RESTORE, "capture.sfm.threads=1"]
+
+
+def two_photos(model, inputs: Path):
+    write_photos(inputs / "pair", model, orbit(2, arc_deg=20.0))
+    return [f"capture.path={inputs / 'pair'}"], f"{inputs / 'pair'}: 2 photos (photo_000.png, photo_001.png); " \
+                                                 "structure-from-motion needs at least 3"
+
+
+def too_few_registered(model, inputs: Path):
+    """Five photos of the scene and four of noise, which match nothing: 9 photos pass the count, 5 register."""
+    folder = inputs / "noisy"
+    write_photos(folder, model, orbit(5, arc_deg=50.0))
+    rng = np.random.default_rng(0)
+    for index in range(4):
+        Image.fromarray(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)).save(folder / f"noise_{index}.png")
+    return ([f"capture.path={folder}", "capture.views=6"],
+            f"config field 'capture.views': 6: structure-from-motion registered 5 of 9 images of {folder} (4 without "
+            "matches to any other: noise_0.png, noise_1.png, noise_2.png, noise_3.png), and 6 training views plus "
+            "the held-out ones need 7")
+
+
+def fewer_photos_than_views(model, inputs: Path):
+    write_photos(inputs / "four", model, orbit(4, arc_deg=40.0))
+    return ([f"capture.path={inputs / 'four'}", "capture.views=6"],
+            f"config field 'capture.views': 6: {inputs / 'four'} gives 4 photos, and 6 training views plus the "
+            "held-out ones (every 8th image) need 7")
+
+
+def video_of_two_frames(model, inputs: Path):
+    return [f"capture.video={inputs / 'any.mp4'}", "capture.frames=2"], \
+        "config field 'capture.frames': 2: structure-from-motion needs at least 3 frames"
+
+
+def video_too_short(model, inputs: Path):
+    """Its frames are sampled (into the reconstruction's temporary folder) before the count is known."""
+    video = inputs / "blink.mp4"
+    iio.imwrite(video, np.stack(render_frames(model, orbit(2, arc_deg=10.0))), plugin="FFMPEG", fps=2)
+    return [f"capture.video={video}"], (f"{video}: 2 frames (frame_000000.png, frame_000001.png); "
+                                        "structure-from-motion needs at least 3; give a longer video")
+
+
+def not_a_video(model, inputs: Path):
+    (inputs / "clip.mp4").write_text("not a video")
+    return [f"capture.video={inputs / 'clip.mp4'}"], f"{inputs / 'clip.mp4'}: cannot read the video"
+
+
+def path_and_video(model, inputs: Path):
+    return [f"capture.path={inputs}", f"capture.video={inputs / 'clip.mp4'}"], \
+        "config field 'capture.video': set either capture.path"
+
+
+BAD = {f.__name__: f for f in (two_photos, too_few_registered, fewer_photos_than_views, video_of_two_frames,
+                               video_too_short, not_a_video, path_and_video)}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_a_bad_capture_gives_one_line_exit_2_and_writes_nothing(model, tmp_path, entry_point, case):
+    inputs, root = tmp_path / "inputs", tmp_path / "root"
+    inputs.mkdir()
+    root.mkdir()
+    overrides, expected = BAD[case](model, inputs)
+    before = files_under(tmp_path)
+    result = entry_point("restore", [*TINY, *overrides, f"paths.root_dir={root}"], root)
+    assert_refused(result, "restore", expected, files_under(tmp_path) - before)
+    assert list(root.iterdir()) == []  # not even a run folder or an empty captures folder
+
+
+# --- end to end through tracegs-restore (slow: structure-from-motion, then the restore-refine loop) ---
+SMALLEST = ["ablation=A", "artifacts.baseline_weights=null", "experiment.frame_height=24",
+            "experiment.frame_width=32", "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
+            "data.prepare.fit.densification.enabled=false", "deploy.total_iters=40", "deploy.repair_iters=[10,25]",
+            "deploy.steps=2", "deploy.max_clips_per_round=1", "deploy.trajectory.ellipse_frames=24",
+            "evaluation.video_frames=6", "evaluation.grid_views=2", "evaluation.progress=false",
+            "capture.sfm.threads=1", "capture.views=3"]
+
+
+def assert_restored(result, root: Path, scene: str) -> dict:
+    """The restore succeeded and scored the reconstructed scene; returns its unit record."""
+    assert result.returncode == 0, result.stderr[-3000:]
+    (run,) = (root / "outputs" / "embedded" / "restore" / "A").iterdir()
+    unit = json.loads((run / "units" / scene / "views_3.json").read_text())
+    assert (run / unit["models"]["baseline"]).is_file() and (run / unit["media"]["video"]).stat().st_size > 0
+    results = json.loads((run / "results.json").read_text())
+    assert 5.0 < results["baseline"]["3"]["psnr"] < 60.0
+    return unit
+
+
+@pytest.mark.slow  # structure-from-motion of 30 photos, a restore and its rerun: 10 s on an idle core
+def test_photos_restore_end_to_end_and_a_rerun_reuses_both(thirty_photos, tmp_path, entry_point):
+    capture, _ = thirty_photos
+    result = entry_point("restore", [*SMALLEST, f"capture.path={capture}", f"paths.root_dir={tmp_path}"], tmp_path)
+    unit = assert_restored(result, tmp_path, capture.name)
+    assert len(unit["test"]) == 4  # every 8th of the 30 registered photos is held out
+    assert "registered 30 of 30 images, mean reprojection error" in result.stdout
+    again = entry_point("restore", [*SMALLEST, f"capture.path={capture}", f"paths.root_dir={tmp_path}"], tmp_path)
+    assert again.returncode == 0 and "reusing the reconstruction" in again.stdout
+    assert len(list((tmp_path / "data" / "captures").iterdir())) == 1
+
+
+@pytest.mark.slow  # a 90-frame video, 24 frames reconstructed in sequence, then a restore: 10 s on an idle core
+def test_a_video_restores_end_to_end(model, tmp_path, entry_point):
+    video = tmp_path / "walkaround.mp4"
+    iio.imwrite(video, np.stack(render_frames(model, orbit(90))), plugin="FFMPEG", fps=15, quality=9)
+    result = entry_point("restore", [*SMALLEST, f"capture.video={video}", "capture.frames=24",
+                                     f"paths.root_dir={tmp_path}"], tmp_path)
+    unit = assert_restored(result, tmp_path, "walkaround")
+    assert len(unit["captured"]) == 3 and "sequential matching" in result.stdout
+    (frames,) = (tmp_path / "data" / "captures").glob("*/frames")
+    assert len(list(frames.iterdir())) == 24

@@ -1,0 +1,375 @@
+"""Structure-from-motion for a capture without a COLMAP model: photos or a video in, a scene folder out.
+
+pycolmap runs COLMAP's pipeline (Schönberger and Frahm, "Structure-from-Motion Revisited", CVPR 2016): SIFT
+features, exhaustive or sequential matching with geometric verification, incremental mapping, then undistortion
+to a PINHOLE camera, the only model the loader reads (tracegs.data.colmap). The scene folder it writes
+(``images/`` + ``sparse/0``, COLMAP's image_undistorter layout, and ``sfm.json``, what the reconstruction found)
+is a product like any other: keyed by the names and bytes of the photos (a video: its bytes and the frame count)
+and the settings that shape it, assembled in a temporary folder and renamed into place, reused by a rerun.
+
+A video is reduced to photos first: ``frames`` equal windows of it, the sharpest frame of each by the variance of
+its Laplacian (Pech-Pacheco et al., "Diatom autofocusing in brightfield microscopy", ICPR 2000), so motion-blurred
+frames are passed over.
+
+pycolmap bundles its own zlib; it is imported inside the functions that need it, after PIL and torch are loaded
+(as in tracegs.data.colmap).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps
+
+from tracegs.content import (
+    DIGEST_CHARS,
+    PHOTO_SUFFIXES,
+    capture_digest,
+    capture_files,
+    content_digest,
+    photo_folder,
+)
+from tracegs.data.config import Matcher, SfmConfig
+from tracegs.data.splits import images_needed
+from tracegs.errors import ConfigError, InputFileError, one_line
+from tracegs.io import atomic_directory, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+# Deployment fits 3DGS from at least two views and scores it on at least one held out.
+MIN_IMAGES = 3
+RECORD = "sfm.json"
+# Settings that change where or how fast a reconstruction is made, not what it is.
+EXECUTION_FIELDS = ("dir", "threads")
+NAMES_SHOWN = 5
+EXIF_ORIENTATION = 0x0112  # the EXIF tag saying how a camera was held
+PROGRESS_EVERY = 10  # registered images between two progress lines of the mapper
+
+
+def _names(paths: list[str]) -> str:
+    shown = ", ".join(paths[:NAMES_SHOWN])
+    return shown + (f" and {len(paths) - NAMES_SHOWN} more" if len(paths) > NAMES_SHOWN else "")
+
+
+@contextlib.contextmanager
+def _quiet_colmap() -> Iterator[None]:
+    """COLMAP's own log (glog) off stderr and out of /tmp while it runs: a refused command prints one line, and
+    what the reconstruction found goes to this module's log instead. Its errors still reach stderr."""
+    import pycolmap
+
+    flags = pycolmap.logging
+    before = flags.logtostderr, flags.minloglevel
+    flags.logtostderr, flags.minloglevel = True, int(flags.ERROR)
+    try:
+        yield
+    finally:
+        flags.logtostderr, flags.minloglevel = before
+
+
+def _product_key(inputs: str, cfg: SfmConfig, **more: object) -> str:
+    """The digest naming a reconstruction's folder: of its inputs' content, its name and the settings that shape it
+    (the name too, so two copies of a capture under other names never replace each other's folder)."""
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in EXECUTION_FIELDS}
+    payload = json.dumps({"inputs": inputs, **settings, **more}, sort_keys=True, default=str)
+    return hashlib.sha256(payload.encode()).hexdigest()[:DIGEST_CHARS]
+
+
+def reconstruct_photos(capture: Path, cfg: SfmConfig, views: int, test_every: int) -> Path:
+    """The scene folder structure-from-motion makes of the photos in ``capture`` (or its ``images/``): made
+    once under ``cfg.dir`` and reused. Files that are not photos are ignored, with a log line; a capture too
+    small for ``views`` training views and the held-out ones (every ``test_every``-th) is refused."""
+    folder = photo_folder(capture)
+    photos, others = capture_files(capture)
+    if others:
+        log.info("%s: ignored %d file(s) that are not photos (%s); photos end in %s", folder, len(others),
+                 _names([p.name for p in others]), " ".join(PHOTO_SUFFIXES))
+    names = [p.name for p in photos]
+    _require_images(folder, names, "photos", views, test_every)
+    target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg, name=capture.name) / capture.name
+    if not _reused(target, views, test_every):
+        with atomic_directory(target.parent) as staging:
+            _reconstruct(staging / target.name, folder, names, cfg, views, test_every, capture, sequential=False)
+    return target
+
+
+def reconstruct_video(video: Path, frames: int, cfg: SfmConfig, views: int, test_every: int) -> Path:
+    """The scene folder of ``frames`` frames sampled from ``video`` (:func:`sample_frames`, kept beside it in
+    ``frames/``), reconstructed as photos matched in sequence; made once under ``cfg.dir`` and reused."""
+    if frames < MIN_IMAGES:
+        raise ConfigError("capture.frames", f"{frames}: structure-from-motion needs at least {MIN_IMAGES} frames")
+    if not video.is_file():
+        raise InputFileError(video, "no such file" if not video.exists() else "is not a file",
+                             "give capture.video a video file")
+    key = _product_key(content_digest(video), cfg, frames=frames, name=video.stem)
+    target = Path(cfg.dir) / key / video.stem
+    if not _reused(target, views, test_every):
+        with atomic_directory(target.parent) as staging:
+            sampled = sample_frames(video, frames, staging / "frames")
+            names = [p.name for p in sampled]
+            _require_images(video, names, "frames", views, test_every)
+            _reconstruct(staging / target.name, staging / "frames", names, cfg, views, test_every, video,
+                         sequential=True)
+    return target
+
+
+def _require_images(where: Path, names: list[str], kind: str, views: int, test_every: int) -> None:
+    """Refuse, before any matching, a capture with fewer than :data:`MIN_IMAGES` images or too few for ``views``."""
+    if len(names) < MIN_IMAGES:
+        raise InputFileError(where, f"{len(names)} {kind}{f' ({_names(names)})' if names else ''}; "
+                                    f"structure-from-motion needs at least {MIN_IMAGES}",
+                             f"add photos of the scene (ending in {' '.join(PHOTO_SUFFIXES)})" if kind == "photos"
+                             else "give a longer video")
+    needed = images_needed(views, test_every)
+    if len(names) < needed:
+        raise ConfigError("capture.views", f"{views}: {where} gives {len(names)} {kind}, and {views} training views "
+                                           f"plus the held-out ones (every {test_every}th image) need {needed}; "
+                                           "ask for fewer views or capture more")
+
+
+def _reused(target: Path, views: int, test_every: int) -> bool:
+    """Whether a finished reconstruction is at ``target`` (refused when it registered too few images for
+    ``views``)."""
+    if not (target / RECORD).is_file():
+        return False
+    record = json.loads((target / RECORD).read_text())
+    log.info("%s: reusing the reconstruction at %s (%d of %d images registered, mean reprojection error "
+             "%.2f px)", target.name, target, len(record["registered"]), record["images"],
+             record["mean_reprojection_error"])
+    _require_registered(record, target, views, test_every)
+    return True
+
+
+def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, views: int, test_every: int,
+                 capture: Path, sequential: bool) -> None:
+    """Run SfM on ``names`` in ``images`` and write the undistorted scene folder ``scene``; refuse, before
+    anything is kept, a reconstruction that registers too few images of ``capture`` for ``views``."""
+    import pycolmap  # lazily, after PIL and torch (bundled zlib, see module docstring)
+
+    if cfg.camera_model not in pycolmap.CameraModelId.__members__:
+        raise ConfigError("capture.sfm.camera_model", f"{cfg.camera_model!r} is not a COLMAP camera model; "
+                                                      "use SIMPLE_RADIAL, OPENCV, PINHOLE, ...")
+    work = scene.parent / ".work"
+    work.mkdir(parents=True)
+    images = _upright(images, names, work / "upright")
+    database = work / "database.db"
+    started = time.perf_counter()
+    matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
+    if matcher == Matcher.auto:
+        matcher = Matcher.sequential if sequential else Matcher.exhaustive
+    log.info("%s: structure-from-motion of %d images with pycolmap: SIFT features", scene.name, len(names))
+    with _quiet_colmap():
+        sizes = _extract(database, images, names, cfg)
+        log.info("%s: %d images, %d camera(s) (one per image size: %s); %s matching", scene.name, len(names),
+                 len(sizes), ", ".join(f"{w}x{h}" for w, h in sizes), matcher.value)
+        _match(database, matcher, cfg)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads, options.min_model_size, options.random_seed = cfg.threads, cfg.min_model_size, cfg.seed
+        placed = 0
+
+        def progress() -> None:  # called by the mapper after each image it registers
+            nonlocal placed
+            placed += 1
+            if placed % PROGRESS_EVERY == 0:
+                log.info("%s: mapping, %d images registered so far", scene.name, placed)
+
+        models = pycolmap.incremental_mapping(database, images, work / "models", options,
+                                              next_image_callback=progress)
+        record = _findings(database, names, models, options.min_num_matches)
+        record["cameras"], record["seconds"] = [list(size) for size in sizes], round(time.perf_counter() - started, 2)
+        _log_findings(scene.name, record)
+        _require_registered(record, capture, views, test_every)
+        largest = max(models.values(), key=lambda model: model.num_reg_images())
+        (work / "model").mkdir()
+        largest.write(work / "model")
+        undistorted = work / "undistorted"
+        pycolmap.undistort_images(undistorted, work / "model", images, num_threads=cfg.threads)
+    scene.mkdir(parents=True, exist_ok=True)
+    (scene / "sparse").mkdir()
+    (undistorted / "images").rename(scene / "images")
+    (undistorted / "sparse").rename(scene / "sparse" / "0")
+    shutil.rmtree(work)
+    write_json_atomic(record, scene / RECORD)
+
+
+def _upright(images: Path, names: list[str], out: Path) -> Path:
+    """The folder of ``names`` as the loader sees them: ``images`` itself, or, when a photo carries an EXIF
+    orientation (a phone held upright), ``out`` with that photo turned upright and links to the others. COLMAP reads
+    the stored pixels and its undistorted images keep the tag, which the loader applies (tracegs.data.images), so a
+    turned photo would no longer fit its camera."""
+    turned = []
+    for name in names:
+        try:
+            with Image.open(images / name) as photo:
+                if photo.getexif().get(EXIF_ORIENTATION, 1) != 1:
+                    turned.append(name)
+        except OSError as error:
+            raise InputFileError(images / name, f"cannot read the photo ({one_line(error)})",
+                                 "replace or remove it") from error
+    if not turned:
+        return images
+    out.mkdir()
+    for name in names:
+        if name in turned:
+            with Image.open(images / name) as photo:
+                ImageOps.exif_transpose(photo).save(out / name, format=photo.format, quality=95)
+        else:
+            (out / name).symlink_to(images / name)
+    log.info("%d photos turned upright by their EXIF orientation (%s)", len(turned), _names(turned))
+    return out
+
+
+def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> list[tuple[int, int]]:
+    """SIFT features of ``names`` into ``database``, one camera per image size (COLMAP's AUTO mode gives
+    one per image in pycolmap 4.2, so each size is read on its own in SINGLE mode); returns the sizes."""
+    import pycolmap
+
+    by_size: dict[tuple[int, int], list[str]] = {}
+    for name in names:
+        with Image.open(images / name) as image:  # read once already (_upright)
+            by_size.setdefault(image.size, []).append(name)  # as stored, as COLMAP reads it
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads, extraction.max_image_size = cfg.threads, cfg.max_image_size
+    extraction.sift.max_num_features = cfg.max_features
+    for group in by_size.values():
+        pycolmap.extract_features(database, images, image_names=group, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction)
+    return sorted(by_size)
+
+
+def _match(database: Path, matcher: Matcher, cfg: SfmConfig) -> None:
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = cfg.threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed
+    if matcher == Matcher.sequential:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap, pairing.num_threads = cfg.sequential_overlap, cfg.threads
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification)
+    else:
+        pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
+
+
+def _findings(database: Path, names: list[str], models: dict, min_matches: int) -> dict:
+    """What the reconstruction found: the largest model's images, and why each other image is not in it."""
+    import pycolmap
+
+    with pycolmap.Database.open(database) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        pairs, inliers = db.read_two_view_geometry_num_inliers()
+    matched = {i for pair, count in zip(pairs, inliers) if count >= min_matches
+               for i in pycolmap.pair_id_to_image_pair(pair)}
+    ordered = sorted(models.values(), key=lambda model: -model.num_reg_images())
+    groups = [sorted(image.name for image in model.images.values() if image.has_pose) for model in ordered]
+    registered = groups[0] if groups else []
+    # COLMAP lets a later model re-register images of an earlier one: only the others are left out.
+    others = [kept for group in groups[1:] if (kept := [name for name in group if name not in registered])]
+    elsewhere = {name for group in others for name in group}
+    left_out = {}
+    for name in names:
+        if name in registered:
+            continue
+        left_out[name] = ("unreadable" if name not in ids else "another model" if name in elsewhere
+                          else "no matches" if ids[name] not in matched else "too little overlap")
+    largest = ordered[0] if ordered else None
+    return {
+        "images": len(names), "registered": registered, "left_out": left_out, "other_models": others,
+        "mean_reprojection_error": largest.compute_mean_reprojection_error() if largest else None,
+        "points": largest.num_points3D() if largest else 0,
+    }
+
+
+REASONS = {"no matches": "without matches to any other", "too little overlap": "matched but with too little overlap",
+           "unreadable": "that COLMAP could not read", "another model": "in separate models"}
+
+
+def _why_left_out(record: dict) -> str:
+    by_reason: dict[str, list[str]] = {}
+    for name, reason in record["left_out"].items():
+        by_reason.setdefault(reason, []).append(name)
+    return "; ".join(f"{len(names)} {REASONS[reason]}: {_names(names)}" for reason, names in by_reason.items())
+
+
+def _log_findings(name: str, record: dict) -> None:
+    registered = len(record["registered"])
+    log.info("%s: structure-from-motion registered %d of %d images, mean reprojection error %s, %d points (%.1f s)",
+             name, registered, record["images"],
+             "n/a" if record["mean_reprojection_error"] is None else f"{record['mean_reprojection_error']:.2f} px",
+             record["points"], record["seconds"])
+    if record["other_models"]:
+        log.warning("%s: the images form %d disconnected models; the largest (%d images) is used, left out: %s",
+                    name, 1 + len(record["other_models"]), registered,
+                    "; ".join(f"{len(group)} images of another ({_names(group)})" for group in record["other_models"]))
+    if record["left_out"]:
+        log.info("%s: not registered: %s", name, _why_left_out(record))
+
+
+def _require_registered(record: dict, where: Path, views: int, test_every: int) -> None:
+    needed = images_needed(views, test_every)
+    registered = len(record["registered"])
+    if registered < needed:
+        why = _why_left_out(record)
+        raise ConfigError("capture.views",
+                          f"{views}: structure-from-motion registered {registered} of {record['images']} images of "
+                          f"{where}{f' ({why})' if why else ''}, and {views} training views plus the held-out ones "
+                          f"need {needed}; ask for fewer views, or add photos that overlap the others")
+
+
+def sharpness(frame: np.ndarray) -> float:
+    """Variance of the Laplacian of a frame's grey levels: low for a blurred frame."""
+    from skimage.color import rgb2gray
+    from skimage.filters import laplace
+
+    return float(laplace(rgb2gray(frame[..., :3])).var())
+
+
+def sample_frames(video: Path, count: int, out: Path) -> list[Path]:
+    """The sharpest frame of each of ``count`` equal windows of ``video`` (every frame when it has fewer), written
+    as PNGs named by their frame number into ``out``; read with imageio's ffmpeg plugin."""
+    import imageio.v3 as iio
+    import imageio_ffmpeg
+
+    if count < 1:
+        raise ConfigError("capture.frames", f"{count}: sample at least {MIN_IMAGES} frames")
+    try:
+        total, _ = imageio_ffmpeg.count_frames_and_secs(str(video))
+    except (OSError, RuntimeError) as error:
+        raise InputFileError(video, f"cannot read the video ({one_line(error)})",
+                             "give a video file ffmpeg reads (mp4, mov, mkv, ...)") from error
+    windows = min(count, total)
+    out.mkdir(parents=True)
+    written: list[Path] = []
+    best: tuple[float, int, np.ndarray] | None = None
+    window = 0
+
+    def keep(choice: tuple[float, int, np.ndarray]) -> None:
+        path = out / f"frame_{choice[1]:06d}.png"
+        iio.imwrite(path, choice[2][..., :3])
+        written.append(path)
+
+    for index, frame in enumerate(iio.imiter(video, plugin="FFMPEG")):
+        if index >= total:
+            break
+        if index * windows // total != window:
+            keep(best)
+            best, window = None, index * windows // total
+        score = sharpness(frame)
+        if best is None or score > best[0]:
+            best = (score, index, frame)
+    if best is not None:
+        keep(best)
+    log.info("%s: %d frames, kept the sharpest of each of %d windows", video.name, total, len(written))
+    return written

@@ -7,7 +7,6 @@ import os
 import stat
 
 import pytest
-
 from read_only import read_only_view
 
 from tracegs.errors import OutputPathError

@@ -14,7 +14,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from tracegs.config.identity import register_resolvers
+from tracegs.config.identity import SCHEMA_NAME, register_resolvers
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.modes import Mode
@@ -144,6 +144,8 @@ class ExperimentConfig:
     baseline_lr: float = reads(BASELINE, default=MISSING)
     # The baseline exports its weights' moving average (stage.ema_decay)
     baseline_ema_decay: float | None = reads(BASELINE, default=None)
+    # A trains the whole transformer and never reads a later stage's budget; Stage 1 never reads Stage 2's, so a
+    # Stage-2 sweep reuses one A and one Stage-1 adapter.
     stage1_steps: int = reads(STAGE1, default=MISSING)
     stage2_steps: int = reads(STAGE2, default=MISSING)
     stage2_warmup_steps: int = reads(STAGE2, default=MISSING)
@@ -226,6 +228,7 @@ class TraceGSConfig:
     # The ``data`` option the restorers are trained on (the experiment chooses it). Training runs on it; ``data``
     # names what a command prepares, deploys or evaluates, so evaluating another dataset (``data=mipnerf360``)
     # loads the students trained on this one (tracegs.pipeline.upstream).
+    # Deployment and evaluation read it: it selects the restorers they load.
     training_data: str = reads(DEPLOYMENT, default=MISSING)
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
@@ -251,9 +254,6 @@ class TraceGSConfig:
     report: ReportConfig = execution(factory=ReportConfig)
     capture: CaptureConfig = reads(RESTORE, factory=CaptureConfig)  # tracegs-restore's own scene
     benchmark: BenchmarkConfig = execution(factory=BenchmarkConfig)
-
-
-SCHEMA_NAME = "tracegs_schema"
 
 
 def register_configs(schema: type = TraceGSConfig) -> None:

@@ -235,26 +235,17 @@ class SamplerConfig:
     autocast_bf16: bool = reads(PREPARE, STAGE2, default=True)  # only takes effect on CUDA
 
 
-# The parts of a backbone a paired-clip cache is made with (supplement A.4): the codec's latents and the frozen
-# reference and text encoders' outputs. When its pseudo-targets are restorations (data.prepare.pseudo_target=
-# restorer), also what makes a restoration: the transformer, the deployment schedule and the sampler. Never the
-# adapters (the generator has none), nor where the encoders live (backbone.offload_encoders).
-ENCODING_SECTIONS = ("name", "codec", "reference_encoder", "text_encoder")
+# A paired-clip cache is made with (supplement A.4) the backbone fields prepare reads: the codec's latents and the
+# frozen reference and text encoders' outputs and, when its pseudo-targets are restorations (data.prepare.
+# pseudo_target=restorer), what makes a restoration: the transformer, the deployment schedule and the sampler,
+# less the fields that leave a restoration's bytes as they are. Never the adapters (the generator has none), nor
+# where the encoders live (backbone.offload_encoders).
 RESTORATION_SECTIONS = ("transformer", "schedule", "sampler")
-# Keys of those sections that do not change a restoration's bytes: memory settings, stored tensors left unused
-# (transformer.skip_stored_keys: they never reach the model), the training-time density,
-# the deployment guidance and seed (pseudo-targets have their own, data.prepare.pseudo_target_guidance, and a
-# seed derived from each clip).
-NOT_IN_RESTORATIONS = ("transformer.gradient_checkpointing", "transformer.skip_stored_keys",
-                       "schedule.train_time_power", "schedule.train_time_uniform_share",
-                       "schedule.train_loss_weighting", "sampler.guidance_scale",
-                       "sampler.seed")
 
 
-def cache_sections(pseudo_target) -> tuple[str, ...]:
-    """The backbone sections a paired-clip cache with these pseudo-targets is made with (less
-    ``NOT_IN_RESTORATIONS``)."""
-    return ENCODING_SECTIONS + (RESTORATION_SECTIONS if str(pseudo_target) == "restorer" else ())
+def sections_not_in_cache(pseudo_target) -> tuple[str, ...]:
+    """The backbone sections prepare reads that a paired-clip cache with these pseudo-targets is not made with."""
+    return () if str(pseudo_target) == "restorer" else RESTORATION_SECTIONS
 
 
 @dataclass

@@ -8,16 +8,27 @@ Cross-field rules that types cannot express live in :mod:`tracegs.config.validat
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from tracegs.config.identity import register_resolvers
+from tracegs.config.identity import SCHEMA_NAME, register_resolvers
 from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.modes import Mode
+from tracegs.products import (
+    BASELINE,
+    DEPLOYMENT,
+    PREPARE,
+    RESTORE,
+    STAGE1,
+    STAGE2,
+    declarations,
+    execution,
+    reads,
+)
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
@@ -66,12 +77,13 @@ class EvaluatedMethod(Mode):
 class PathsConfig:
     """Where inputs are read and outputs land (all relative to the launch directory by default)."""
 
-    root_dir: str = "."
-    data_dir: str = "${paths.root_dir}/data"
-    weights_dir: str = "${paths.root_dir}/weights"  # local model weights (diffusers / transformers dirs)
-    runs_dir: str = "${paths.root_dir}/outputs"  # one sub-folder per experiment
+    root_dir: str = execution(default=".")
+    data_dir: str = execution(default="${paths.root_dir}/data")
+    # Local model weights (diffusers / transformers dirs)
+    weights_dir: str = execution(default="${paths.root_dir}/weights")
+    runs_dir: str = execution(default="${paths.root_dir}/outputs")  # one sub-folder per experiment
     # Shared artefacts of one experiment (baseline weights, the Stage-1 adapter every ablation clones).
-    experiment_dir: str = "${paths.runs_dir}/${experiment.name}"
+    experiment_dir: str = execution(default="${paths.runs_dir}/${experiment.name}")
 
 
 def seeded(stream: str) -> Any:
@@ -88,15 +100,15 @@ CACHE_ROOT = "${paths.data_dir}/cache/${data.name}-${backbone.name}"
 class DataConfig:
     """Scene source, synthetic benchmark, paired-clip preparation and the DataModule."""
 
-    name: str = "synthetic"
-    source: SceneSourceConfig = field(default_factory=SceneSourceConfig)
-    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
-    prepare: PrepareConfig = field(default_factory=lambda: PrepareConfig(
+    name: str = reads(PREPARE, BASELINE, default="synthetic")
+    source: SceneSourceConfig = reads(PREPARE, BASELINE, factory=SceneSourceConfig)
+    synthetic: SyntheticConfig = reads(PREPARE, BASELINE, factory=SyntheticConfig)
+    prepare: PrepareConfig = reads(PREPARE, BASELINE, factory=lambda: PrepareConfig(
         cache_dir="${tracegs.product:" + CACHE_ROOT + "-${data.prepare.split}-${tracegs.cache:${data.prepare.split}}}",
         work_dir="${tracegs.product:${paths.data_dir}/prepare_work/${data.name}-${data.prepare.split}-"
                  "${tracegs.cache:${data.prepare.split}}}",
         seed=seeded("prepare"), fit=GaussianFitConfig(seed=seeded("fit"))))
-    datamodule: DataModuleConfig = field(default_factory=lambda: DataModuleConfig(
+    datamodule: DataModuleConfig = reads(BASELINE, factory=lambda: DataModuleConfig(
         cache_dir="${tracegs.product:" + CACHE_ROOT + "-train-${tracegs.cache:train}}", seed=seeded("datamodule")))
 
 
@@ -111,11 +123,11 @@ class ArtifactsConfig:
     # tracegs.pipeline.upstream.locate_artifacts) or an explicit path.
     # Variant A's transformer (a diffusers directory written by ``stage=baseline``). null = the backbone's
     # own ``transformer.pretrained_path`` (paper scale: GSFixer's pretrained restorer is variant A).
-    baseline_weights: str | None = AUTO
+    baseline_weights: str | None = reads(STAGE1, default=AUTO)
     # The aligned Stage-1 adapter every Stage-2 variant clones.
-    stage1_adapter: str = AUTO
+    stage1_adapter: str = reads(STAGE2, default=AUTO)
     # The deployed student adapter of the selected ablation variant.
-    student_adapter: str = AUTO
+    student_adapter: str = reads(DEPLOYMENT, default=AUTO)
 
 
 @dataclass
@@ -123,63 +135,67 @@ class ExperimentConfig:
     """Which scale the run uses. Every value comes from the ``experiment`` group file (conf/experiment/:
     embedded, paper, rehearsal), the one place each scale's numbers are written."""
 
-    name: str = MISSING
-    description: str = MISSING
+    name: str = reads(BASELINE, default=MISSING)
+    description: str = execution(default=MISSING)
     # Per-scale training budgets that the ``stage`` group files read (supplement A.4); keeping them here
     # lets ``experiment=paper stage=stage1`` and ``experiment=paper stage=stage2`` each pick their own.
-    baseline_steps: int = MISSING  # 0 = variant A is a pretrained restorer, loaded and never trained
-    baseline_lr: float = MISSING
-    baseline_ema_decay: float | None = None  # the baseline exports its weights' moving average (stage.ema_decay)
-    stage1_steps: int = MISSING
-    stage2_steps: int = MISSING
-    stage2_warmup_steps: int = MISSING
-    stage1_lr: float = MISSING
-    stage2_lr: float = MISSING
-    batch_size: int = MISSING  # per device (A and Stage 1)
-    stage2_batch_size: int = MISSING  # per device; a Stage-2 sample is N rollout states, not one
+    # 0 = variant A is a pretrained restorer, loaded and never trained
+    baseline_steps: int = reads(BASELINE, default=MISSING)
+    baseline_lr: float = reads(BASELINE, default=MISSING)
+    # The baseline exports its weights' moving average (stage.ema_decay)
+    baseline_ema_decay: float | None = reads(BASELINE, default=None)
+    # A trains the whole transformer and never reads a later stage's budget; Stage 1 never reads Stage 2's, so a
+    # Stage-2 sweep reuses one A and one Stage-1 adapter.
+    stage1_steps: int = reads(STAGE1, default=MISSING)
+    stage2_steps: int = reads(STAGE2, default=MISSING)
+    stage2_warmup_steps: int = reads(STAGE2, default=MISSING)
+    stage1_lr: float = reads(STAGE1, default=MISSING)
+    stage2_lr: float = reads(STAGE2, default=MISSING)
+    batch_size: int = reads(BASELINE, default=MISSING)  # per device (A and Stage 1)
+    stage2_batch_size: int = reads(STAGE2, default=MISSING)  # per device; a Stage-2 sample is N rollout states, not one
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
-    frame_height: int = MISSING  # rendered frames and resized images
-    frame_width: int = MISSING
-    frames_per_clip: int = MISSING  # 8k+1 frames per paired clip and deployment clip
-    clips_per_scene: int = MISSING  # paired clips prepared per scene (what Stage 2 reads)
+    frame_height: int = reads(BASELINE, default=MISSING)  # rendered frames and resized images
+    frame_width: int = reads(BASELINE, default=MISSING)
+    frames_per_clip: int = reads(BASELINE, default=MISSING)  # 8k+1 frames per paired clip and deployment clip
+    clips_per_scene: int = reads(BASELINE, default=MISSING)  # paired clips prepared per scene (what Stage 2 reads)
     # A and Stage 1 read only each scene's first n of them (None: all), so Stage 2 can draw fresh clips from
     # the same cache without changing what A and Stage 1 were trained on.
-    baseline_clips_per_scene: int | None = None
+    baseline_clips_per_scene: int | None = reads(BASELINE, default=None)
 
 
 @dataclass
 class AblationConfig:
     """One row of Table 3; the ``ablation`` group file (conf/ablation/) sets it and teacher/policy/loss."""
 
-    name: str = MISSING
-    description: str = MISSING
+    name: str = reads(STAGE2, default=MISSING)
+    description: str = execution(default=MISSING)
     # Its row in Table 3: the sweep trains and the report lists the variants in this order.
-    row: int = MISSING
+    row: int = execution(default=MISSING)
     # Variant A evaluates the frozen baseline restorer and trains nothing.
-    train_stage2: bool = MISSING
+    train_stage2: bool = execution(default=MISSING)
     # The evaluation method that stands for this variant in Table 3 (variant A: the baseline restorer);
     # a sweep evaluates only it: 'evaluation.methods=[${ablation.method}]'.
-    method: EvaluatedMethod = EvaluatedMethod.tracegs
+    method: EvaluatedMethod = execution(default=EvaluatedMethod.tracegs)
 
 
 @dataclass
 class ReportConfig:
     """What ``tracegs-report`` merges (see :class:`ReportKind`)."""
 
-    kind: ReportKind = ReportKind.main
-    inputs: list[str] = field(default_factory=list)  # result folders; empty = the experiment's defaults
+    kind: ReportKind = execution(default=ReportKind.main)
+    inputs: list[str] = execution(factory=list)  # result folders; empty = the experiment's defaults
     # Table 3's datasets (``data`` options), one column group each: the sweep's evaluations on each of them.
-    datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
+    datasets: list[str] = execution(factory=lambda: ["${data.name}"])
     # Tables 1/2's datasets (``data`` options): on each, one evaluation of plain 3DGS, A and TRACE-GS (F) merged by
     # report.kind=main (tracegs.pipeline.steps.main_table_steps).
-    main_datasets: list[str] = field(default_factory=lambda: ["${data.name}"])
+    main_datasets: list[str] = execution(factory=lambda: ["${data.name}"])
     # report.kind=main: take A's and the variant's (F) scores from the ablation sweep's evaluations on this dataset
     # instead of evaluating them again (this command's own evaluation then holds 3DGS only).
-    main_from_sweep: bool = False
+    main_from_sweep: bool = execution(default=False)
     # report.kind=diagnostics: also restore with the Stage-1 adapter alone (the students' starting point, row
     # "stage1"), and give each student's final sample against it, paired over scenes.
-    stage1_row: bool = False
-    output_dir: str = "${paths.experiment_dir}/report"
+    stage1_row: bool = execution(default=False)
+    output_dir: str = execution(default="${paths.experiment_dir}/report")
 
 
 @dataclass
@@ -187,12 +203,12 @@ class BenchmarkConfig:
     """``tracegs-benchmark``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
     deployment noise that the root ``seed`` fixes for every replicate (so plain 3DGS is computed once)."""
 
-    training_seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    training_seeds: list[int] = execution(factory=lambda: [0, 1, 2])
     # Clips per held-out scene (the training scenes keep experiment.clips_per_scene): the trajectory diagnostics
     # cost each variant about three restorations of every clip, their largest share after deployment.
-    held_out_clips_per_scene: int = 2
+    held_out_clips_per_scene: int = execution(default=2)
     # The Table 3 variants to train and deploy (names of conf/ablation/ files); None = every one of them.
-    variants: list[str] | None = None
+    variants: list[str] | None = execution(default=None)
 
 
 @dataclass
@@ -201,51 +217,51 @@ class ProcessesConfig:
     rank per device (conf/train.yaml: trainer.num_nodes x trainer.devices); every other command is one process on
     one device, with no rank logic, so its cluster job asks for one task."""
 
-    nodes: int = 1
-    per_node: int = 1
+    nodes: int = execution(default=1)
+    per_node: int = execution(default=1)
 
 
 @dataclass
 class TraceGSConfig:
     """Root of every composed config (prepare, train, deploy, evaluate, report, demo)."""
 
-    task: Task = MISSING  # set by each entry point's conf/<task>.yaml
+    task: Task = execution(default=MISSING)  # set by each entry point's conf/<task>.yaml
     # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
-    seed: int = 0
+    seed: int = reads(PREPARE, BASELINE, default=0)
     # The ``data`` option the restorers are trained on (the experiment chooses it). Training runs on it; ``data``
     # names what a command prepares, deploys or evaluates, so evaluating another dataset (``data=mipnerf360``)
     # loads the students trained on this one (tracegs.pipeline.upstream).
-    training_data: str = MISSING
+    # Deployment and evaluation read it: it selects the restorers they load.
+    training_data: str = reads(DEPLOYMENT, default=MISSING)
     # Where this task writes its artefacts (also Hydra's run dir). Named by the run's identity rather than
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
-    run_dir: str = "${paths.experiment_dir}/${task}"
+    run_dir: str = execution(default="${paths.experiment_dir}/${task}")
     # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
-    job_name: str = "${task}-${stage.name}-${ablation.name}"
-    processes: ProcessesConfig = field(default_factory=ProcessesConfig)
-    paths: PathsConfig = field(default_factory=PathsConfig)
-    artifacts: ArtifactsConfig = field(default_factory=ArtifactsConfig)
-    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
-    backbone: BackboneConfig = field(
-        default_factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
-    data: DataConfig = field(default_factory=DataConfig)
-    stage: StageConfig = field(default_factory=lambda: StageConfig(seed=seeded("training")))
-    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
-    teacher: TeacherConfig = field(default_factory=TeacherConfig)
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    ablation: AblationConfig = field(default_factory=AblationConfig)
-    deploy: RefinementConfig = field(default_factory=lambda: RefinementConfig(seed=seeded("deploy")))
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
-    report: ReportConfig = field(default_factory=ReportConfig)
-    capture: CaptureConfig = field(default_factory=CaptureConfig)  # tracegs-restore's own scene
-    benchmark: BenchmarkConfig = field(default_factory=BenchmarkConfig)
+    job_name: str = execution(default="${task}-${stage.name}-${ablation.name}")
+    processes: ProcessesConfig = execution(factory=ProcessesConfig)
+    paths: PathsConfig = execution(factory=PathsConfig)
+    artifacts: ArtifactsConfig = reads(STAGE1, factory=ArtifactsConfig)
+    experiment: ExperimentConfig = reads(BASELINE, factory=ExperimentConfig)
+    backbone: BackboneConfig = reads(
+        PREPARE, BASELINE, factory=lambda: BackboneConfig(sampler=SamplerConfig(seed=seeded("sampler"))))
+    data: DataConfig = reads(PREPARE, BASELINE, factory=DataConfig)
+    stage: StageConfig = reads(BASELINE, factory=lambda: StageConfig(seed=seeded("training")))
+    optimizer: OptimizerConfig = reads(BASELINE, factory=OptimizerConfig)
+    teacher: TeacherConfig = reads(STAGE1, factory=TeacherConfig)
+    policy: PolicyConfig = reads(STAGE2, factory=PolicyConfig)
+    loss: LossConfig = reads(STAGE1, factory=LossConfig)
+    trainer: TrainerConfig = reads(BASELINE, factory=TrainerConfig)
+    ablation: AblationConfig = reads(STAGE2, factory=AblationConfig)
+    deploy: RefinementConfig = reads(DEPLOYMENT, factory=lambda: RefinementConfig(seed=seeded("deploy")))
+    evaluation: EvaluationConfig = reads(DEPLOYMENT, factory=EvaluationConfig)
+    report: ReportConfig = execution(factory=ReportConfig)
+    capture: CaptureConfig = reads(RESTORE, factory=CaptureConfig)  # tracegs-restore's own scene
+    benchmark: BenchmarkConfig = execution(factory=BenchmarkConfig)
 
 
-SCHEMA_NAME = "tracegs_schema"
-
-
-def register_configs() -> None:
-    """Register the root schema so primary configs can list it first in their defaults."""
+def register_configs(schema: type = TraceGSConfig) -> None:
+    """Register the root schema so primary configs can list it first in their defaults. A field that declares no
+    products (tracegs.products) is refused here, before any config is composed."""
+    declarations(schema)
     register_resolvers()
-    ConfigStore.instance().store(name=SCHEMA_NAME, node=TraceGSConfig)
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=schema)

@@ -6,9 +6,10 @@ in each field's comment; the lead's Hydra yaml sets them for the cluster runs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from tracegs.modes import Mode
+from tracegs.products import BASELINE, DEPLOY, EVALUATE, EVERY, PREPARE, RESTORE, execution, handed_in, reads
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 
 
@@ -50,29 +51,35 @@ class PseudoTarget(Mode):
 class SyntheticConfig:
     """The embedded synthetic benchmark: procedural Gaussian scenes rendered along camera paths."""
 
-    root: str = "data/synthetic"
+    root: str = execution(default="data/synthetic")
     # Between them the training scenes show every ground (3) and backdrop (6) texture (tests/data/test_synthetic.py):
     # seeds 0-3 showed 2 grounds and 3 backdrops, and a restorer trained on them lost 3.8 dB against its input
     # on validation scene 50, whose backdrop (hubble deep field) none of them showed. The first six (0, 2, 3,
     # 9, 14, 19) show them all; six more lift the restorers on validation clips (conf/data/synthetic.yaml).
-    train_seeds: list[int] = field(default_factory=lambda: [0, 2, 3, 9, 14, 19, 4, 5, 6, 7, 8, 10])
-    test_seeds: list[int] = field(default_factory=lambda: [100, 101])  # disjoint from train_seeds
+    train_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.train,
+                                   factory=lambda: [0, 2, 3, 9, 14, 19, 4, 5, 6, 7, 8, 10])
+    # Disjoint from train_seeds
+    test_seeds: list[int] = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, factory=lambda: [100, 101])
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
     # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
-    val_seeds: list[int] = field(default_factory=lambda: [50, 51, 52])
-    num_views: int = 32
-    height: int = 48
-    width: int = 72
-    fov_x_deg: float = 50.0  # narrow enough that 9 views leave gaps 12+ views fill (privileged gap)
+    val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52])
+    num_views: int = reads(PREPARE, BASELINE, default=32)
+    height: int = reads(PREPARE, BASELINE, default=48)
+    width: int = reads(PREPARE, BASELINE, default=72)
+    # Narrow enough that 9 views leave gaps 12+ views fill (privileged gap)
+    fov_x_deg: float = reads(PREPARE, BASELINE, default=50.0)
     # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
     # Default orbit only: the clip / deployment trajectories are 360-degree ellipses, which leave a
     # forward-facing capture's coverage, so dense fits there are no better than sparse ones (measured).
-    path_styles: list[str] = field(default_factory=lambda: ["orbit"])
-    orbit_arc_deg: float = 300.0  # an open arc, like a walk-around video; a closed ring would wrap
-    num_objects: int = 6
-    gaussians_per_unit_area: float = 250.0  # density of surface Gaussians on the textured shapes
-    init_points: int = 1500  # SfM-like points written to points3D (subsampled Gaussian centres)
-    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    path_styles: list[str] = reads(PREPARE, BASELINE, factory=lambda: ["orbit"])
+    # An open arc, like a walk-around video; a closed ring would wrap
+    orbit_arc_deg: float = reads(PREPARE, BASELINE, default=300.0)
+    num_objects: int = reads(PREPARE, BASELINE, default=6)
+    # Density of surface Gaussians on the textured shapes
+    gaussians_per_unit_area: float = reads(PREPARE, BASELINE, default=250.0)
+    # SfM-like points written to points3D (subsampled Gaussian centres)
+    init_points: int = reads(PREPARE, BASELINE, default=1500)
+    background: list[float] = reads(PREPARE, BASELINE, factory=lambda: [0.0, 0.0, 0.0])
 
 
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
@@ -91,32 +98,38 @@ def overlapping_seeds(cfg: SyntheticConfig) -> list[int]:
 class SceneSourceConfig:
     """Where scenes come from: a COLMAP dataset layout (presets) or the synthetic benchmark root."""
 
-    root: str = "data/synthetic"
-    preset: SourcePreset = SourcePreset.synthetic  # fills image_dir / sparse_dir
-    scenes: list[str] | None = None  # None = every scene directory under root (sorted), or the split's list
+    root: str = execution(default="data/synthetic")
+    preset: SourcePreset = reads(PREPARE, BASELINE, default=SourcePreset.synthetic)  # fills image_dir / sparse_dir
+    # None = every scene directory under root (sorted), or the split's list
+    scenes: list[str] | None = reads(PREPARE, BASELINE, default=None)
     # Scene lists (one name a line) for datasets whose training and benchmark scenes share a root (DL3DV):
     # prepare and training read ``train_list``, evaluation ``test_list``; None = every scene under root.
-    train_list: str | None = None
-    test_list: str | None = None
-    image_dir: str | None = None  # None = preset default, e.g. "images_4" for Mip-NeRF 360
-    sparse_dir: str | None = None  # None = preset default, e.g. "sparse/0"
-    height: int | None = None  # resize images (and intrinsics) to this size; None = as stored
-    width: int | None = None  # paper scale: 480 x 720
-    normalize: bool = True  # centre the cameras and scale them into the unit ball (3DGS convention)
-    test_every: int = 8
+    train_list: str | None = reads(PREPARE, BASELINE, split=Split.train, default=None)
+    test_list: str | None = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, default=None)
+    # None = preset default, e.g. "images_4" for Mip-NeRF 360
+    image_dir: str | None = reads(PREPARE, BASELINE, default=None)
+    sparse_dir: str | None = reads(PREPARE, BASELINE, default=None)  # None = preset default, e.g. "sparse/0"
+    # Resize images (and intrinsics) to this size; None = as stored
+    height: int | None = reads(PREPARE, BASELINE, default=None)
+    width: int | None = reads(PREPARE, BASELINE, default=None)  # paper scale: 480 x 720
+    # Centre the cameras and scale them into the unit ball (3DGS convention)
+    normalize: bool = reads(PREPARE, BASELINE, default=True)
+    test_every: int = reads(PREPARE, BASELINE, default=8)
     # Where a scene has no split file for a count. nested: V_s in V_d, which training clips need (paper Sec. 3).
     # linspace: GSFixer's sparse views (datasets/colmap_debug.py l. 416-422), not nested; the evaluation-only
     # datasets use it (conf/data/mipnerf360.yaml, conf/data/nerfbusters.yaml).
-    view_rule: ViewRule = ViewRule.nested
+    view_rule: ViewRule = reads(PREPARE, BASELINE, default=ViewRule.nested)
 
 
 @dataclass
 class CaptionConfig:
     """Where clip captions come from."""
 
-    blip2_path: str | None = None  # local BLIP-2 weights (transformers layout); None = the deterministic source
-    fallback: str = "a photo of a scene"  # deterministic source: used when a scene has no caption.txt
-    max_new_tokens: int = 30  # unstated by the paper: BLIP-2 caption length
+    # Local BLIP-2 weights (transformers layout); None = the deterministic source
+    blip2_path: str | None = reads(EVERY, default=None)
+    # Deterministic source: used when a scene has no caption.txt
+    fallback: str = reads(EVERY, default="a photo of a scene")
+    max_new_tokens: int = reads(EVERY, default=30)  # unstated by the paper: BLIP-2 caption length
 
 
 
@@ -124,74 +137,82 @@ class CaptionConfig:
 class PrepareConfig:
     """Paired-clip preparation (paper Sec. 4.1 "Training Data", supplement A.2 / A.4)."""
 
-    cache_dir: str = "data/cache"
+    cache_dir: str = execution(default="data/cache")
     # Which scenes to prepare. "test" builds a held-out cache that no stage trains on; evaluation scores
     # restorers on its clips (``evaluation.held_out_cache``): the synthetic test seeds, or a real dataset's test
     # scenes with clips through captured cameras between consecutive sparse views, whose ground truth is the
     # capture (paper silent; tracegs/data/held_out.py says why). "val" (synthetic only) builds the validation
     # cache that embedded settings are chosen on.
-    split: Split = Split.train
-    work_dir: str = "data/prepare_work"  # fitted snapshots (PLY) per (scene, view set): resumable unit
-    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])
+    # Training reads the train split's cache whatever split a prepare builds.
+    split: Split = reads(PREPARE, default=Split.train)
+    # Fitted snapshots (PLY) per (scene, view set): resumable unit
+    work_dir: str = execution(default="data/prepare_work")
+    student_views: list[int] = reads(PREPARE, BASELINE, factory=lambda: [3, 6, 9])
     # None = all training views. Empty: no R_d (a held-out cache that scores restorers from R_s against ground
     # truth, pseudo_target 'gt'; the privileged report needs the teacher's R_d).
-    dense_views: list[int | None] = field(default_factory=lambda: [12, 18, None])
+    dense_views: list[int | None] = reads(PREPARE, BASELINE, factory=lambda: [12, 18, None])
     # Also fit the smallest student set to the final iteration, whose snapshot is the non-privileged teacher of
     # variant B for every K. False stops each sparse fit at its last student snapshot: the student conditions
     # are the same bytes, and a sparse fit costs 17k instead of 30k iterations.
-    student_final_fits: bool = True
-    student_snapshots: list[int] = field(default_factory=lambda: [140, 340])  # paper: 7000, 17000
+    student_final_fits: bool = reads(PREPARE, BASELINE, default=True)
+    student_snapshots: list[int] = reads(PREPARE, BASELINE, factory=lambda: [140, 340])  # paper: 7000, 17000
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
-    fit: GaussianFitConfig = field(default_factory=GaussianFitConfig)
-    workers: int = 2  # processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
+    fit: GaussianFitConfig = reads(PREPARE, BASELINE, factory=GaussianFitConfig)
+    # Processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
+    workers: int = execution(default=2)
     # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent)
     # and holds every student snapshot of it (one paired clip per snapshot).
-    clips_per_scene: int = 8  # paper: 75 (a real dataset's held-out split: one clip per reference pair of each K)
+    # Paper: 75 (a real dataset's held-out split: one clip per reference pair of each K)
+    clips_per_scene: int = reads(PREPARE, BASELINE, default=8)
     # True: each trajectory, drawn on the smallest K's views, serves every K (nested view sets, V_3 in V_6 in V_9) and
     # is restored into one pseudo-target; clips_per_scene counts trajectories x K. False: each clip has its own
     # trajectory on its own K's views and its own pseudo-target. Paper: "150 paired clips" per scene, read as 25
     # trajectories x 3 K x 2 snapshots with one pseudo-target each (2,800 restorations for 112 scenes, not 16,800).
-    shared_trajectories: bool = False
-    frames_per_clip: int = 9  # paper: 49
+    shared_trajectories: bool = reads(PREPARE, BASELINE, default=False)
+    frames_per_clip: int = reads(PREPARE, BASELINE, default=9)  # paper: 49
     # A real dataset's held-out clip whose two reference views have fewer captured images between them than
     # frames_per_clip - 2: False refuses the scene; True repeats captured frames evenly to fill the clip (each
     # frame keeps its own ground truth). Paper silent; Mip-NeRF 360 captures hold 125-311 images, fewer than 47
     # per gap at K = 6 and 9, and 49 is the frame count GSFixer's learned positional embeddings were trained at.
-    held_out_repeat_frames: bool = False
+    # Training reads latents only: how held-out clips are filled (and, below, whether a cache keeps frames for
+    # inspection) leaves the trained restorers as they are.
+    held_out_repeat_frames: bool = reads(PREPARE, default=False)
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
-    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
-    pseudo_target: PseudoTarget = PseudoTarget.gt  # paper: restorer (frozen GSFixer)
+    trajectory: TrajectoryConfig = reads(PREPARE, BASELINE, factory=TrajectoryConfig)
+    pseudo_target: PseudoTarget = reads(PREPARE, BASELINE, default=PseudoTarget.gt)  # paper: restorer (frozen GSFixer)
     # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
     # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
-    pseudo_target_guidance: float = 6.0
+    pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0)
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
-    captions: CaptionConfig = field(default_factory=CaptionConfig)
-    shard_index: int = 0
-    num_shards: int = 1  # shard by scene for Hydra multirun / SLURM arrays
-    force: bool = False
-    contact_sheet: bool = True
+    captions: CaptionConfig = reads(PREPARE, BASELINE, factory=CaptionConfig)
+    shard_index: int = execution(default=0)
+    num_shards: int = execution(default=1)  # shard by scene for Hydra multirun / SLURM arrays
+    force: bool = execution(default=False)
+    contact_sheet: bool = execution(default=True)
     # uint8 frames of every condition, the target, references and ground truth in the shards. None = only in a
     # held-out split's cache (val / test), which evaluation scores in pixels; training reads latents only.
-    store_frames: bool | None = None
-    latent_dtype: str = "float16"
-    seed: int = 0
+    store_frames: bool | None = reads(PREPARE, default=None)
+    latent_dtype: str = reads(PREPARE, BASELINE, default="float16")
+    seed: int = reads(PREPARE, BASELINE, default=0)
 
 
 @dataclass
 class DataModuleConfig:
     """Which cached conditions the PairedClipDataModule serves and how it batches them."""
 
-    cache_dir: str = "data/cache"
-    student_views: list[int] = field(default_factory=lambda: [3, 6, 9])  # the clips of these K are served
-    student_snapshots: list[int] = field(default_factory=lambda: [140, 340])
-    batch_size: int = 2  # paper: 2 per GPU
+    # Handed in, a cache is known by its manifest (tracegs.data.cache_keys.MANIFEST, which cannot be imported
+    # here), which records every stored tensor's checksum: hashing the tensors would read the whole cache.
+    cache_dir: str = handed_in(BASELINE, content=("manifest.json",), default="data/cache")
+    student_views: list[int] = reads(BASELINE, factory=lambda: [3, 6, 9])  # the clips of these K are served
+    student_snapshots: list[int] = reads(BASELINE, factory=lambda: [140, 340])
+    batch_size: int = reads(BASELINE, default=2)  # paper: 2 per GPU
     # Serve only the first n clips of each scene (None: every clip the cache holds), so that stages of one
     # experiment can read different amounts of one cache (experiment.baseline_clips_per_scene).
-    clips_per_scene: int | None = None
-    num_workers: int = 0
-    val_scenes: list[str] = field(default_factory=list)  # scene names held out for validation
-    caption_dropout: float = 0.1  # supplement A.2: zero text embedding, shared by both roles
-    seed: int = 0
+    clips_per_scene: int | None = reads(BASELINE, default=None)
+    num_workers: int = execution(default=0)
+    val_scenes: list[str] = reads(BASELINE, factory=list)  # scene names held out for validation
+    caption_dropout: float = reads(BASELINE, default=0.1)  # supplement A.2: zero text embedding, shared by both roles
+    seed: int = reads(BASELINE, default=0)
 
 
 class Matcher(Mode):
@@ -204,16 +225,17 @@ class Matcher(Mode):
 
 @dataclass
 class SfmConfig:
-    """Structure-from-motion with pycolmap for a capture without a COLMAP model (tracegs.data.sfm)."""
+    """Structure-from-motion with pycolmap for a capture without a COLMAP model (tracegs.data.sfm). The
+    reconstruction is keyed by its photos and the settings it reads; the restoration of the capture reads them too."""
 
     # Reconstructions are kept here, one folder per (photos, settings below): a rerun reuses it.
-    dir: str = "data/captures"
-    matcher: Matcher = Matcher.auto
-    sequential_overlap: int = 10  # images after each one a sequential matcher pairs it with
-    max_image_size: int = 1600  # longest side SIFT sees (photos are downscaled for extraction only)
-    max_features: int = 8192  # SIFT features per image
+    dir: str = execution(default="data/captures")
+    matcher: Matcher = reads(RESTORE, default=Matcher.auto)
+    sequential_overlap: int = reads(RESTORE, default=10)  # images after each one a sequential matcher pairs it with
+    max_image_size: int = reads(RESTORE, default=1600)  # longest side SIFT sees (photos downscaled for extraction only)
+    max_features: int = reads(RESTORE, default=8192)  # SIFT features per image
     # The lens model fitted, then undone: the images the scene is made of are undistorted to PINHOLE.
-    camera_model: str = "SIMPLE_RADIAL"
-    min_model_size: int = 3  # registered images a disconnected model needs to be reported (COLMAP: 10)
-    threads: int = -1  # -1: every core
-    seed: int = 0  # RANSAC and mapping draws
+    camera_model: str = reads(RESTORE, default="SIMPLE_RADIAL")
+    min_model_size: int = reads(RESTORE, default=3)  # registered images a disconnected model needs to be reported (COLMAP: 10)
+    threads: int = execution(default=-1)  # -1: every core
+    seed: int = reads(RESTORE, default=0)  # RANSAC and mapping draws

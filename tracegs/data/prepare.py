@@ -61,8 +61,9 @@ from tracegs.io import (
     write_json_atomic,
 )
 from tracegs.processes import WorkerPool, run_units
+from tracegs.products import Product, read_values
 from tracegs.restorer.build import Backbone
-from tracegs.restorer.config import NOT_IN_RESTORATIONS, cache_sections
+from tracegs.restorer.config import sections_not_in_cache
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import View, fit_gaussians
@@ -167,16 +168,12 @@ def fit_unit_paths(work_dir: Path, scene: str, key: str, snapshots: list[int], f
 
 
 def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
-    """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata)."""
-    # Where and how the work runs (folders, shards, worker processes) does not change a shard's bytes.
-    ignored = ("cache_dir", "work_dir", "shard_index", "num_shards", "force", "contact_sheet", "workers")
-    relevant = {k: v for k, v in asdict(cfg).items() if k not in ignored}
-    backbone_values = asdict(backbone.cfg)
-    made_with = {section: backbone_values[section] for section in cache_sections(cfg.pseudo_target)}
-    for key in NOT_IN_RESTORATIONS:
-        section, _, leaf = key.partition(".")
-        made_with.get(section, {}).pop(leaf, None)
-    return settings_digest({"prepare": relevant, "backbone": made_with})
+    """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata): the
+    fields a cache reads (tracegs.products), less the backbone sections its pseudo-targets do not need."""
+    made_with = read_values(backbone.cfg, Product.prepare)
+    for section in sections_not_in_cache(cfg.pseudo_target):
+        made_with.pop(section)
+    return settings_digest({"prepare": read_values(cfg, Product.prepare), "backbone": made_with})
 
 
 def fit_done(plan: ScenePlan, key: str, cfg: PrepareConfig) -> bool:

@@ -8,10 +8,11 @@ repeated here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from tracegs.data.config import CaptionConfig, SfmConfig
 from tracegs.errors import ConfigError
+from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
 from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
@@ -21,19 +22,19 @@ METHODS = ("3dgs", "baseline", "tracegs")
 class RefinementConfig:
     """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
 
-    total_iters: int = 600  # J; paper 30000
-    repair_iters: list[int] = field(default_factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
-    lambda_reg: float = 1.0  # peak of the half-sine w_reg
-    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
-    captions: CaptionConfig = field(default_factory=CaptionConfig)  # the training clips' caption rule
+    total_iters: int = reads(DEPLOYMENT, default=600)  # J; paper 30000
+    repair_iters: list[int] = reads(DEPLOYMENT, factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
+    lambda_reg: float = reads(DEPLOYMENT, default=1.0)  # peak of the half-sine w_reg
+    trajectory: TrajectoryConfig = reads(DEPLOYMENT, factory=TrajectoryConfig)
+    captions: CaptionConfig = reads(DEPLOYMENT, factory=CaptionConfig)  # the training clips' caption rule
     # Clips restored per round: None = every clip of the round's rule (one per reference pair of the chained
     # captured views, or every GSFixer window: the paper's protocol); n = a random n of them per round (the
     # embedded default samples 2 to keep CPU deployment within minutes).
-    max_clips_per_round: int | None = 2
-    clip_batch: int = 4  # clips restored per sampler call (memory knob only; paper scale: 1)
+    max_clips_per_round: int | None = reads(DEPLOYMENT, default=2)
+    clip_batch: int = reads(DEPLOYMENT, default=4)  # clips restored per sampler call (memory knob only; paper scale: 1)
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
-    steps: int | None = None
-    seed: int = 0
+    steps: int | None = reads(DEPLOYMENT, default=None)
+    seed: int = reads(DEPLOYMENT, default=0)
 
     def validate(self) -> None:
         repairs = list(self.repair_iters)
@@ -59,34 +60,40 @@ class RefinementConfig:
 class EvaluationConfig:
     """Which scenes, view counts and methods to deploy, and what to write (supplement B)."""
 
-    out_dir: str = "outputs/eval"
-    methods: list[str] = field(default_factory=lambda: list(METHODS))
-    views: list[int] = field(default_factory=lambda: [3, 6, 9])
-    scenes: list[str] | None = None  # None = the benchmark's test scenes
+    out_dir: str = execution(default="outputs/eval")
+    # Which (scene, views, method) units to compute (methods, views, scenes) and which extra files to write
+    # (save_*, grid_views, video_*): each unit is its own file, recorded with its own settings, so selections of
+    # units share one evaluation folder and merge into one results.json.
+    methods: list[str] = execution(factory=lambda: list(METHODS))
+    views: list[int] = execution(factory=lambda: [3, 6, 9])
+    scenes: list[str] | None = execution(default=None)  # None = the benchmark's test scenes
     # A paired-clip cache of held-out scenes with ground truth (``tracegs-prepare data.prepare.split=test``).
     # When set, each diffusion restorer also restores its clips and is scored against its input R_s.
-    held_out_cache: str | None = None
+    held_out_cache: str | None = execution(default=None)
     # Sharding (Hydra multirun / SLURM array): this job evaluates every num_shards-th (scene, views) unit.
-    shard_index: int = 0
-    num_shards: int = 1
+    shard_index: int = execution(default=0)
+    num_shards: int = execution(default=1)
     # Units evaluated in parallel by forked CPU processes (1 intra-op thread each); GPU runs use 1.
-    workers: int = 2
-    lpips: bool = True
-    lpips_convention: str = "3dgs"  # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
+    workers: int = execution(default=2)
+    lpips: bool = reads(DEPLOYMENT, default=True)
+    # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
+    lpips_convention: str = reads(DEPLOYMENT, default="3dgs")
     # torchvision's VGG16 ImageNet weights (vgg16-397923af.pth) for LPIPS; None = the torch hub cache's copy.
-    lpips_weights: str | None = None
+    lpips_weights: str | None = reads(DEPLOYMENT, default=None)
     # Stop before any work when LPIPS cannot be computed (the paper's tables report it); else "n/a" in tables.
-    require_lpips: bool = False
-    per_step: bool = True  # Fig. 6 curves of the diffusion restorers where per-frame GT exists
-    save_media: bool = True  # qualitative grid PNG + comparison video per scene/view count
-    save_models: bool = False  # each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)
-    save_frames: bool = False  # each method's renders along the video's trajectory as PNG frames
-    grid_views: int = 3  # test views shown in the qualitative grid
-    video_frames: int = 24  # frames of the comparison video along a test trajectory
-    video_fps: int = 8
-    force: bool = False  # recompute finished units even when their settings are unchanged
-    variant: str | None = None  # ablation variant name recorded in results.json (Table 3)
-    progress: bool = True
+    require_lpips: bool = reads(DEPLOYMENT, default=False)
+    # Fig. 6 curves of the diffusion restorers where per-frame GT exists
+    per_step: bool = reads(DEPLOYMENT, default=True)
+    save_media: bool = execution(default=True)  # qualitative grid PNG + comparison video per scene/view count
+    # Each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)
+    save_models: bool = execution(default=False)
+    save_frames: bool = execution(default=False)  # each method's renders along the video's trajectory as PNG frames
+    grid_views: int = execution(default=3)  # test views shown in the qualitative grid
+    video_frames: int = execution(default=24)  # frames of the comparison video along a test trajectory
+    video_fps: int = execution(default=8)
+    force: bool = execution(default=False)  # recompute finished units even when their settings are unchanged
+    variant: str | None = execution(default=None)  # ablation variant name recorded in results.json (Table 3)
+    progress: bool = execution(default=True)
 
 
 @dataclass
@@ -95,8 +102,8 @@ class CaptureConfig:
 
     # A COLMAP scene folder (<path>/images/ and <path>/sparse/0, undistorted: image_undistorter's layout), or a
     # folder of photos (in it or in its images/) that structure-from-motion reconstructs first.
-    path: str | None = None
-    video: str | None = None  # a video file instead: frames are sampled from it, then reconstructed as photos
-    frames: int = 60  # frames taken from the video: the sharpest of each of this many equal windows
-    views: int = 6  # K captured views the 3DGS is fitted from (the split's view-selection rule picks them)
-    sfm: SfmConfig = field(default_factory=SfmConfig)
+    path: str | None = reads(RESTORE, default=None)
+    video: str | None = reads(RESTORE, default=None)  # a video file instead: frames sampled, then reconstructed
+    frames: int = reads(RESTORE, default=60)  # frames taken from the video: the sharpest of each of this many windows
+    views: int = reads(RESTORE, default=6)  # K captured views the 3DGS is fitted from (the view-selection rule)
+    sfm: SfmConfig = reads(RESTORE, factory=SfmConfig)

@@ -41,6 +41,7 @@ from tracegs.eval.per_step import per_step_psnr
 from tracegs.eval.report import METHOD_LABELS, save_comparison_video, save_frames, save_qualitative_grid
 from tracegs.io import write_json_atomic
 from tracegs.processes import die_with_parent
+from tracegs.products import Product, blank_unread
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
@@ -62,9 +63,10 @@ def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
     return path[:frames]
 
 def _fingerprint(*parts) -> str:
-    """Digest of everything that changes a unit's numbers, so stale units are recomputed."""
-    blob = json.dumps([dataclasses.asdict(p) if dataclasses.is_dataclass(p) else p for p in parts],
-                      sort_keys=True, default=str)
+    """Digest of everything that changes a unit's numbers, so stale units are recomputed: of a settings section,
+    the fields an evaluation reads (tracegs.products)."""
+    blob = json.dumps([dataclasses.asdict(blank_unread(p, Product.evaluate)) if dataclasses.is_dataclass(p) else p
+                       for p in parts], sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 def require_finite_metrics(per_view: Sequence[Mapping[str, float | None]], unit: str) -> None:
@@ -320,7 +322,7 @@ def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Refin
     metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights)
     # The LPIPS label says whether LPIPS was computed: a unit scored without it is scored again once it can be.
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers, metrics, gt_renderer,
-                   _fingerprint(refine_cfg, fit_cfg, dataclasses.replace(source, root=""), restorer_ids, cfg.methods,
+                   _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods,
                                 metrics.lpips_label))
     done: dict[tuple[str, int], dict] = {}
     todo = []

@@ -5,10 +5,11 @@ Paper scale: ``conf/splat/paper.yaml`` (the reference 3DGS optimiser, 30k iterat
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
+from tracegs.products import EVERY, reads
 
 
 class RenderBackend(Mode):
@@ -25,18 +26,19 @@ class RenderBackend(Mode):
 class DensificationConfig:
     """gsplat `DefaultStrategy` settings (3DGS's adaptive density control), iterations 0-based."""
 
-    enabled: bool = True
-    refine_start_iter: int = 50
-    refine_stop_iter: int = 450
-    refine_every: int = 25
-    reset_every: int = 200
-    grow_grad2d: float = 0.002  # 3DGS uses 0.0002 at full resolution; at 48x72 that grows ~10x too many
-    grow_scale3d: float = 0.01
-    prune_opa: float = 0.005
-    prune_scale3d: float = 0.1
+    enabled: bool = reads(EVERY, default=True)
+    refine_start_iter: int = reads(EVERY, default=50)
+    refine_stop_iter: int = reads(EVERY, default=450)
+    refine_every: int = reads(EVERY, default=25)
+    reset_every: int = reads(EVERY, default=200)
+    # 3DGS uses 0.0002 at full resolution; at 48x72 that grows ~10x too many
+    grow_grad2d: float = reads(EVERY, default=0.002)
+    grow_scale3d: float = reads(EVERY, default=0.01)
+    prune_opa: float = reads(EVERY, default=0.005)
+    prune_scale3d: float = reads(EVERY, default=0.1)
     # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
     # per step at the embedded scale); None = no cap (paper scale).
-    max_gaussians: int | None = 8000
+    max_gaussians: int | None = reads(EVERY, default=8000)
 
 
 @dataclass
@@ -48,25 +50,26 @@ class GaussianFitConfig:
     iterations up to `sh_degree`.
     """
 
-    iterations: int = 600
-    snapshot_iters: list[int] = field(default_factory=lambda: [140, 340, 600])
-    lr_means: float = 1.6e-3
-    lr_means_final: float = 1.6e-5
-    lr_quats: float = 5e-3
-    lr_scales: float = 1e-2
-    lr_opacities: float = 5e-2
-    lr_sh_dc: float = 1e-2
-    lr_sh_rest: float = 5e-4
-    ssim_weight: float = 0.2
-    ssim_window: int = 11
-    sh_degree: int = 3
-    sh_degree_interval: int = 100
-    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-    backend: RenderBackend = RenderBackend.auto
-    seed: int = 0
-    init_num_points: int = 2000
-    keep_freed_cpu_memory: bool = True  # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
-    densification: DensificationConfig = field(default_factory=DensificationConfig)
+    iterations: int = reads(EVERY, default=600)
+    snapshot_iters: list[int] = reads(EVERY, factory=lambda: [140, 340, 600])
+    lr_means: float = reads(EVERY, default=1.6e-3)
+    lr_means_final: float = reads(EVERY, default=1.6e-5)
+    lr_quats: float = reads(EVERY, default=5e-3)
+    lr_scales: float = reads(EVERY, default=1e-2)
+    lr_opacities: float = reads(EVERY, default=5e-2)
+    lr_sh_dc: float = reads(EVERY, default=1e-2)
+    lr_sh_rest: float = reads(EVERY, default=5e-4)
+    ssim_weight: float = reads(EVERY, default=0.2)
+    ssim_window: int = reads(EVERY, default=11)
+    sh_degree: int = reads(EVERY, default=3)
+    sh_degree_interval: int = reads(EVERY, default=100)
+    background: list[float] = reads(EVERY, factory=lambda: [0.0, 0.0, 0.0])
+    backend: RenderBackend = reads(EVERY, default=RenderBackend.auto)
+    seed: int = reads(EVERY, default=0)
+    init_num_points: int = reads(EVERY, default=2000)
+    # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
+    keep_freed_cpu_memory: bool = reads(EVERY, default=True)
+    densification: DensificationConfig = reads(EVERY, factory=DensificationConfig)
 
     def sh_degree_at(self, iteration: int) -> int:
         """The SH degree in use at ``iteration``: one band more every ``sh_degree_interval``, up to
@@ -98,16 +101,16 @@ class TrajectoryConfig:
     height band (``gsfixer_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
     is ``deploy.trajectory``)."""
 
-    frames_per_clip: int = 9
-    ellipse_scales: list[float] = field(default_factory=lambda: [1.0, 0.85, 0.7])
-    height_variations: list[float] = field(default_factory=lambda: [0.05, 0.1, 0.15])
+    frames_per_clip: int = reads(EVERY, default=9)
+    ellipse_scales: list[float] = reads(EVERY, factory=lambda: [1.0, 0.85, 0.7])
+    height_variations: list[float] = reads(EVERY, factory=lambda: [0.05, 0.1, 0.15])
     # Every ellipse pose pitched up about its own x axis by this many degrees (``gsfixer_windows`` only).
-    pitch_degrees: list[float] = field(default_factory=lambda: [0.0])
-    ellipse_frames: int = 64
-    clip_rule: ClipRule = ClipRule.reference_pairs
+    pitch_degrees: list[float] = reads(EVERY, factory=lambda: [0.0])
+    ellipse_frames: int = reads(EVERY, default=64)
+    clip_rule: ClipRule = reads(EVERY, default=ClipRule.reference_pairs)
     # Each clip's first and last rendered frames replaced by the captured reference images they are rendered at,
     # as GSFixer's restorer sees them (``with_captured_ends``); the paper scale sets it (conf/deploy/paper.yaml).
-    captured_ends: bool = False
+    captured_ends: bool = reads(EVERY, default=False)
 
     def validate(self) -> None:
         for name in ("ellipse_scales", "height_variations", "pitch_degrees"):

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from tracegs.data.config import DataModuleConfig, SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.modes import Mode
+from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, reads
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig
 
@@ -64,19 +65,19 @@ class OptimizerConfig:
     ``grad_clip`` are not stated in the paper, and each says below why its value was chosen.
     """
 
-    lr: float = 1e-3
+    lr: float = reads(BASELINE, default=1e-3)
     # Not stated in the paper; 0 because decay would pull the LoRA factors towards zero, i.e. the student
     # towards the bare base and away from the Stage-1 adapter it is cloned from, which no loss asks for.
-    weight_decay: float = 0.0
+    weight_decay: float = reads(BASELINE, default=0.0)
     # Not stated in the paper; torch's AdamW defaults, as the paper names no departure from them.
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    eps: float = 1e-8  # not stated in the paper; torch's default
-    warmup_steps: int = 0
+    betas: list[float] = reads(BASELINE, factory=lambda: [0.9, 0.999])
+    eps: float = reads(BASELINE, default=1e-8)  # not stated in the paper; torch's default
+    warmup_steps: int = reads(BASELINE, default=0)
     # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
-    decay: LrDecay = LrDecay.constant
+    decay: LrDecay = reads(BASELINE, default=LrDecay.constant)
     # Max global L2 norm of the trainable gradients; None disables clipping. Not stated in the paper; 1.0
     # (diffusers' fine-tuning scripts' max_grad_norm) bounds the step a rare outlier batch can take.
-    grad_clip: float | None = 1.0
+    grad_clip: float | None = reads(BASELINE, default=1.0)
 
     def __post_init__(self) -> None:
         self.decay = LrDecay.parse(self.decay, "optimizer.decay")
@@ -89,10 +90,10 @@ class DeploymentEvalConfig:
     sweep's variants can be compared while they train (tracegs/eval/callback.py). Off by default: no scene."""
 
     # Validation scenes to deploy on (synthetic benchmark: its val split's scene names); empty = off.
-    scenes: list[str] = field(default_factory=list)
-    views: list[int] = field(default_factory=lambda: [3])  # sparse view counts K deployed from
-    every_n_steps: int | None = None  # also deploy every n optimizer steps (None: only at the end)
-    lpips: bool = False  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
+    scenes: list[str] = execution(factory=list)
+    views: list[int] = execution(factory=lambda: [3])  # sparse view counts K deployed from
+    every_n_steps: int | None = execution(default=None)  # also deploy every n optimizer steps (None: only at the end)
+    lpips: bool = execution(default=False)  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
 
     def __post_init__(self) -> None:
         if self.every_n_steps is not None and self.every_n_steps < 1:
@@ -108,8 +109,8 @@ class HeldOutEvalConfig:
     in the run folder (tracegs/eval/held_out_curve.py). Off by default: no cache."""
 
     # A prepared held-out cache, e.g. the validation scenes' (tracegs-prepare data.prepare.split=val); None = off.
-    cache: str | None = None
-    every_n_steps: int = 25
+    cache: str | None = execution(default=None)
+    every_n_steps: int = execution(default=25)
 
     def __post_init__(self) -> None:
         if self.every_n_steps < 1:
@@ -127,40 +128,41 @@ class StageConfig:
     transitions are detached, memory independent of N).
     """
 
-    name: StageName = StageName.stage2
-    max_steps: int = 150
+    name: StageName = reads(BASELINE, default=StageName.stage2)
+    max_steps: int = reads(BASELINE, default=150)
     # Per-device batch size of this stage; None = data.batch_size.
-    batch_size: int | None = None
-    rollout_steps: int = 5
-    memory_mode: MemoryMode = MemoryMode.stepwise
+    batch_size: int | None = reads(BASELINE, default=None)
+    rollout_steps: int = reads(STAGE2, default=5)
+    memory_mode: MemoryMode = reads(STAGE2, default=MemoryMode.stepwise)
     # Stage 2: classifier-free guidance of the rollout and of both roles' queries in the losses. 1 = none, as the
     # supplement writes the rollout (u_i = v(z_{t'_i}, t'_i, R_s), N student + N teacher forwards); any other
     # value adds an unconditional forward per query (the all-zero text) and doubles the student's activations.
-    guidance_scale: float = 1.0
-    seed: int = 0
+    guidance_scale: float = reads(STAGE2, default=1.0)
+    seed: int = reads(BASELINE, default=0)
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
-    adapter_name: str = "aligned"
+    adapter_name: str = reads(BASELINE, default="aligned")
     # Stage 1 / 2: variant A's transformer (diffusers directory written by the baseline stage), used as the
     # frozen base; None = backbone.transformer.pretrained_path as configured (paper scale: GSFixer).
-    base_weights: str | None = None
+    base_weights: str | None = handed_in(BASELINE, default=None)
     # Stage 2: the Stage-1 adapter (folder or safetensors file) to clone; required for stage2.
-    init_adapter: str | None = None
+    init_adapter: str | None = handed_in(BASELINE, default=None)
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
-    checkpoint_every_n_steps: int = 50
+    checkpoint_every_n_steps: int = execution(default=50)
     # Step checkpoints kept besides last.ckpt: 1 = the latest, 0 = none, -1 = all (paper-scale adapter +
     # AdamW state is ~0.8 GB per checkpoint). Without a monitored metric Lightning allows only these.
-    keep_checkpoints: int = 1
+    keep_checkpoints: int = execution(default=1)
     # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
-    resume_from: str | None = "last"
+    resume_from: str | None = execution(default="last")
     # Export the exponential moving average of the trained weights (the baseline's, or the adapters') with this
     # decay, updated after every step (None = the last step's weights). Checkpoints carry the average and the
     # current weights; held_out_eval scores the current ones. The average is a second copy of the module (frozen
     # weights included), so it is for unsharded runs.
-    ema_decay: float | None = None
+    ema_decay: float | None = reads(BASELINE, default=None)
     # Deploy the in-training restorer on validation scenes and log its scores (off unless scenes are named).
-    deployment_eval: DeploymentEvalConfig = field(default_factory=DeploymentEvalConfig)
+    # It draws its own random streams: the weights are the same with or without it (so is held_out_eval).
+    deployment_eval: DeploymentEvalConfig = execution(factory=DeploymentEvalConfig)
     # Stage 1 / 2: score the adapter on held-out clips while it trains (off unless a cache is named).
-    held_out_eval: HeldOutEvalConfig = field(default_factory=HeldOutEvalConfig)
+    held_out_eval: HeldOutEvalConfig = execution(factory=HeldOutEvalConfig)
 
     def __post_init__(self) -> None:
         self.name = StageName.parse(self.name, "stage.name")
@@ -184,36 +186,37 @@ class TeacherConfig:
     changes with K and with the student's snapshot.
     """
 
-    views: int | None = None
+    # Stage 1 aligns to this teacher's R_d.
+    views: int | None = reads(STAGE1, default=None)
 
 
 @dataclass
 class PolicyConfig:
     """Where Stage 2 queries the teacher: student-visited states (on-policy) or forward-noised ones (E)."""
 
-    on_policy: bool = True
+    on_policy: bool = reads(STAGE2, default=True)
 
 
 @dataclass
 class LossConfig:
     """Loss weights: Stage 1 L_warm (supplement Eq. supp-stage1), Stage 2 Eq. 9."""
 
-    lambda_align: float = 1.0
-    lambda_ret: float = 0.15
-    trajectory_space: TrajectorySpace = TrajectorySpace.velocity
-    trajectory_target: TrajectoryTarget = TrajectoryTarget.teacher
+    lambda_align: float = reads(STAGE1, default=1.0)
+    lambda_ret: float = reads(STAGE2, default=0.15)
+    trajectory_space: TrajectorySpace = reads(STAGE2, default=TrajectorySpace.velocity)
+    trajectory_target: TrajectoryTarget = reads(STAGE2, default=TrajectoryTarget.teacher)
     # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
-    retrieval_eps: float = 1e-6
+    retrieval_eps: float = reads(STAGE2, default=1e-6)
 
 
 @dataclass
 class ClusterResources:
     """What one SLURM job running this trainer requests (read by conf/hydra/launcher/slurm.yaml)."""
 
-    gpus_per_node: int = 0
-    cpus_per_task: int = 2
-    mem_gb: int = 8
-    timeout_min: int = 240
+    gpus_per_node: int = execution(default=0)
+    cpus_per_task: int = execution(default=2)
+    mem_gb: int = execution(default=8)
+    timeout_min: int = execution(default=240)
 
 
 @dataclass
@@ -221,39 +224,39 @@ class FsdpConfig:
     """FSDP settings, read when ``trainer.strategy`` is "fsdp" (tracegs/training/strategy.py)."""
 
     # Module classes sharded as one FSDP unit each (the transformer block at paper scale).
-    wrap_modules: list[str] = field(default_factory=lambda: ["ReferenceGuidedBlock"])
+    wrap_modules: list[str] = reads(BASELINE, factory=lambda: ["ReferenceGuidedBlock"])
     # Recompute each wrapped block's activations in backward (replaces diffusers' gradient checkpointing).
-    activation_checkpointing: bool = True
+    activation_checkpointing: bool = reads(BASELINE, default=True)
     # Free each unit's gathered weights after its forward (full sharding; backward gathers them again), or
     # keep them until backward (less communication, more memory: ZeRO-2-like).
-    reshard_after_forward: bool = True
+    reshard_after_forward: bool = reads(BASELINE, default=True)
 
 
 @dataclass
 class TrainerConfig:
     """Arguments forwarded to ``lightning.Trainer`` (paper scale: accelerator gpu, bf16-mixed, DDP)."""
 
-    accelerator: str = "cpu"
-    devices: str = "1"  # Lightning syntax: "1", "4", "auto", "0,1"
-    num_nodes: int = 1
-    strategy: str = "auto"
-    precision: str = "32-true"
-    log_every_n_steps: int = 10
+    accelerator: str = reads(BASELINE, default="cpu")
+    devices: str = reads(BASELINE, default="1")  # Lightning syntax: "1", "4", "auto", "0,1"
+    num_nodes: int = reads(BASELINE, default=1)
+    strategy: str = reads(BASELINE, default="auto")
+    precision: str = reads(BASELINE, default="32-true")
+    log_every_n_steps: int = execution(default=10)
     # Any of "csv", "tensorboard", "wandb" (wandb needs the optional extra).
-    loggers: list[str] = field(default_factory=lambda: ["csv", "tensorboard"])
-    enable_progress_bar: bool = True
-    deterministic: bool = False
+    loggers: list[str] = execution(factory=lambda: ["csv", "tensorboard"])
+    enable_progress_bar: bool = execution(default=True)
+    deterministic: bool = reads(BASELINE, default=False)
     # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
-    cpu_threads: int | None = None
+    cpu_threads: int | None = execution(default=None)
     # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection.
-    fast_dev_run: int = 0
-    overfit_batches: float = 0.0
-    detect_anomaly: bool = False
+    fast_dev_run: int = reads(BASELINE, default=0)
+    overfit_batches: float = reads(BASELINE, default=0.0)
+    detect_anomaly: bool = reads(BASELINE, default=False)
     # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints (hpc_ckpt_<n>.ckpt in the
     # run folder, after the step in flight) and requeues; the requeued job resumes from its newest checkpoint.
-    slurm_requeue_signal: str = "SIGUSR2"
-    cluster: ClusterResources = field(default_factory=ClusterResources)
-    fsdp: FsdpConfig = field(default_factory=FsdpConfig)
+    slurm_requeue_signal: str = execution(default="SIGUSR2")
+    cluster: ClusterResources = execution(factory=ClusterResources)
+    fsdp: FsdpConfig = reads(BASELINE, factory=FsdpConfig)
 
 
 @dataclass

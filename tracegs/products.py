@@ -1,0 +1,164 @@
+"""Which products a config field changes, declared next to the field.
+
+A product is what a run writes into a folder named by its identity (tracegs.config.identity): the paired-clip
+cache (``prepare``), variant A's restorer (``baseline``), the Stage-1 adapter (``stage1``), a Stage-2 student
+(``stage2``), and the deployments, evaluations and restorations of a capture that load the restorers
+(``deploy``, ``evaluate``, ``restore``). Every field of a config dataclass says which of them it changes:
+
+- ``reads(*products)``: those products and every product made from them. A trained restorer is loaded by
+  the products after it (Stage 1 trains on A's weights, Stage 2 clones the Stage-1 adapter, deployment loads
+  the students), and a product's folder is named before the products it loads are located, so their
+  settings are its settings too: ``reads(STAGE2)`` changes Stage 2 and deployment, evaluation and
+  restoration, never A or Stage 1. A cache is no product's input in this sense: a trained restorer reads the
+  data settings it depends on itself (``reads(PREPARE, BASELINE)``).
+- ``execution()``: no product; how or where a run executes (paths, workers, logging, shards, checkpoint
+  cadence) or what a command does with the products (reports, the benchmark's plan, Table 3's layout).
+- ``handed_in(*products)``: an input given by path instead of located (its default interpolates the located
+  product, whose settings are already named); given, those products read its content, never its path.
+
+A field holding a config dataclass declares the products of its whole section, and each field inside changes
+only the products both it and its section name: a dataclass used at two places (a trajectory for prepare and
+for deployment, a 3DGS fit, captions) declares its fields ``reads(EVERY)``. The run identity, the clip
+settings of a cache and the fingerprint of an evaluation unit all derive from these declarations.
+
+The module imports nothing of the project but :mod:`tracegs.modes` and :mod:`tracegs.errors`, so every package's
+config dataclasses use it without depending on ``tracegs.config`` (whose schema imports those packages).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from collections.abc import Iterable
+from functools import cache
+from typing import Any
+
+from tracegs.errors import ConfigError
+from tracegs.modes import Mode
+
+
+class Product(Mode):
+    """A run kind whose folder is named by its identity (``${tracegs.run:<kind>}``)."""
+
+    prepare = "prepare"
+    baseline = "baseline"
+    stage1 = "stage1"
+    stage2 = "stage2"
+    deploy = "deploy"
+    evaluate = "evaluate"
+    restore = "restore"
+
+
+PREPARE, BASELINE, STAGE1, STAGE2 = Product.prepare, Product.baseline, Product.stage1, Product.stage2
+DEPLOY, EVALUATE, RESTORE = Product.deploy, Product.evaluate, Product.restore
+# The products that load the trained restorers.
+DEPLOYMENT = (DEPLOY, EVALUATE, RESTORE)
+# Every product: for the fields of a dataclass used at several places, which change what their section changes.
+EVERY = tuple(Product)
+
+# The products made from each trained one (see the module docstring).
+_MADE_FROM = {BASELINE: (STAGE1,), STAGE1: (STAGE2,), STAGE2: DEPLOYMENT}
+_KEY = "tracegs.products"
+
+
+@dataclasses.dataclass(frozen=True)
+class Declaration:
+    """What one field changes: ``products`` (made-from products included); ``split``: the split whose scenes
+    it names, which a cache of another split does not read; ``content``: for an input handed in by path, the
+    files that stand for its content (none: all of it)."""
+
+    products: frozenset[Product]
+    split: str | None = None
+    content: tuple[str, ...] | None = None
+
+
+def _made_from(products: Iterable[Product]) -> frozenset[Product]:
+    found = set()
+    todo = [Product(p) for p in products]
+    while todo:
+        product = todo.pop()
+        if product not in found:
+            found.add(product)
+            todo.extend(_MADE_FROM.get(product, ()))
+    return frozenset(found)
+
+
+def _flat(products: tuple[Product | tuple[Product, ...], ...]) -> list[Product]:
+    return [p for item in products for p in (item if isinstance(item, tuple) else (item,))]
+
+
+def _field(declaration: Declaration, default: Any, factory: Any) -> Any:
+    if factory is not None:
+        return dataclasses.field(default_factory=factory, metadata={_KEY: declaration})
+    return dataclasses.field(default=default, metadata={_KEY: declaration})
+
+
+def reads(*products: Product | tuple[Product, ...], default: Any = dataclasses.MISSING, factory: Any = None,
+          split: str | None = None) -> Any:
+    """A field that changes ``products`` and every product made from them; ``split``: a scene list of that split
+    (a cache of another split does not read it). ``factory`` builds a mutable default."""
+    return _field(Declaration(_made_from(_flat(products)), split=split), default, factory)
+
+
+def execution(default: Any = dataclasses.MISSING, factory: Any = None) -> Any:
+    """A field that changes no product."""
+    return _field(Declaration(frozenset()), default, factory)
+
+
+def handed_in(*products: Product, content: tuple[str, ...] = (), default: Any = dataclasses.MISSING) -> Any:
+    """An input given by path: ``products`` (and those made from them) read what ``content`` names inside it
+    (none: all of it)."""
+    return _field(Declaration(_made_from(products), content=content), default, None)
+
+
+def declaration(field: dataclasses.Field, where: str) -> Declaration:
+    """The declaration of ``field`` (at dotted ``where``); a field without one is refused."""
+    found = field.metadata.get(_KEY)
+    if found is None:
+        raise ConfigError(where, "declares no products: give it reads(...), execution() or handed_in(...) "
+                                 "(tracegs.products)")
+    return found
+
+
+@cache
+def declarations(schema: type) -> dict[str, Declaration]:
+    """Every field under the config dataclass ``schema`` by dotted path, its products narrowed to its
+    sections'. Refuses a field without a declaration."""
+    found: dict[str, Declaration] = {}
+
+    def visit(cls: type, prefix: str, products: frozenset[Product]) -> None:
+        hints = typing.get_type_hints(cls)
+        for field in dataclasses.fields(cls):
+            path = f"{prefix}{field.name}"
+            own = declaration(field, path)
+            found[path] = dataclasses.replace(own, products=own.products & products)
+            if dataclasses.is_dataclass(hints[field.name]):
+                visit(hints[field.name], f"{path}.", found[path].products)
+
+    visit(schema, "", frozenset(Product))
+    return found
+
+
+def read_values(section: Any, product: Product) -> dict[str, Any]:
+    """``dataclasses.asdict(section)`` less the fields ``product`` does not read (inputs handed in included:
+    they are known by content, not by value)."""
+    values = {}
+    for field in dataclasses.fields(section):
+        own = declaration(field, field.name)
+        if product in own.products and own.content is None:
+            value = getattr(section, field.name)
+            values[field.name] = read_values(value, product) if dataclasses.is_dataclass(value) else value
+    return values
+
+
+def blank_unread(section: Any, product: Product) -> Any:
+    """``section`` with each field ``product`` does not read set to ``""``: the same whatever its value, in a
+    digest whose earlier records hold the field."""
+    blanked = {}
+    for field in dataclasses.fields(section):
+        value = getattr(section, field.name)
+        if product not in declaration(field, field.name).products:
+            blanked[field.name] = ""
+        elif dataclasses.is_dataclass(value):
+            blanked[field.name] = blank_unread(value, product)
+    return dataclasses.replace(section, **blanked)

@@ -7,7 +7,7 @@ import os
 import stat
 
 import pytest
-from read_only import read_only_view
+from support.read_only import read_only_view
 
 from tracegs.errors import OutputPathError
 from tracegs.io import atomic_directory, save_safetensors_atomic, write_json_atomic

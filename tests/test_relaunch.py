@@ -13,7 +13,7 @@ import pytest
 import torch
 import torch.distributed as dist
 from lightning.pytorch.demos.boring_classes import BoringModel
-from test_tasks import SMALLEST
+from support.tasks import SMALLEST
 
 from tracegs.cli.relaunch import JOB_OVERRIDES, one_job_argv
 from tracegs.training.strategy import one_job_of_processes

@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from read_only import read_only_view
-from test_tasks import SMALLEST
+from support.read_only import read_only_view
+from support.tasks import SMALLEST
 
 from tracegs.pipeline.records import LOCK_FILE, RUN_RECORD
 

@@ -9,22 +9,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 from scene_builders import write_scene
+from support.inputs import assert_refused, files_under, tiny_backbone_config
 
-from tracegs.cli.app import CONF_DIR
-from tracegs.config.schema import register_configs
 from tracegs.restorer import adapters
 from tracegs.restorer.build import create_transformer
 from tracegs.restorer.config import LoraConfig
-
-
-def tiny_backbone_config():
-    """The backbone the entry points build by default (conf/backbone/tiny.yaml)."""
-    register_configs()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return OmegaConf.to_object(compose(config_name="train").backbone)
 
 
 def adapter_file(path: Path, rank: int | None = None) -> Path:
@@ -164,20 +154,6 @@ CASES: dict[str, Callable[[Path], tuple[str, list[str], str]]] = {
               cache_folder_is_a_file, misspelt_key_added_with_plus, misspelt_key,
               value_of_the_wrong_type, group_option_that_does_not_exist)
 }
-
-
-def files_under(root: Path) -> set[Path]:
-    return {p for p in root.rglob("*") if p.is_file()}
-
-
-def assert_refused(result, app: str, expected: str, written: set[Path]) -> None:
-    """Exit code 2, one line on stderr naming ``expected``, and no file ``written`` (the run folder the command
-    made for itself, Hydra's record and the log in it, removed again)."""
-    lines = result.stderr_lines()
-    assert result.returncode == 2, result.stderr[-3000:]
-    assert len(lines) == 1, result.stderr[-3000:]
-    assert lines[0].startswith(f"tracegs-{app}: error: ") and expected in lines[0], lines[0]
-    assert written == set()
 
 
 @pytest.mark.parametrize("case", list(CASES))

@@ -4,16 +4,20 @@ one line on stderr naming the file or field, no file outside the root and nothin
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from scene_builders import write_scene
-from test_bad_inputs import assert_refused, files_under, tiny_backbone_config
+from support.inputs import (
+    TINY_PREPARE,
+    assert_refused,
+    files_under,
+    overwrite_tensor_bytes,
+    tiny_backbone_config,
+)
 
 from tracegs.data.datamodule import CacheError
 from tracegs.eval.clips import held_out_clips
@@ -21,12 +25,6 @@ from tracegs.io import read_safetensors, save_safetensors_atomic
 from tracegs.restorer import adapters
 from tracegs.restorer.build import create_transformer
 
-# A one-scene prepare at the smallest sizes (one student set, 16-iteration fits): seconds, not minutes.
-TINY_PREPARE = ["data=custom", "data.source.height=32", "data.source.width=48",
-                "data.prepare.pseudo_target=dense", "data.prepare.student_views=[3]", "data.prepare.dense_views=[null]",
-                "data.prepare.student_snapshots=[8]", "data.prepare.fit.iterations=16",
-                "data.prepare.fit.snapshot_iters=[8,16]", "data.datamodule.student_views=[3]",
-                "data.datamodule.student_snapshots=[8]", "data.prepare.workers=1", "data.prepare.clips_per_scene=1"]
 # tracegs-restore at the smallest sizes, plain 3DGS only (no restorer weights needed).
 TINY_RESTORE = ["evaluation.methods=[3dgs]", "experiment.frame_height=32", "experiment.frame_width=48",
                 "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
@@ -135,18 +133,6 @@ def test_defect_gives_one_line_exit_2_and_writes_nothing(tmp_path, entry_point, 
     written = files_under(tmp_path) - before
     assert_refused(result, app, expected, written)
     assert all(root in p.parents for p in written), sorted(written)  # nothing outside the root
-
-
-def overwrite_tensor_bytes(shard: Path, key: str = "latent/target") -> None:
-    """Change a few bytes of one tensor in place to other finite values, as a damaged disk or a careless edit
-    would: the file stays a valid safetensors file with plausible numbers."""
-    data = bytearray(shard.read_bytes())
-    length = int.from_bytes(data[:8], "little")
-    begin, _ = json.loads(data[8:8 + length])[key]["data_offsets"]
-    start = 8 + length + begin
-    values = np.frombuffer(bytes(data[start:start + 8]), dtype=np.float16) + np.float16(0.5)
-    data[start:start + 8] = values.tobytes()
-    shard.write_bytes(bytes(data))
 
 
 def test_a_shard_with_overwritten_bytes_is_refused_by_training_and_evaluation(tmp_path, prepared, entry_point):

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from safetensors import safe_open
 from scene_builders import write_scene
-from test_input_defects import TINY_PREPARE
+from support.inputs import TINY_PREPARE
 
 from tracegs.splat.ply import load_ply
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 from scene_builders import tiny_configs
-from test_input_defects import overwrite_tensor_bytes
+from support.inputs import overwrite_tensor_bytes
 
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.datamodule import PairedClipDataModule

@@ -14,8 +14,8 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
+from support.vgg16_layout import write_vgg16_weights
 from torch import nn
-from vgg16_layout import write_vgg16_weights
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig

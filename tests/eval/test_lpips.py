@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from vgg16_layout import VGG16_CONVOLUTIONS, write_vgg16_weights
+from support.vgg16_layout import VGG16_CONVOLUTIONS, write_vgg16_weights
 
 from tracegs.errors import InputFileError
 from tracegs.eval.lpips_vgg import HEADS_FILE, LpipsVgg

@@ -13,8 +13,8 @@ import json
 from pathlib import Path
 
 import torch
-from gsfixer_layout import write_gsfixer_folder
-from vgg16_layout import write_vgg16_weights
+from support.gsfixer_layout import write_gsfixer_folder
+from support.vgg16_layout import write_vgg16_weights
 
 from tracegs.restorer.config import BackboneConfig
 
@@ -24,7 +24,7 @@ VGGT_REGISTER_TOKENS = 4  # VGGT's aggregator puts a camera token and four regis
 
 def write_transformer(cfg: BackboneConfig, weights: Path) -> None:
     """GSFixer's released restorer at the rehearsal's widths: the frozen base, variant A and the pseudo-target
-    generator alike. Written from GSFixer's key list (tests/gsfixer_layout.py), not from our model, so a drift
+    generator alike. Written from GSFixer's key list (tests/support/gsfixer_layout.py), not from our model, so a drift
     of our module names from the released layout fails the rehearsal's loads."""
     write_gsfixer_folder(weights / "gsfixer" / "transformer", cfg.transformer)
 

@@ -8,8 +8,8 @@ from dataclasses import replace
 
 import pytest
 import torch
-from conftest import rehearsal_config
 from omegaconf import OmegaConf
+from support.rehearsal import rehearsal_config
 
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.codec import CogVideoXCodec

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config, rehearsal_run_dir, run_rehearsal_task
 from paper_scenes import synthetic_scenes, write_mipnerf360
-from test_paper_pipeline import BUDGET, fresh_root
+from support.rehearsal import BUDGET, fresh_root, rehearsal_config, rehearsal_run_dir, run_rehearsal_task
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config
 from omegaconf import OmegaConf
+from support.rehearsal import rehearsal_config
 
 from tracegs.data import colmap
 from tracegs.data.colmap import SceneFormatError, list_scenes, load_scene

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import rehearsal_config
 from omegaconf import OmegaConf
+from support.rehearsal import rehearsal_config
 
 from tracegs.deploy.assembly import restorer_holdings
 from tracegs.restorer import adapters

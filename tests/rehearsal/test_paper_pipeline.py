@@ -6,7 +6,7 @@ paper_scenes.py) through the entry points' own task functions, run as their cons
 pseudo-targets, evaluation's baseline), never trained.
 
 ``test_paper_pipeline_rehearsal`` (default suite) runs the rehearsal with ``BUDGET`` on top: smaller counts
-only, each a size key of tests/rehearsal/test_size_keys.py or a count of units; the ``slow`` budgets test runs
+only, each a size key of tests/support/rehearsal.py (SIZE_KEYS) or a count of units; the ``slow`` budgets test runs
 it exactly, the ``slow`` DDP / FSDP tests train (and sweep) on two gloo CPU processes, and the ``gpu`` test runs
 it on CUDA with gsplat.
 """
@@ -23,11 +23,18 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rehearsal_config, rehearsal_job, rehearsal_run_dir, run_rehearsal_task
 from hydra import initialize_config_dir
 from paper_weights import write_vggt_double_package
 from safetensors import safe_open
-from test_size_keys import SIZE_KEYS
+from support.rehearsal import (
+    BUDGET,
+    SIZE_KEYS,
+    fresh_root,
+    rehearsal_config,
+    rehearsal_job,
+    rehearsal_run_dir,
+    run_rehearsal_task,
+)
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.data.datamodule import clip_record, read_conditioning
@@ -39,14 +46,6 @@ from tracegs.pipeline.train import train
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
 
-# The default suite's overrides on top of experiment=rehearsal: each makes a count smaller, none touches a
-# mode, rate, weight, schedule or sampler (test_budget_overrides_are_sizes checks the keys).
-BUDGET = (
-    "experiment.stage1_steps=1",  # Stage 1: one optimiser step
-    "experiment.stage2_steps=2",  # Stage 2: two optimiser steps, each a full N = 10 rollout of the M = 50 grid
-    "deploy.max_clips_per_round=1",  # restored clips per repair round (rehearsal: one per reference pair)
-    "evaluation.views=[3]",  # evaluated view counts (rehearsal: 3, 6, 9); the K = 3 unit runs unchanged
-)
 # Counts that experiment=rehearsal keeps at the paper's value but a test may lower: units of work.
 UNIT_COUNTS = ("deploy.max_clips_per_round", "evaluation.views")
 GPU = ("trainer.accelerator=gpu", "data.prepare.fit.backend=gsplat")  # the paper's devices and rasterizer
@@ -93,15 +92,6 @@ def check_products(root: Path, results: dict, views: list[int], extra: tuple[str
             assert math.isfinite(results[method][str(k)]["psnr"])
             assert results[method][str(k)]["lpips"] > 0  # required at paper scale, from weights/vgg16-397923af.pth
     assert results["meta"]["lpips"].startswith("LPIPS-VGG")
-
-
-def fresh_root(tmp_path: Path, rehearsal_root: Path, paper_data: dict[str, Path]) -> Path:
-    """A launch directory sharing the weights and the DL3DV scenes, with its own caches and outputs."""
-    root = tmp_path / "launch"
-    (root / "data").mkdir(parents=True)
-    (root / "weights").symlink_to(rehearsal_root / "weights")
-    (root / "data" / paper_data["dl3dv"].name).symlink_to(paper_data["dl3dv"])
-    return root
 
 
 def test_budget_overrides_are_sizes():

@@ -1,8 +1,9 @@
 """`experiment=rehearsal` is `experiment=paper` with only sizes shrunk (the CPU rehearsal of the paper scale).
 
 Both configurations are composed, flattened to dotted keys (interpolations unresolved, so a changed
-interpolation counts as a difference) and compared: every differing key must be declared below with the
-reason it is a size, and every iteration-based schedule must be the paper's divided by one factor.
+interpolation counts as a difference) and compared: every differing key must be declared in SIZE_KEYS
+(tests/support/rehearsal.py) with the reason it is a size, and every iteration-based schedule must be the
+paper's divided by one factor.
 """
 
 from __future__ import annotations
@@ -12,51 +13,8 @@ from fractions import Fraction
 import pytest
 from hydra import compose
 from omegaconf import OmegaConf
+from support.rehearsal import SIZE_KEYS
 
-# Dotted key -> why it is a size (or the run's name) and not science.
-SIZE_KEYS = {
-    "experiment.name": "the run's name: rehearsal outputs never land in a paper run's folder",
-    "experiment.description": "the run's one-line description",
-    "experiment.stage1_steps": "iteration budget (paper / 100)",
-    "experiment.stage2_steps": "iteration budget (paper / 100)",
-    "experiment.stage2_warmup_steps": "iteration budget (paper / 100)",
-    "experiment.frame_height": "clip resolution (the datasets, clips and trajectories follow it)",
-    "experiment.frame_width": "clip resolution (the datasets, clips and trajectories follow it)",
-    "experiment.frames_per_clip": "clip frames (prepare and deployment follow it)",
-    "experiment.clips_per_scene": "number of clips",
-    "backbone.transformer.num_layers": "model depth",
-    "backbone.transformer.num_attention_heads": "model width",
-    "backbone.transformer.attention_head_dim": "model width",
-    "backbone.transformer.text_embed_dim": "model width (equals the T5 width)",
-    "backbone.transformer.max_text_seq_length": "text tokens (equals the T5 length)",
-    "backbone.transformer.time_embed_dim": "model width",
-    "backbone.transformer.sample_frames": "clip frames",
-    "backbone.transformer.sample_height": "latent resolution (clip height / VAE factor 8)",
-    "backbone.transformer.sample_width": "latent resolution (clip width / VAE factor 8)",
-    "backbone.transformer.ref_2d_dim": "model width (equals the DINOv2 width)",
-    "backbone.transformer.ref_3d_dim": "model width (equals the VGGT token width, twice DINOv2's as at paper scale)",
-    "backbone.lora.rank": "adapter width",
-    "backbone.lora.alpha": "kept equal to the rank, so the LoRA scale alpha / r stays 1 as in the paper",
-    "backbone.reference_encoder.image_size": "reference resolution (a multiple of the patch 14)",
-    "backbone.text_encoder.dim": "T5 width",
-    "backbone.text_encoder.max_length": "text tokens",
-    "data.prepare.fit.backend": "the rasterizer's device: pure-PyTorch on CPU instead of gsplat on CUDA",
-    "data.prepare.fit.iterations": "iteration budget (paper / 100)",
-    "data.prepare.fit.snapshot_iters": "iteration schedule (paper / 100)",
-    "data.prepare.fit.sh_degree_interval": "iteration schedule (paper / 100)",
-    "data.prepare.fit.densification.refine_start_iter": "iteration schedule (paper / 100)",
-    "data.prepare.fit.densification.refine_stop_iter": "iteration schedule (paper / 100)",
-    "data.prepare.fit.densification.refine_every": "iteration schedule (paper / 100)",
-    "data.prepare.fit.densification.reset_every": "iteration schedule (paper / 100)",
-    "data.prepare.fit.densification.max_gaussians": "number of Gaussians",
-    "data.prepare.fit.init_num_points": "number of Gaussians (paper / 100)",
-    "deploy.total_iters": "iteration budget (paper / 100)",
-    "deploy.captions.blip2_path": "no BLIP-2 in the rehearsal's weights tree: captions from caption.txt",
-    "deploy.repair_iters": "iteration schedule (paper / 100)",
-    "deploy.trajectory.ellipse_frames": "clips per round (poses per round, cut into windows of the clip's size)",
-    "trainer.accelerator": "the device: CPU instead of GPU",
-    "trainer.devices": "number of devices",
-}
 ITERATION_FACTOR = Fraction(1, 100)
 
 

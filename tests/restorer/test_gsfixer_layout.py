@@ -1,7 +1,7 @@
 """GSFixer's released restorer loads into ``ReferenceGuidedTransformer`` as it is, and computes what GSFixer's
 block computes.
 
-The key list (``tests/gsfixer_layout.py``) is read off GSFixer's public model code, each group with the lines of
+The key list (``tests/support/gsfixer_layout.py``) is read off GSFixer's public model code, each group with the lines of
 ``Reconstruction/gsfixer/cogvideo/crosstransformer3d.py`` it comes from; the tiny checkpoint is written from that
 list alone, in diffusers' sharded layout. The block below is GSFixer's ``CogVideoXBlock.forward`` written out
 with torch.nn.functional from that file, reading the stored tensors (not our modules).
@@ -15,8 +15,8 @@ from dataclasses import replace
 import pytest
 import torch
 import torch.nn.functional as F
-from gsfixer_layout import gsfixer_parameter_shapes, gsfixer_state_shapes, write_gsfixer_folder
 from safetensors.torch import save_file
+from support.gsfixer_layout import gsfixer_parameter_shapes, gsfixer_state_shapes, write_gsfixer_folder
 
 from tracegs.restorer import adapters
 from tracegs.restorer.build import CheckpointMismatchError, create_transformer, load_transformer

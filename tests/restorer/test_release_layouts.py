@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from gsfixer_layout import write_gsfixer_folder
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from safetensors.torch import load_file, save_file
+from support.gsfixer_layout import write_gsfixer_folder
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.schema import register_configs

@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import PARAMETER_NAMES, random_scene, ring_cameras
-from test_fit import psnr
+from support.scenes import PARAMETER_NAMES, psnr, random_scene, ring_cameras
 
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent

@@ -6,8 +6,8 @@ import copy
 
 import pytest
 import torch
-from conftest import random_scene, ring_cameras
 from gsplat.strategy import DefaultStrategy
+from support.scenes import psnr, random_scene, ring_cameras
 
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent, fit_gaussians, mean_ssim, photometric_loss
@@ -22,10 +22,6 @@ def sphere_scene(n: int, seed: int = 0) -> tuple[GaussianModel, torch.Tensor]:
     directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator), dim=1)
     return GaussianModel.from_points(directions, torch.rand(n, 3, generator=generator), initial_opacity=0.95), \
         directions
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    return (-10.0 * torch.log10((a - b).square().mean())).item()
 
 
 def test_fits_known_scene_from_noisy_init_with_growth_and_pruning(monkeypatch):

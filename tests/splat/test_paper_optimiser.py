@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from conftest import random_scene
 from omegaconf import OmegaConf
+from support.scenes import random_scene
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import PARAMETER_NAMES, random_scene
 from plyfile import PlyData, PlyElement
+from support.scenes import PARAMETER_NAMES, random_scene
 
 from tracegs.splat.cameras import Camera
 from tracegs.splat.ply import PROPERTIES, load_ply, save_ply

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import PARAMETER_NAMES, random_scene, ring_cameras
+from support.scenes import PARAMETER_NAMES, random_scene, ring_cameras
 
 from tracegs.splat.cameras import Camera
 from tracegs.splat.gaussians import GaussianModel, rgb_to_sh_dc

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import ring_cameras
+from support.scenes import ring_cameras
 
 from tracegs.errors import ConfigError
 from tracegs.splat.cameras import Camera, look_at_rotation

@@ -1,8 +1,8 @@
-"""Fixtures of the training tests (helpers live in training_support.py)."""
+"""Fixtures of the training tests (helpers live in support/training.py)."""
 
 import pytest
 import torch
-from training_support import TINY_LORA, make_transformer
+from support.training import TINY_LORA, make_transformer
 
 from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
 

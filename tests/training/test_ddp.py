@@ -5,8 +5,8 @@ from __future__ import annotations
 import lightning as L
 import pytest
 import torch
+from support.training import make_batch, make_schedule, make_transformer
 from torch.utils.data import DataLoader
-from training_support import make_batch, make_schedule, make_transformer
 
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.stage2 import STUDENT, Stage2DistillationModule

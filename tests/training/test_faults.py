@@ -17,8 +17,8 @@ import lightning as L
 import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
-from test_run import config, train_baseline_and_stage1
-from training_support import fixed_batch_loader, make_batch, make_schedule, make_transformer
+from support.training import fixed_batch_loader, make_batch, make_schedule, make_transformer
+from support.training_runs import config, product_bytes, train_baseline_and_stage1
 
 from tracegs.errors import OutputPathError
 from tracegs.training.baseline import BaselineRestorerModule
@@ -35,12 +35,6 @@ SCRIPT = (
     "    train_stage(pickle.load(handle))\n"
 )
 
-
-
-def product_bytes(product: Path) -> bytes:
-    """Every byte of a product: a file, or each file of a folder (the peft adapter folder) in name order."""
-    files = sorted(p for p in product.rglob("*") if p.is_file()) if product.is_dir() else [product]
-    return b"".join(f.name.encode() + f.read_bytes() for f in files)
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from training_support import fit_steps, make_batch, make_schedule, make_transformer
+from support.training import fit_steps, make_batch, make_schedule, make_transformer
 
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.stage2 import STUDENT, Stage2DistillationModule

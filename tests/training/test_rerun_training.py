@@ -11,8 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_faults import product_bytes
-from test_run import config, write_cache
+from support.training_runs import config, product_bytes, write_cache
 
 from tracegs.errors import InputFileError
 from tracegs.training.checkpoints import require_loadable_checkpoint

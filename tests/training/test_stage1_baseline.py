@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import torch
-from training_support import TINY_LORA, fit_steps, make_batch, make_schedule, make_transformer
+from support.training import TINY_LORA, fit_steps, make_batch, make_schedule, make_transformer
 
 from tracegs.restorer.adapters import load_adapter
 from tracegs.training.baseline import BaselineRestorerModule

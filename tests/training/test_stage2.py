@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from training_support import TINY_LORA, fit_steps, make_batch, make_schedule, make_transformer
+from support.training import TINY_LORA, fit_steps, make_batch, make_schedule, make_transformer
 
 from tracegs.restorer.adapters import active_adapter
 from tracegs.restorer.sampler import sample, using_adapter

@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.distributed as dist
+from support.training import TINY_LORA, make_transformer
 from torch.distributed.device_mesh import init_device_mesh
 from torch.distributed.fsdp import FSDPModule
-from training_support import TINY_LORA, make_transformer
 
 from tracegs.restorer.adapters import add_adapter
 from tracegs.restorer.transformer import ReferenceGuidedBlock

@@ -13,6 +13,7 @@ import torch
 from scene_builders import write_scene
 from support.inputs import (
     TINY_PREPARE,
+    TINY_RESTORE,
     assert_refused,
     files_under,
     overwrite_tensor_bytes,
@@ -24,11 +25,6 @@ from tracegs.eval.clips import held_out_clips
 from tracegs.io import read_safetensors, save_safetensors_atomic
 from tracegs.restorer import adapters
 from tracegs.restorer.build import create_transformer
-
-# tracegs-restore at the smallest sizes, plain 3DGS only (no restorer weights needed).
-TINY_RESTORE = ["evaluation.methods=[3dgs]", "experiment.frame_height=32", "experiment.frame_width=48",
-                "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
-                "deploy.total_iters=40", "deploy.repair_iters=[10,25]", "evaluation.progress=false"]
 
 
 def student_adapter(path: Path, stage: str = "stage2", dtype: torch.dtype = torch.float32, seed: int = 0) -> Path:

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from skimage.filters import gaussian
-from test_bad_inputs import assert_refused, files_under
-from test_input_defects import TINY_RESTORE
+from support.inputs import TINY_RESTORE, assert_refused, files_under
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, SfmConfig

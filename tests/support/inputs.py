@@ -20,6 +20,12 @@ TINY_PREPARE = ["data=custom", "data.source.height=32", "data.source.width=48",
                 "data.datamodule.student_snapshots=[8]", "data.prepare.workers=1", "data.prepare.clips_per_scene=1"]
 
 
+# tracegs-restore at the smallest sizes, plain 3DGS only (no restorer weights needed).
+TINY_RESTORE = ["evaluation.methods=[3dgs]", "experiment.frame_height=32", "experiment.frame_width=48",
+                "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
+                "deploy.total_iters=40", "deploy.repair_iters=[10,25]", "evaluation.progress=false"]
+
+
 def tiny_backbone_config():
     """The backbone the entry points build by default (conf/backbone/tiny.yaml)."""
     register_configs()

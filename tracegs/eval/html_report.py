@@ -16,6 +16,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from urllib.parse import quote
 
+from tracegs.eval.conclusions import HOLDS, REVERSED
 from tracegs.io import atomic_write
 
 REPORT_PAGE = "report.html"
@@ -25,8 +26,8 @@ COMBINED = ("tables.md", "benchmark.md")
 PARTS = {"table.md": "Results", "intervals.md": "95% intervals and the paper's orderings",
          "held_out_clips.md": "Held-out clips", "per_step_intervals.md": "Fig. 6 at each reverse step"}
 FIG6 = "fig6_per_step.png"
-# Verdicts of tracegs.eval.conclusions, coloured so a reader finds them in a long table.
-VERDICTS = {"holds", "reversed"}
+# The verdicts that settle an ordering, coloured so a reader finds them in a long table (each is its CSS class).
+VERDICT_COLOURS = {HOLDS: "#1a7f37", REVERSED: "#cf222e"}
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 72em; padding: 0 1em; color: #1f2328; }
 table { border-collapse: collapse; margin: 0.8em 0; font-variant-numeric: tabular-nums; }
@@ -35,10 +36,8 @@ th { background: #f6f8fa; }
 code { background: #f6f8fa; padding: 0 0.2em; }
 img, video { max-width: 100%; }
 figure { margin: 1em 0; }
-.holds { color: #1a7f37; }
-.reversed { color: #cf222e; }
 .run { color: #59636e; }
-"""
+""" + "".join(f".{verdict} {{ color: {colour}; }}\n" for verdict, colour in VERDICT_COLOURS.items())
 
 _SEPARATOR_ROW = re.compile(r"^\|?\s*:?-+:?\s*(\|\s*:?-+:?\s*)*\|?$")
 _CODE = re.compile(r"`([^`]+)`")
@@ -51,7 +50,7 @@ def _inline(text: str) -> str:
 
     def bold(match: re.Match) -> str:
         word = match.group(1)
-        return f'<strong class="{word}">{word}</strong>' if word in VERDICTS else f"<strong>{word}</strong>"
+        return f'<strong class="{word}">{word}</strong>' if word in VERDICT_COLOURS else f"<strong>{word}</strong>"
 
     return _BOLD.sub(bold, text)
 

@@ -7,7 +7,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.tracegs-installed
 
-.PHONY: setup demo benchmark test test-all lint bench clean
+.PHONY: setup demo benchmark test test-all test-browser lint bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -35,6 +35,11 @@ test: setup
 
 test-all: setup
 	$(BIN)/python -m pytest -q -m "not gpu"
+
+# The report pages in a real browser: Debian's chromium, installed with apt-get where it is missing (needs root).
+test-browser: setup
+	@command -v chromium >/dev/null || (apt-get update -q && apt-get install -y -q chromium)
+	$(BIN)/python -m pytest -q -n 0 -m browser
 
 lint: setup
 	$(BIN)/ruff check tracegs tests benchmarks

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 import pytest
+from report_page import checked_page
 from safetensors import safe_open
 from support.tasks import SMALLEST
 
@@ -66,6 +67,9 @@ def test_demo_runs_every_step_and_writes_its_tables(demo):
     held_out = json.loads((out / "held_out_clips.json").read_text())  # tasks.held_out_quality
     assert set(held_out["mean"]) == {"input", "baseline", "tracegs"} and held_out["clips"] == 1
     assert "Deployment on the test scenes" in (out / "tables.md").read_text()
+    text, links = checked_page(out, "tables.md")
+    assert "fig6_per_step.png" in links and any(link.endswith("_trajectory.mp4") for link in links)
+    assert run_record["commit"] in text
 
 
 def test_the_demo_models_evaluate_on_other_test_scenes_without_naming_them(demo, run):
@@ -148,3 +152,5 @@ def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
     # Data twice, plain 3DGS once; A, Stage 1, the students' multirun, the evaluations' and the diagnostics.
     assert len(record["step_s"]) == 3 + 5
     assert text.strip() in result.stdout
+    _, links = checked_page(report.parent, "benchmark.md")
+    assert {"eval/3dgs/report.html", "eval/seed0/A/report.html", "eval/seed0/F/report.html"} <= set(links)

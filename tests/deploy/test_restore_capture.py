@@ -11,6 +11,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import pytest
+from report_page import checked_page
 
 from tracegs.data.config import SyntheticConfig
 from tracegs.data.synthetic import generate_scene
@@ -77,6 +78,16 @@ def test_restore_writes_ply_video_grid_and_scores(capture, restored):
     assert len(frames) == 6 and iio.imread(frames[0]).shape == (24, 32, 3)
     assert f"refined 3DGS (baseline): {run.resolve() / unit['models']['baseline']}" in result.stdout
     assert not list(run.rglob("*.tmp"))
+
+
+def test_restore_shows_its_tables_grid_video_and_plys_on_one_page(capture, restored):
+    """``report.html`` opens from the copied or moved run folder: its links are the folder's own files."""
+    root, result = restored
+    (run,) = runs(root)
+    _, links = checked_page(run, "table.md")
+    unit = json.loads((run / "units" / capture.name / "views_3.json").read_text())
+    assert {unit["media"]["grid"], unit["media"]["video"], *unit["models"].values()} <= set(links)
+    assert f"report: {(run / 'report.html').resolve()}" in result.stdout
 
 
 @pytest.mark.slow  # restores a capture twice more (~17 s); the identity rules are unit-tested in tests/config

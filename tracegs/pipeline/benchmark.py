@@ -31,6 +31,7 @@ from omegaconf import DictConfig
 from tracegs.config.identity import command_line_overrides, derive_seed, override_key
 from tracegs.console import show
 from tracegs.errors import ConfigError, TraceGSError
+from tracegs.eval.html_report import write_report_page
 from tracegs.eval.replicates import BenchmarkInputs, write_benchmark_report
 from tracegs.io import write_json_atomic
 from tracegs.pipeline.steps import Step, data_steps
@@ -267,5 +268,7 @@ def benchmark(cfg: DictConfig) -> Path:
                              diagnostics_dirs={s: diagnostics_dir(out_dir, s) for s in seeds})
     report, figures = write_benchmark_report(out_dir, inputs, header)
     write_json_atomic({**run, **figures}, out_dir / "run.json")
+    page = write_report_page(out_dir)
     show(report.read_text())
+    show(f"tracegs-benchmark: the tables, Fig. 6 and the evaluations' pages in {page}")
     return report

@@ -13,6 +13,7 @@ import lightning
 from omegaconf import DictConfig
 
 from tracegs.console import LogBookmark, show
+from tracegs.eval.html_report import write_report_page
 from tracegs.eval.report import results_table_markdown
 from tracegs.eval.seeds import per_step_points
 from tracegs.io import atomic_write, content_digest, write_json_atomic
@@ -47,7 +48,8 @@ def demo(cfg: DictConfig) -> Path:
     variant) -> evaluation.
 
     The evaluation writes straight into the demo's folder (tables, held-out clips, Fig. 6, grids, videos,
-    refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings) and ``tables.md``.
+    refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings), ``tables.md`` and the page showing
+    them all (``report.html``, tracegs.eval.html_report).
     """
     start = time.perf_counter()
     bookmark = LogBookmark()
@@ -76,6 +78,8 @@ def demo(cfg: DictConfig) -> Path:
     if earlier is not None and earlier.get("products") == products:
         # Nothing the tables show was made again: run.json and the log keep how the products were made (the first
         # run's commit, machine and timings), not how long it took to find them finished.
+        # The evaluation step above wrote report.html from these same files (tracegs.eval.html_report), so a root
+        # finished before the page existed has it now, and a later rerun writes the same bytes.
         bookmark.rewind()
         print((out_dir / "tables.md").read_text())
         print(f"tracegs-demo: every product was already made ({earlier['wall_s']:.0f} s on commit "
@@ -89,9 +93,11 @@ def demo(cfg: DictConfig) -> Path:
     write_json_atomic(run, record)
     with atomic_write(out_dir / "tables.md") as tmp:
         tmp.write_text(demo_tables_markdown(out_dir, run))
+    page = write_report_page(out_dir)
     show((out_dir / "tables.md").read_text())
     show(f"tracegs-demo: finished in {run['wall_s']:.0f} s, peak RSS {run['peak_rss_gib']:.2f} GiB")
     show(f"tracegs-demo: tables, grids, videos, refined PLYs and plots in {out_dir.resolve()}")
+    show(f"tracegs-demo: all of them on one page: {page.resolve()}")
     return out_dir
 
 

@@ -12,6 +12,7 @@ from tracegs.data.cache_keys import MANIFEST
 from tracegs.deploy.scenes import deploy_scenes
 from tracegs.eval.clips import clip_restoration_psnr
 from tracegs.eval.evaluate import evaluate as run_evaluation
+from tracegs.eval.html_report import write_report_page
 from tracegs.eval.report import write_held_out_report
 from tracegs.io import content_digest
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
@@ -51,6 +52,8 @@ def evaluate(cfg: DictConfig) -> dict:
         )
         if cfg.evaluation.held_out_cache is not None:
             held_out_quality(cfg, restorers, finished)
+        if cfg.evaluation.num_shards == 1:  # a shard's page waits for the merge (tracegs-report report.kind=main)
+            write_report_page(cfg.evaluation.out_dir)
         write_run_record(cfg, "evaluate", cfg.evaluation.out_dir)
     log.info("evaluation written to %s", cfg.evaluation.out_dir)
     return results

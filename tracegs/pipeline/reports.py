@@ -18,6 +18,7 @@ from tracegs.eval.clips import (
     view_averaged_curves,
 )
 from tracegs.eval.conclusions import PER_STEP_PAIRS
+from tracegs.eval.html_report import write_report_page
 from tracegs.eval.interval_tables import write_per_step_intervals
 from tracegs.eval.merge import merge_results
 from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
@@ -39,6 +40,7 @@ def report(cfg: DictConfig) -> Path:
         out = Path(cfg.evaluation.out_dir)
         sources = swept_method_evaluations(cfg) if cfg.report.main_from_sweep else None
         merge_results(out, views=list(cfg.evaluation.views), methods=list(cfg.evaluation.methods), sources=sources)
+        write_report_page(out)
         return out / "results.json"
     # report.kind is checked at composition (tracegs.config.schema.ReportKind).
     return {"per_step": per_step_report, "seeds": seed_report, "privileged": privileged_report,

@@ -15,6 +15,7 @@ from tracegs.data.sfm import reconstruct_photos, reconstruct_video
 from tracegs.data.splits import SplitError
 from tracegs.errors import ConfigError
 from tracegs.eval.evaluate import evaluate as run_evaluation
+from tracegs.eval.html_report import write_report_page
 from tracegs.eval.merge import unit_path
 from tracegs.eval.report import results_table_markdown
 from tracegs.pipeline.records import product_lock
@@ -61,6 +62,7 @@ def restore(cfg: DictConfig) -> Path:
         except SplitError as error:  # the user chose the count: capture.views
             raise ConfigError("capture.views", f"{cfg.capture.views}: {capture}: {error}; ask for fewer views or "
                                                "capture more images") from error
+        page = write_report_page(evaluation.out_dir)
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     out = Path(evaluation.out_dir).resolve()  # the unit names its files relative to the evaluation folder
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
@@ -70,4 +72,5 @@ def restore(cfg: DictConfig) -> Path:
     show(f"grid: {out / unit['media']['grid']}\nvideo: {out / unit['media']['video']}")
     for method, frames in unit["media"].get("frames", {}).items():
         show(f"trajectory renders ({method}): {out / frames}/")
+    show(f"report: {page.resolve()}")
     return out / unit["models"][evaluation.methods[-1]]

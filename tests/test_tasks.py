@@ -14,8 +14,8 @@ import re
 from pathlib import Path
 
 import pytest
-from report_page import checked_page
 from safetensors import safe_open
+from support.report_page import checked_page
 from support.tasks import SMALLEST
 
 # A whole demo, even at the smallest size, takes about 3 minutes on 2 cores: it runs with the other slow tests.

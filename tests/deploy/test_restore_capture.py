@@ -11,7 +11,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import pytest
-from report_page import checked_page
+from support.report_page import checked_page
 
 from tracegs.data.config import SyntheticConfig
 from tracegs.data.synthetic import generate_scene

@@ -11,7 +11,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from report_page import checked_page
+from support.report_page import checked_page
 
 from tracegs.eval.html_report import markdown_html, report_html, write_report_page
 from tracegs.eval.merge import merge_results, unit_path

@@ -48,16 +48,16 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     temporary folder and compared: the same bytes need no write, other bytes are refused in one line.
     """
     target = Path(path)
-    aside = False
+    refused: OSError | None = None  # why the folder takes no file, when the product is made again aside
     with refused_writes_named(target):
         if not target.parent.is_dir():
             target.parent.mkdir(parents=True, exist_ok=True)
         try:
             fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-        except OSError:
-            if not target.is_file():
+        except OSError as error:
+            if not target.is_file() or error.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
                 raise
-            aside = True
+            refused = error
             fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp")
     os.close(fd)
     tmp = Path(tmp_name)
@@ -66,8 +66,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
             yield tmp
             if target.is_file() and filecmp.cmp(tmp, target, shallow=False):
                 return
-            if aside:
-                raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(target))
+            if refused is not None:
+                raise refused
             # After the writer: some writers (safetensors) create the file anew instead of reusing ours.
             _with_umask_permissions(tmp, 0o666)
             os.replace(tmp, target)

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
+from hydra import initialize_config_dir
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.pipeline.upstream import composed
 from tracegs.training.strategy import LAUNCH_ENV
 
 
@@ -66,17 +66,10 @@ def hydra_context():
 
 
 @pytest.fixture
-def as_hydra_job():
-    """Compose like a Hydra app does for a command line, so the job's overrides are known (the upstream lookup
-    of tracegs.pipeline.upstream reads them)."""
-
-    def start(config_name: str, overrides: list[str]):
-        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        return cfg
-
-    yield start
-    HydraConfig.instance().cfg = None
+def entry_config():
+    """Compose as an entry point does (tracegs.pipeline.upstream.composed): the config keeps the overrides it was
+    given as its ``command_line``, from which the upstream lookup composes the earlier steps' configs."""
+    return composed
 
 
 @dataclasses.dataclass

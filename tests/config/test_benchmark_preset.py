@@ -92,12 +92,12 @@ def _single(steps) -> list[Step]:
     return out
 
 
-def test_every_step_composes_and_validates(tmp_path, as_hydra_job):
+def test_every_step_composes_and_validates(tmp_path, entry_config):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
     steps = benchmark_steps(benchmark_variants(["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
     for step in _single(steps):
-        cfg = as_hydra_job(APP_CONFIG[step.app], list(step.overrides))
+        cfg = entry_config(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
         assert cfg.paths.root_dir == "/tmp/elsewhere"
         if step.app == "evaluate" and "3DGS" not in step.label:
@@ -112,10 +112,10 @@ def _step(steps, label):
     return next(s for s in steps if s.label == label)
 
 
-def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_job):
+def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, entry_config):
     steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
-    plain = as_hydra_job("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
-    evaluations = [as_hydra_job("evaluate", list(_step(steps, f"seed {s}: evaluate (A,F) F").overrides))
+    plain = entry_config("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
+    evaluations = [entry_config("evaluate", list(_step(steps, f"seed {s}: evaluate (A,F) F").overrides))
                    for s in (0, 1)]
     # What plain 3DGS depends on is identical to every variant's deployment, so it is evaluated once.
     for cfg in evaluations:
@@ -130,22 +130,22 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, as_hydra_
     assert first.evaluation.out_dir != second.evaluation.out_dir
 
 
-def test_each_replicate_finds_its_own_upstream_products(tmp_path, as_hydra_job):
+def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
     steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
     for seed in (0, 1):
-        trained = {stage: str(as_hydra_job("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
+        trained = {stage: str(entry_config("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
                               .run_dir)
                    for stage, label in (("baseline", "A"), ("stage1", "Stage 1"))}
-        stage2 = as_hydra_job("train", list(_step(steps, f"seed {seed}: train Stage 2 (F) F").overrides))
+        stage2 = entry_config("train", list(_step(steps, f"seed {seed}: train Stage 2 (F) F").overrides))
         assert str(upstream_config(stage2, "stage1").run_dir) == trained["stage1"]
-        evaluation = as_hydra_job("evaluate", list(_step(steps, f"seed {seed}: evaluate (A,F) F").overrides))
+        evaluation = entry_config("evaluate", list(_step(steps, f"seed {seed}: evaluate (A,F) F").overrides))
         assert str(upstream_config(evaluation, "stage2").run_dir) == str(stage2.run_dir), seed
         assert str(upstream_config(evaluation, "baseline").run_dir) == trained["baseline"], seed
-        diagnostics = as_hydra_job("report", list(_step(steps, f"seed {seed}: trajectory diagnostics").overrides))
+        diagnostics = entry_config("report", list(_step(steps, f"seed {seed}: trajectory diagnostics").overrides))
         for stage in ("baseline", "stage1"):
             assert str(upstream_config(diagnostics, stage).run_dir) == trained[stage], (seed, stage)
         assert list(diagnostics.report.inputs) == ["A", "F"]
-    assert len({str(as_hydra_job("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
+    assert len({str(entry_config("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
                 for s in (0, 1)}) == 2
 
 
@@ -157,15 +157,15 @@ def test_seeds_must_be_listed_once(tmp_path):
         benchmark_steps(variants, 0, [], tmp_path)
 
 
-def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, as_hydra_job):
-    cfg = as_hydra_job("report", ["report.kind=diagnostics", f"paths.root_dir={tmp_path}"])
+def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, entry_config):
+    cfg = entry_config("report", ["report.kind=diagnostics", f"paths.root_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="evaluation.held_out_cache.*prepared held-out cache"):
         diagnostics_report(cfg)
-    cfg = as_hydra_job("report", ["report.kind=diagnostics", "report.inputs=[A,G]", f"paths.root_dir={tmp_path}",
+    cfg = entry_config("report", ["report.kind=diagnostics", "report.inputs=[A,G]", f"paths.root_dir={tmp_path}",
                                   f"evaluation.held_out_cache={tmp_path}"])
     with pytest.raises(ConfigError, match=r"report.inputs.*\['G'\] are not variants"):
         diagnostics_report(cfg)
-    cfg = as_hydra_job("report", ["report.kind=diagnostics", "report.inputs=[A]", "report.stage1_row=true",
+    cfg = entry_config("report", ["report.kind=diagnostics", "report.inputs=[A]", "report.stage1_row=true",
                                   f"paths.root_dir={tmp_path}", f"evaluation.held_out_cache={tmp_path}"])
     with pytest.raises(ConfigError, match="report.stage1_row.*needs a distilled variant"):
         diagnostics_report(cfg)

@@ -75,7 +75,7 @@ def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
 
 @pytest.mark.slow  # runs the ablation report on a copied config tree (~18 s)
 def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(conf_with_new_variant, hydra_in,
-                                                                               as_hydra_job, tmp_path):
+                                                                               entry_config, tmp_path):
     hydra_in(conf_with_new_variant)
     # composed
     cfg = compose(config_name="train", overrides=["stage=stage2", "ablation=G"])
@@ -94,13 +94,13 @@ def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(c
     assert listed == [",".join(names), ",".join(names[1:])]
     # reported: Table 3 reads the evaluation folder that `tracegs-evaluate ablation=<name>` writes, the new one's last
     for variant in names:
-        evaluation = as_hydra_job("evaluate", [f"ablation={variant}", f"paths.root_dir={tmp_path}"])
+        evaluation = entry_config("evaluate", [f"ablation={variant}", f"paths.root_dir={tmp_path}"])
         folder = Path(str(evaluation.evaluation.out_dir))
         folder.mkdir(parents=True)
         row = {"psnr": 20.0, "ssim": 0.5, "lpips": 0.2}
         results = {evaluation.ablation.method: {"3": row}, "meta": {"variant": variant}}
         (folder / "results.json").write_text(json.dumps(results))
-    report = as_hydra_job("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
+    report = entry_config("report", ["report.kind=ablation", f"paths.root_dir={tmp_path}",
                                      f"report.output_dir={tmp_path / 'report'}"])
     (inputs,) = ablation_inputs(report).values()
     assert len(set(inputs)) == len(names) and inputs[-1].parent.name == "G"

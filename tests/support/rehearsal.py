@@ -7,12 +7,12 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf, open_dict
+from hydra import initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
 
 from tracegs.cli.app import CONF_DIR, run_task
 from tracegs.config.schema import register_configs
+from tracegs.pipeline.upstream import composed
 
 # Dotted key -> why it is a size (or the run's name) and not science.
 SIZE_KEYS = {
@@ -71,27 +71,18 @@ BUDGET = (
 
 def rehearsal_config(root: Path, config_name: str = "train", overrides: tuple[str, ...] = ()):
     """``conf/<config_name>.yaml`` under ``experiment=rehearsal`` with every path below ``root``."""
-    register_configs()
-    with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
-        return compose(config_name=config_name,
-                       overrides=["experiment=rehearsal", f"paths.root_dir={root}", *overrides])
+    with rehearsal_job(root, config_name, overrides) as cfg:
+        return cfg
 
 
 @contextlib.contextmanager
 def rehearsal_job(root: Path, config_name: str, overrides: tuple[str, ...] = ()) -> Iterator[DictConfig]:
-    """``rehearsal_config`` as the console script's job sees it: inside Hydra with the job's overrides known,
-    so the run folders it names (run identity) are the ones that command line writes and reads."""
+    """``rehearsal_config`` composed as the console script composes it, keeping the job's overrides as its
+    ``command_line`` and Hydra initialised while the job runs: its steps compose the configs of the steps before
+    them from those overrides, so the run folders they name are the ones that command line writes and reads."""
     register_configs()
     with initialize_config_dir(config_dir=str(Path(CONF_DIR)), version_base="1.3"):
-        cfg = compose(config_name=config_name, return_hydra_config=True,
-                      overrides=["experiment=rehearsal", f"paths.root_dir={root}", *overrides])
-        HydraConfig.instance().set_config(cfg)
-        try:
-            with open_dict(cfg):
-                del cfg["hydra"]
-            yield cfg
-        finally:
-            HydraConfig.instance().cfg = None
+        yield composed(config_name, ["experiment=rehearsal", f"paths.root_dir={root}", *overrides])
 
 
 def run_rehearsal_task(task, root: Path, config_name: str, overrides: tuple[str, ...] = ()):

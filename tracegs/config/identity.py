@@ -2,10 +2,13 @@
 
 Every product (a paired-clip cache, a trained restorer or adapter, an evaluation) depends on a known
 part of the configuration: the fields that declare they change it (tracegs.products, next to each field of
-the config dataclasses). The folder a run writes to is ``<readable>-<digest>``: the readable part is the seed
-and the command-line overrides of those fields, the digest is a hash of their values after interpolation. So two runs share a folder only when they would produce the
-same thing, a changed hyperparameter never resumes or overwrites another run, and a later stage finds
-the product it needs by computing the earlier stage's folder with the same rule (``tracegs.pipeline.upstream``).
+the config dataclasses). The folder a run writes to is ``seed<k>-<digest>`` under a path of typed values
+(experiment, stage, variant; a cache's dataset, backbone and split), the digest a hash of those fields' values
+after interpolation: a function of the typed config alone, never of how the command line was spelt. So two runs
+share a folder exactly when they would produce the same thing, a changed hyperparameter never resumes or
+overwrites another run, and a later stage finds the product it needs by computing the earlier stage's folder
+with the same rule (``tracegs.pipeline.upstream``); the folder's ``config.yaml`` and ``run_identity.json`` say
+what it holds.
 
 Fields that change how a run executes but not what it produces (paths, logging, progress bars,
 parallelism, sharding, checkpoint cadence) are declared ``execution()`` and never part of an identity.
@@ -25,8 +28,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import re
-from collections.abc import Collection, Iterable, Sequence
+import logging
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,22 +38,17 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from tracegs.content import capture_digest, content_digest, root_relative
 from tracegs.products import PREPARE, Declaration, Product, declarations
-from tracegs.restorer.config import RESTORATION_SECTIONS, sections_not_in_cache
+from tracegs.restorer.config import sections_not_in_cache
+
+log = logging.getLogger("tracegs")
 
 DIGEST_CHARS = 8
-READABLE_MAX_CHARS = 80
 
 # The name the root schema is registered under in Hydra's ConfigStore (conf/command.yaml lists it first).
 SCHEMA_NAME = "tracegs_schema"
 # A capture of the user's own is identified by its content, not by where it lies: a folder by its images and
 # reconstruction (its photos, when structure-from-motion makes the reconstruction), a video by its bytes.
 CAPTURE_KEYS = ("capture.path", "capture.video")
-
-# Hydra's own overrides and path-like keys never name a run.
-_UNNAMED_OVERRIDE_ROOTS = ("hydra", "paths", "run_dir", "task", "seed")
-# Group choices already spelled by the folder path (``<experiment>/<stage>/<variant>/``).
-_PATH_GROUPS = ("experiment", "stage", "ablation")
-
 
 def derive_seed(root_seed: int, stream: str) -> int:
     """The seed of one stochastic part: a stable 31-bit hash of (root seed, stream name)."""
@@ -155,61 +153,11 @@ def digest(values: dict[str, Any]) -> str:
     return hashlib.sha256(payload.encode()).hexdigest()[:DIGEST_CHARS]
 
 
-def override_key(override: str) -> str:
-    """``+loss.lambda_ret=0.3`` -> ``loss.lambda_ret``; ``teacher=v12`` -> ``teacher``."""
-    return override.split("=", 1)[0].lstrip("+~")
-
-
-def describes_the_dataset(override: str) -> bool:
-    """Whether a command-line override sets the ``data`` group or a key inside it: a setting of the command's own
-    dataset, which a step or lookup on another dataset (``data=mipnerf360``) leaves out."""
-    return re.split(r"[./]", override_key(override), maxsplit=1)[0] == "data"
-
-
-def _named(key: str, read: frozenset[str], declared: Collection[str]) -> bool:
-    """Whether an override of ``key`` names a run whose product depends on the fields ``read``."""
-    root = re.split(r"[./]", key, maxsplit=1)[0]
-    if root in _UNNAMED_OVERRIDE_ROOTS or key in _PATH_GROUPS:
-        return False
-    # Debug presets set trainer / stage keys (read); naming them keeps a debug run recognisable.
-    if key == "debug" or key in declared:
-        return key == "debug" or key in read
-    # A group choice (``teacher=v12``) names the fields under it; a key below a field, the field.
-    enclosing = max((path for path in declared if key.startswith(f"{path}.")), key=len, default=None)
-    return enclosing in read or any(path.startswith(f"{key}.") for path in read)
-
-
-def readable_name(seed: int, overrides: Sequence[str], read: frozenset[str], declared: Collection[str]) -> str:
-    """``seed<k>`` and the overrides of the fields ``read`` (of those ``declared``) as ``<last key
-    component>-<value>``, joined by ``_``.
-
-    The name pastes safely into a command line (no ``=``, ``,``, brackets or quotes: Hydra's override syntax),
-    names no path (a path value is left to the digest) and cuts no value: overrides that do not fit in
-    ``READABLE_MAX_CHARS`` are left out whole and counted (``more<n>``)."""
-    parts = [f"seed{seed}"]
-    left_out = 0
-    for override in sorted(set(overrides)):
-        key = override_key(override)
-        if "=" not in override or not _named(key, read, declared):
-            continue
-        value = override.split("=", 1)[1].strip("[]'\"")
-        if "/" in value:
-            left_out += 1
-            continue
-        part = re.sub(r"[^A-Za-z0-9.+-]", "_", f"{key.rsplit('.', 1)[-1]}-{value.replace(',', '+')}")
-        if len("_".join([*parts, part])) > READABLE_MAX_CHARS:
-            left_out += 1
-            continue
-        parts.append(part)
-    return "_".join(parts + ([f"more{left_out}"] if left_out else []))
-
-
-def run_name(cfg: DictConfig, kind: str, overrides: Sequence[str] = ()) -> str:
-    """The folder name of a ``kind`` run under ``cfg``: ``<readable>-<digest>``."""
+def run_name(cfg: DictConfig, kind: str) -> str:
+    """The folder name of a ``kind`` run under ``cfg``: ``seed<k>-<digest>``, from the typed config alone."""
     if kind == "prepare":
-        return cache_name(cfg, cfg.data.prepare.split, overrides)
-    read = _read(cfg, kind)
-    return f"{readable_name(cfg.seed, overrides, read, _declared(cfg))}-{digest(_scoped_values(cfg, kind, read))}"
+        return cache_name(cfg, cfg.data.prepare.split)
+    return f"seed{cfg.seed}-{digest(_scoped_values(cfg, kind, _read(cfg, kind)))}"
 
 
 def differing_keys(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
@@ -217,32 +165,20 @@ def differing_keys(recorded: dict[str, Any], current: dict[str, Any]) -> list[st
     return sorted(k for k in set(recorded) | set(current) if recorded.get(k, "<absent>") != current.get(k, "<absent>"))
 
 
-def cache_name(cfg: DictConfig, split: str, overrides: Sequence[str] = ()) -> str:
+def cache_name(cfg: DictConfig, split: str) -> str:
     """The folder name of the paired-clip cache of ``split`` under ``cfg`` (what ``tracegs-prepare
     data.prepare.split=<split>`` writes), also from a run that prepares another split or none."""
     values = _scoped_values(cfg, "prepare", _read(cfg, "prepare", split))
     values["data.prepare.split"] = split
-    named = [o for o in overrides if override_key(o) != "data.prepare.split"]
-    # The readable half names what every cache is made with; a restorer's settings, which only a cache of
-    # restored pseudo-targets reads, are left to the digest.
-    read = read_fields(cfg, "prepare", split, RESTORATION_SECTIONS)
-    return f"{readable_name(cfg.seed, named, read, _declared(cfg))}-{digest(values)}"
-
-
-def command_line_overrides() -> list[str]:
-    """The overrides of the running Hydra job (empty when a config is composed outside a Hydra app)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    return f"seed{cfg.seed}-{digest(values)}"
 
 
 def register_resolvers() -> None:
     """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}`` and
     ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` for the YAML."""
     OmegaConf.register_new_resolver(
-        "tracegs.run", lambda kind, _root_: run_name(_root_, kind, command_line_overrides()), replace=True)
-    OmegaConf.register_new_resolver(
-        "tracegs.cache", lambda split, _root_: cache_name(_root_, split, command_line_overrides()), replace=True)
+        "tracegs.run", lambda kind, _root_: run_name(_root_, kind), replace=True)
+    OmegaConf.register_new_resolver("tracegs.cache", lambda split, _root_: cache_name(_root_, split), replace=True)
     OmegaConf.register_new_resolver("tracegs.product", product_folder, replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
@@ -250,15 +186,27 @@ def register_resolvers() -> None:
 
 
 def product_folder(path: str) -> str:
-    """``path`` (a product folder named ``<readable>-<digest>``), or the folder beside it of the same digest that
-    already exists: the readable part repeats the command line's in-scope overrides, so two spellings of one
-    configuration (a group typed or left to its default, a list typed out) would otherwise make the same product
-    twice, in two folders."""
+    """``path``, a product folder named ``seed<k>-<digest>``; a folder beside it of the same digest made before
+    names were derived from the typed config alone (``seed<k>_<overrides typed>-<digest>``) is renamed to it
+    first, so a root made by an older version keeps its products. On a root nothing can rename in (a read-only
+    copy), the older folder is used where it lies."""
     folder = Path(path)
     if folder.exists() or not folder.parent.is_dir():
         return path
-    same = sorted(p for p in folder.parent.glob(f"*-{folder.name.rsplit('-', 1)[-1]}") if p.is_dir())
-    return str(same[0]) if same else path
+    older = sorted(p for p in folder.parent.glob(f"*-{folder.name.rsplit('-', 1)[-1]}") if p.is_dir())
+    if not older:
+        return path
+    try:
+        older[0].rename(folder)
+    except FileNotFoundError:  # another process of the same command renamed it first
+        return path
+    except OSError:
+        return str(older[0])
+    log.info("%s: renamed to %s (product folders are named by seed and digest only)", older[0], folder.name)
+    for twin in older[1:]:
+        log.warning("%s holds a second copy of %s, made under another spelling of the command line; nothing reads "
+                    "it, remove it to reclaim the space", twin, folder)
+    return path
 
 
 def gpus_per_node(ranks: int, trainer_gpus: int) -> int:

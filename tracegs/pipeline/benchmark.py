@@ -28,7 +28,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from tracegs.config.identity import command_line_overrides, derive_seed, override_key
+from tracegs.config.identity import derive_seed
+from tracegs.config.overrides import override_key
 from tracegs.console import show
 from tracegs.errors import ConfigError, TraceGSError
 from tracegs.eval.html_report import write_report_page
@@ -229,7 +230,7 @@ def benchmark(cfg: DictConfig) -> Path:
     out_dir = Path(cfg.run_dir).resolve()
     seeds = list(cfg.benchmark.training_seeds)
     variants = benchmark_variants(None if cfg.benchmark.variants is None else list(cfg.benchmark.variants))
-    user = [o for o in command_line_overrides()
+    user = [o for o in cfg.command_line
             if override_key(o).split(".")[0] not in ("benchmark", "seed", "ablation")]
     clips = cfg.benchmark.held_out_clips_per_scene
     steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views))

@@ -63,7 +63,7 @@ def demo(cfg: DictConfig) -> Path:
             # Quoted: the root the user chose may hold ',' or '=', which unquoted are override syntax.
             extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
                      f"evaluation.out_dir={quoted(out_dir)}")
-        step_cfg = compose_run(step.app, extra)
+        step_cfg = compose_run(cfg, step.app, extra)
         if HELD_OUT_SPLIT in extra and step.app == "prepare":
             held_out_cache = Path(step_cfg.data.prepare.cache_dir)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)

@@ -41,7 +41,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     unknown = sorted(set(cfg.report.inputs) - set(names))
     if unknown:
         raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")
-    variants = {name: compose_run("report", [f"ablation={name}"]) for name in names}
+    variants = {name: compose_run(cfg, "report", [f"ablation={name}"]) for name in names}
     distilled = any(variant.ablation.train_stage2 for variant in variants.values())
     if cfg.report.stage1_row and not distilled:
         raise ConfigError("report.stage1_row", "needs a distilled variant in report.inputs (A alone has no Stage-1 "

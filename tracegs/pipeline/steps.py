@@ -17,8 +17,8 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from tracegs.config.identity import describes_the_dataset
 from tracegs.config.location import CONF_DIR
+from tracegs.config.overrides import describes_the_dataset
 from tracegs.config.schema import register_configs
 from tracegs.pipeline.variants import table3_variants
 

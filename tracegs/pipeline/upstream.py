@@ -1,7 +1,10 @@
 """Upstream lookup: the config of the earlier run whose product a run needs, and where that product lies.
 
-A later stage never asks where an earlier one wrote: it recomputes the earlier run's folder from its own
-command line with the run-identity rule (tracegs.config.identity), so products are found by content.
+A later stage never asks where an earlier one wrote: it composes the earlier run's config from its own command
+line (``command_line``, which the entry point sets from the overrides it was given) and computes that run's
+folder from the typed values with the run-identity rule (tracegs.config.identity). No global Hydra state is
+read: a config composed here carries the overrides it was composed from, so it finds its own upstream the same
+way.
 """
 
 from __future__ import annotations
@@ -11,10 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from hydra import compose
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.identity import command_line_overrides, describes_the_dataset, override_key
+from tracegs.config.overrides import describes_the_dataset, override_key
 from tracegs.config.schema import AUTO
 from tracegs.config.validate import validate
 from tracegs.training.run import PRODUCTS
@@ -61,9 +63,16 @@ def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None, data
              "stage2": ["stage=stage2", f"ablation={variant}"]}.get(kind, [f"stage={kind}"])
     extra += [f"data={data}"] if other_data else []
     replaced = {override_key(o) for o in extra}
-    overrides = [o for o in command_line_overrides()
+    overrides = [o for o in cfg.command_line
                  if _carried(o, kind, from_training, other_data) and override_key(o) not in replaced]
-    return compose(config_name="evaluate" if kind == "evaluate" else "train", overrides=[*overrides, *extra])
+    return composed("evaluate" if kind == "evaluate" else "train", [*overrides, *extra])
+
+
+def composed(config_name: str, overrides: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` under ``overrides``, which it keeps as its ``command_line``."""
+    cfg = compose(config_name=config_name, overrides=list(overrides))
+    cfg.command_line = list(overrides)
+    return cfg
 
 
 def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
@@ -78,27 +87,15 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
         if cfg.artifacts[artifact] != AUTO:
             continue
         producer = producers[artifact]
-        folder = same_identity(Path(upstream_config(cfg, producer).run_dir), PRODUCTS[producer])
-        cfg.artifacts[artifact] = str(folder / PRODUCTS[producer])
+        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
 
 
-def same_identity(folder: Path, product: str) -> Path:
-    """``folder``, or the folder beside it of the same identity (``<readable>-<digest>``, the same digest) that
-    holds ``product``. The readable part repeats in-scope overrides of the command line that computes the name,
-    and two command lines of one configuration may spell it differently: the training command typed nothing,
-    the evaluation of another dataset ``data=mipnerf360``; a group typed or left to the experiment's default."""
-    if (folder / product).exists() or not folder.parent.is_dir():
-        return folder
-    digest = folder.name.rsplit("-", 1)[-1]
-    found = sorted(p for p in folder.parent.glob(f"*-{digest}") if (p / product).exists())
-    return found[0] if found else folder
-
-
-def compose_run(config_name: str, extra: Sequence[str]) -> DictConfig:
-    """``conf/<config_name>.yaml`` with this run's command-line overrides and ``extra`` (which wins), validated."""
+def compose_run(cfg: DictConfig, config_name: str, extra: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` with the command-line overrides of ``cfg`` and ``extra`` (which wins),
+    validated."""
     replaced = {override.split("=", 1)[0] for override in extra}
-    user = [o for o in HydraConfig.get().overrides.task if o.split("=", 1)[0] not in replaced]
-    cfg = compose(config_name=config_name, overrides=[*user, *extra])
+    user = [o for o in cfg.command_line if o.split("=", 1)[0] not in replaced]
+    cfg = composed(config_name, [*user, *extra])
     validate(cfg)
     return cfg
 

@@ -177,6 +177,45 @@ def too_few_registered(model, inputs: Path):
             "the held-out ones need 7")
 
 
+def close_ups(model, cameras, folder: Path, zoom: float) -> None:
+    """Photos of the middle 1/``zoom`` of each camera's view enlarged to the full size, as a camera zoomed in on a
+    small part of the scene would take them: SIFT matches them with a few features of the other photos only."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for index, frame in enumerate(render_frames(model, cameras)):
+        height, width = frame.shape[:2]
+        crop_height, crop_width = int(height / zoom), int(width / zoom)
+        top, left = (height - crop_height) // 2, (width - crop_width) // 2
+        middle = Image.fromarray(frame[top:top + crop_height, left:left + crop_width])
+        middle.resize((width, height), Image.BICUBIC).save(folder / f"close_{index}.png")
+
+
+def too_little_overlap(model, inputs: Path):
+    """Five photos of the scene and three close-ups taken further along the walk: each close-up has too few
+    verified matches with the five registered photos for the mapper to place it (measured with pycolmap 4.2.1,
+    one thread, fixed seeds: 20 at most)."""
+    folder = inputs / "closeups"
+    cameras = orbit(8, arc_deg=80.0)
+    write_photos(folder, model, cameras[:5])
+    close_ups(model, cameras[5:], folder, zoom=3.0)
+    return ([f"capture.path={folder}", "capture.views=6"],
+            f"config field 'capture.views': 6: structure-from-motion registered 5 of 8 images of {folder} (3 with "
+            "too little overlap to be placed, at most 20 verified matches with the registered images where the "
+            "mapper needs 30: close_0.png, close_1.png, close_2.png), and 6 training views plus the held-out ones "
+            "need 7")
+
+
+def nothing_to_start_from(model, inputs: Path):
+    """Three close-ups alone: two match, too little for the mapper to start a model from (it starts from a pair
+    with 100 verified matches, relaxed to 25 when nothing else starts), and the third matches neither."""
+    folder = inputs / "zoomed"
+    close_ups(model, orbit(3, arc_deg=30.0), folder, zoom=2.5)
+    return ([f"capture.path={folder}", "capture.views=2"],
+            f"config field 'capture.views': 2: structure-from-motion registered 0 of 3 images of {folder} (2 "
+            "matched, but with no pair the mapper could start a model from, at most 20 verified matches with any "
+            "other image: close_0.png, close_1.png; 1 without matches to any other: close_2.png), and 2 "
+            "training views plus the held-out ones need 3")
+
+
 def fewer_photos_than_views(model, inputs: Path):
     write_photos(inputs / "four", model, orbit(4, arc_deg=40.0))
     return ([f"capture.path={inputs / 'four'}", "capture.views=6"],
@@ -207,8 +246,9 @@ def path_and_video(model, inputs: Path):
         "config field 'capture.video': set either capture.path"
 
 
-BAD = {f.__name__: f for f in (two_photos, too_few_registered, fewer_photos_than_views, video_of_two_frames,
-                               video_too_short, not_a_video, path_and_video)}
+BAD = {f.__name__: f for f in (two_photos, too_few_registered, too_little_overlap, nothing_to_start_from,
+                               fewer_photos_than_views, video_of_two_frames, video_too_short, not_a_video,
+                               path_and_video)}
 
 
 @pytest.mark.parametrize("case", list(BAD))

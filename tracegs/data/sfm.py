@@ -61,14 +61,15 @@ def _names(paths: list[str]) -> str:
 
 
 @contextlib.contextmanager
-def _quiet_colmap() -> Iterator[None]:
+def _quiet_colmap(least: str = "ERROR") -> Iterator[None]:
     """COLMAP's own log (glog) off stderr and out of /tmp while it runs: a refused command prints one line, and
-    what the reconstruction found goes to this module's log instead. Its errors still reach stderr."""
+    what the reconstruction found goes to this module's log instead. Its messages from ``least`` up still reach
+    stderr: errors, unless a caller reports that outcome itself."""
     import pycolmap
 
     flags = pycolmap.logging
     before = flags.logtostderr, flags.minloglevel
-    flags.logtostderr, flags.minloglevel = True, int(flags.ERROR)
+    flags.logtostderr, flags.minloglevel = True, int(getattr(flags, least))
     try:
         yield
     finally:
@@ -181,9 +182,11 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
             if placed % PROGRESS_EVERY == 0:
                 log.info("%s: mapping, %d images registered so far", scene.name, placed)
 
-        models = pycolmap.incremental_mapping(database, images, work / "models", options,
-                                              next_image_callback=progress)
-        record = _findings(database, names, models, options.min_num_matches)
+        # A mapping that makes no model says so as an error; the refusal below says it, and why, in one line.
+        with _quiet_colmap("FATAL"):
+            models = pycolmap.incremental_mapping(database, images, work / "models", options,
+                                                  next_image_callback=progress)
+        record = _findings(database, names, models, options)
         record["cameras"], record["seconds"] = [list(size) for size in sizes], round(time.perf_counter() - started, 2)
         _log_findings(scene.name, record)
         _require_registered(record, capture, views, test_every)
@@ -263,36 +266,65 @@ def _match(database: Path, matcher: Matcher, cfg: SfmConfig) -> None:
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
 
 
-def _findings(database: Path, names: list[str], models: dict, min_matches: int) -> dict:
-    """What the reconstruction found: the largest model's images, and why each other image is not in it."""
+def _findings(database: Path, names: list[str], models: dict, options) -> dict:
+    """What the reconstruction found: the largest model's images, and why each other image is not in it.
+
+    The reasons are what the database and the mapper's thresholds can prove, from the pairs the mapper loads (those
+    with at least ``options.min_num_matches`` verified matches): an image with no such pair has no matches to any
+    other; with no model at all, none could be started; an image with fewer verified matches with the registered
+    images, all pairs together, than ``abs_pose_min_num_inliers`` could not be placed (placing one needs that many
+    2D-3D correspondences, each from a match with a registered image, or twice that many 2D-2D ones), so its
+    overlap was too little; any other was matched well enough yet not placed by the mapper. ``options`` are the
+    mapping's pycolmap.IncrementalPipelineOptions. The record keeps, for each image left out though matched, its
+    verified matches with the registered images (with no model: the most it has with any one image), so the
+    refusal can say how far each was from being placed, a reused reconstruction's too."""
     import pycolmap
 
     with pycolmap.Database.open(database) as db:
         ids = {image.name: image.image_id for image in db.read_all_images()}
         pairs, inliers = db.read_two_view_geometry_num_inliers()
-    matched = {i for pair, count in zip(pairs, inliers) if count >= min_matches
-               for i in pycolmap.pair_id_to_image_pair(pair)}
+    verified = [(pycolmap.pair_id_to_image_pair(pair), count) for pair, count in zip(pairs, inliers)
+                if count >= options.min_num_matches]
     ordered = sorted(models.values(), key=lambda model: -model.num_reg_images())
     groups = [sorted(image.name for image in model.images.values() if image.has_pose) for model in ordered]
     registered = groups[0] if groups else []
     # COLMAP lets a later model re-register images of an earlier one: only the others are left out.
     others = [kept for group in groups[1:] if (kept := [name for name in group if name not in registered])]
     elsewhere = {name for group in others for name in group}
-    left_out = {}
+    placed = {ids[name] for name in registered}
+    most_with_one: dict[int, int] = {}  # an image's verified matches with any one other image, at most
+    with_registered: dict[int, int] = {}  # an image's verified matches with the registered images, all together
+    for (first, second), count in verified:
+        for image, other in ((first, second), (second, first)):
+            most_with_one[image] = max(most_with_one.get(image, 0), count)
+            if other in placed:
+                with_registered[image] = with_registered.get(image, 0) + count
+    minimum = options.mapper.abs_pose_min_num_inliers
+    left_out, matches = {}, {}
     for name in names:
         if name in registered:
             continue
-        left_out[name] = ("unreadable" if name not in ids else "another model" if name in elsewhere
-                          else "no matches" if ids[name] not in matched else "too little overlap")
+        image = ids.get(name)
+        if image is None or name in elsewhere or image not in most_with_one:
+            left_out[name] = ("unreadable" if image is None else "another model" if name in elsewhere
+                              else "no matches")
+        elif not registered:
+            left_out[name], matches[name] = "no start", most_with_one[image]
+        else:
+            count = with_registered.get(image, 0)
+            left_out[name], matches[name] = ("too little overlap" if count < minimum else "not placed"), count
     largest = ordered[0] if ordered else None
     return {
-        "images": len(names), "registered": registered, "left_out": left_out, "other_models": others,
+        "images": len(names), "registered": registered, "left_out": left_out, "verified_matches": matches,
+        "min_matches_to_place": minimum, "other_models": others,
         "mean_reprojection_error": largest.compute_mean_reprojection_error() if largest else None,
         "points": largest.num_points3D() if largest else 0,
     }
 
 
-REASONS = {"no matches": "without matches to any other", "too little overlap": "matched but with too little overlap",
+REASONS = {"no matches": "without matches to any other", "too little overlap": "with too little overlap to be placed",
+           "not placed": "matched to the registered images but not placed by the mapper",
+           "no start": "matched, but with no pair the mapper could start a model from",
            "unreadable": "that COLMAP could not read", "another model": "in separate models"}
 
 
@@ -300,7 +332,23 @@ def _why_left_out(record: dict) -> str:
     by_reason: dict[str, list[str]] = {}
     for name, reason in record["left_out"].items():
         by_reason.setdefault(reason, []).append(name)
-    return "; ".join(f"{len(names)} {REASONS[reason]}: {_names(names)}" for reason, names in by_reason.items())
+    return "; ".join(f"{len(names)} {REASONS[reason]}{_matches(record, reason, names)}: {_names(names)}"
+                     for reason, names in by_reason.items())
+
+
+def _matches(record: dict, reason: str, names: list[str]) -> str:
+    """How many verified matches the images left out for ``reason`` had at most, where the record holds it (a
+    record written before it was kept does not)."""
+    counts = record.get("verified_matches", {})
+    if reason not in ("too little overlap", "not placed", "no start") or not all(name in counts for name in names):
+        return ""
+    most = max(counts[name] for name in names)
+    if reason == "no start":
+        return f", at most {most} verified matches with any other image"
+    if reason == "not placed":
+        return f", {min(counts[name] for name in names)} or more verified matches with the registered images each"
+    return (f", at most {most} verified matches with the registered images where the mapper needs "
+            f"{record['min_matches_to_place']}")
 
 
 def _log_findings(name: str, record: dict) -> None:

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 from safetensors import safe_open
 from support.report_page import checked_page
 from support.tasks import SMALLEST
@@ -125,6 +126,25 @@ def test_report_seeds_spreads_demo_runs(demo, run, tmp_path):
     root, out = demo[:2]
     run("report", root, "report.kind=seeds", f"report.inputs=['{out}','{out}']", f"report.output_dir={tmp_path}")
     assert "|" in (tmp_path / "seeds.md").read_text()
+
+
+def test_optuna_chooses_stage2s_learning_rate_on_the_validation_scenes(demo, run, entry_point):
+    """``conf/hparams_search/stage2_lr.yaml`` through the Optuna sweeper: each trial trains its own Stage 2 on the
+    demo's A and Stage 1 and returns its held-out clip PSNR on the validation cache; the sweeper reports the best."""
+    root = demo[0]
+    run("prepare", root, "data.prepare.split=val")
+    search = entry_point("train", ["-m", f"paths.root_dir={root}", *SMALLEST, "stage=stage2", "hparams_search=stage2_lr",
+                                   "hydra.sweeper.n_trials=2"], root)
+    assert search.returncode == 0, search.stderr[-3000:]
+    (results,) = root.glob("outputs/embedded/multirun/*/optimization_results.yaml")
+    best = OmegaConf.load(results)
+    trials = {}
+    for curve in root.glob("outputs/embedded/stage2/F/*/held_out_curve.json"):
+        lr = OmegaConf.load(curve.parent / "config.yaml").experiment.stage2_lr
+        trials[lr] = json.loads(curve.read_text())["points"][-1]["mean"]
+    assert len(trials) == 2
+    assert best.best_value == max(trials.values())
+    assert trials[best.best_params["experiment.stage2_lr"]] == best.best_value
 
 
 def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):

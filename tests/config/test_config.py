@@ -34,13 +34,8 @@ ABLATION_GRID = {
 # Options that cannot run at the other scale: they must fail validation saying which experiment they need.
 NEEDS_EXPERIMENT = {
     ("embedded", "backbone", "cogvideox5b"): "experiment=paper",
-    # The embedded scale prepares the all-view teacher only; Table 3's 12- and 18-view teachers are added by
-    # the sweep (launch/sweep_ablation.sh).
-    **{("embedded", group, option): "data.prepare.dense_views"
-       for group, option in (("ablation", "C"), ("ablation", "D"), ("teacher", "v12"), ("teacher", "v18"))},
-    # ... and stops the sparse fits before their final snapshot, variant B's teacher.
-    **{("embedded", group, option): "data.prepare.student_final_fits"
-       for group, option in (("ablation", "B"), ("teacher", "v3"))},
+    # (The embedded scale prepares the teacher of the variant a command runs for: every ablation and teacher
+    # option composes there too.)
 }
 # A benchmark-only dataset trained on (its every scene a test scene) is refused from the config alone.
 NEEDS_EXPERIMENT.update({(scale, "data", option): "benchmark scenes included"
@@ -224,6 +219,16 @@ def test_deployment_eval_is_off_by_default_and_takes_validation_scenes():
                                                   "stage.deployment_eval.every_n_steps=25"])
     validate(cfg)
     assert cfg.stage.deployment_eval.every_n_steps == 25 and list(cfg.stage.deployment_eval.views) == [3]
+
+
+def test_the_learning_rate_search_scores_on_the_cache_that_prepare_writes_for_the_validation_scenes():
+    """conf/hparams_search/stage2_lr.yaml names the validation cache by its path; it must be the folder
+    ``tracegs-prepare data.prepare.split=val`` fills, under the command's settings."""
+    for extra in ([], ["seed=3", "data.prepare.clips_per_scene=5"]):
+        search = compose(config_name="train", overrides=["stage=stage2", "hparams_search=stage2_lr", *extra])
+        validate(search)
+        prepared = compose(config_name="prepare", overrides=["data.prepare.split=val", *extra])
+        assert search.stage.held_out_eval.cache == prepared.data.prepare.cache_dir
 
 
 def test_cli_prints_resolved_paper_config():

@@ -12,7 +12,7 @@ from hydra import compose
 from omegaconf import OmegaConf
 
 from tracegs.config.identity import derive_seed, scoped_values
-from tracegs.config.validate import ConfigError
+from tracegs.config.validate import ConfigError, validate
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
 from tracegs.pipeline.reports import ablation_inputs, swept_method_evaluations
 from tracegs.pipeline.upstream import locate_artifacts
@@ -435,3 +435,23 @@ def test_a_folder_named_by_an_older_version_is_renamed_and_kept(entry_config, tm
     again = entry_config("train", [f"paths.root_dir={tmp_path}", "stage=stage1", "loss.lambda_ret=0.3"])
     assert Path(str(again.run_dir)) == expected and not older.exists()
     assert (expected / "stage1_adapter" / "weights").read_bytes() == b"trained"
+
+
+@pytest.mark.parametrize(("variant", "dense_views", "final_fits"), [("C", [12, None], False), ("B", [None], True)])
+def test_a_variant_brings_its_teacher_and_keeps_a_and_stage1(entry_config, tmp_path, variant, dense_views, final_fits):
+    """``tracegs-prepare ablation=C`` then ``tracegs-train stage=stage2 ablation=C``, as typed: the cache the
+    variant trains on holds its teacher condition (C: 12 views; B: the sparse fits' final snapshot), and A and
+    Stage 1 are the default's, found in the same folders."""
+    root = f"paths.root_dir={tmp_path}"
+    prepared = entry_config("prepare", [root, f"ablation={variant}"])
+    assert list(prepared.data.prepare.dense_views) == dense_views
+    assert prepared.data.prepare.student_final_fits is final_fits
+    student = entry_config("train", [root, "stage=stage2", f"ablation={variant}"])
+    validate(student)  # the teacher is prepared: not refused
+    default = entry_config("train", [root, "stage=stage2"])
+    assert student.data.datamodule.cache_dir == prepared.data.prepare.cache_dir != default.data.datamodule.cache_dir
+    for cfg in (student, default):
+        locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"])
+    assert (student.artifacts.baseline_weights, student.artifacts.stage1_adapter) == \
+        (default.artifacts.baseline_weights, default.artifacts.stage1_adapter)
+    assert student.run_dir != default.run_dir

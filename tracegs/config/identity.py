@@ -37,6 +37,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from tracegs.content import capture_digest, content_digest, root_relative
+from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.products import PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
 
@@ -174,8 +175,9 @@ def cache_name(cfg: DictConfig, split: str) -> str:
 
 
 def register_resolvers() -> None:
-    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}`` and
-    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` for the YAML."""
+    """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}``,
+    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` and the variant's teacher condition
+    (``${tracegs.with_variant_teacher:...}``, ``${tracegs.fits_variant_teacher:...}``) for the YAML."""
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind), replace=True)
     OmegaConf.register_new_resolver("tracegs.cache", lambda split, _root_: cache_name(_root_, split), replace=True)
@@ -183,6 +185,8 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
     OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
+    OmegaConf.register_new_resolver("tracegs.with_variant_teacher", with_variant_teacher, replace=True)
+    OmegaConf.register_new_resolver("tracegs.fits_variant_teacher", fits_variant_teacher, replace=True)
 
 
 def product_folder(path: str) -> str:

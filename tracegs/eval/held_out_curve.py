@@ -29,6 +29,7 @@ from tracegs.restorer.sampler import RestorationPipeline
 
 BASE = "A"  # the bare base restorer (adapters off): variant A
 INITIAL = "initial"  # the trained adapter before its first step (Stage 2: the Stage-1 adapter)
+HELD_OUT_CURVE = "held_out_curve.json"  # in the run folder
 
 
 class HeldOutClipQuality(L.Callback):
@@ -84,7 +85,7 @@ class HeldOutClipQuality(L.Callback):
         scenes, and the input R_s, A and the initial adapter as constant lines."""
         record = {"adapter": self.adapter, "cache": self.cache_dir.name, "references": self.references,
                   "points": self.points}
-        write_json_atomic(record, self.output_dir / "held_out_curve.json")
+        write_json_atomic(record, self.output_dir / HELD_OUT_CURVE)
         if not self.references:  # resumed past step 0: the lines of the reference restorers are unknown
             return
         steps = [p["step"] for p in self.points]

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from tracegs.data.sources import SceneSource
+from tracegs.eval.held_out_curve import HELD_OUT_CURVE
 from tracegs.pipeline.records import product_lock, reuse_finished, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts, section
 from tracegs.training.config import TrainConfig
@@ -35,6 +37,21 @@ def train(cfg: DictConfig) -> Path | None:
         if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]):
             return Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]
         return train_locked(cfg)
+
+
+def train_and_validate(cfg: DictConfig) -> float | None:
+    """``train``, then the trained adapter's held-out clip PSNR on ``stage.held_out_eval.cache`` at its last step
+    (the validation scenes' cache, ``tracegs-prepare data.prepare.split=val``): the metric a hyperparameter
+    search maximises (``hparams_search=``, Optuna through Hydra's sweeper); None without a held-out cache. A
+    finished run is not trained again: its recorded curve gives the metric."""
+    train(cfg)
+    curve = Path(cfg.run_dir) / HELD_OUT_CURVE
+    if cfg.stage.held_out_eval.cache is None:
+        return None
+    if not curve.is_file():
+        raise FileNotFoundError(f"stage.held_out_eval.cache: {curve} was not written; the run finished before the "
+                                "held-out cache was named, so train it again in a fresh run_dir")
+    return float(json.loads(curve.read_text())["points"][-1]["mean"])
 
 
 def train_locked(cfg: DictConfig) -> Path:

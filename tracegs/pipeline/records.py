@@ -120,6 +120,8 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
     and the whole resolved config, paths relative to the root: a copy of the root elsewhere keeps the same bytes."""
     folder = Path(folder)
     write_json_atomic({**scoped_values(cfg, kind), **input_digests(cfg, kind)}, folder / RUN_RECORD)
-    resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
+    # Hydra's own node and the command line that happened to make it are no part of what the product is.
+    kept = [key for key in cfg if key not in ("hydra", "command_line")]
+    resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, kept), resolve=True)
     with atomic_write(folder / "config.yaml") as tmp:
         tmp.write_text(OmegaConf.to_yaml(relative_to_root(resolved, cfg.paths.root_dir)))

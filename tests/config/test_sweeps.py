@@ -40,14 +40,14 @@ def test_multirun_cfg_prints_one_config_per_job():
 
 
 def test_cfg_job_validates_like_the_job_would(capsys):
-    """B's teacher is the sparse fits' final snapshot, which the default cache does not prepare: the job would be
+    """C's teacher sees 12 views, which a cache of the all-view teacher alone does not hold: the job would be
     refused, and so is printing its config."""
     with pytest.raises(SystemExit) as exit_:
-        train_stdout("-m", "stage=stage2", "ablation=F,B", "--cfg", "job")
+        train_stdout("-m", "stage=stage2", "ablation=F,C", "data.prepare.dense_views=[null]", "--cfg", "job")
     captured = capsys.readouterr()
     assert exit_.value.code == 2 and captured.out == ""
     (line,) = [line for line in captured.err.splitlines() if line.strip()]
-    assert line.startswith("tracegs-train: error:") and "data.prepare.student_final_fits=true" in line
+    assert line.startswith("tracegs-train: error:") and "add it to data.prepare.dense_views" in line
 
 
 @pytest.mark.parametrize(("trainer", "gpus", "tasks"), [("cpu", 0, 1), ("ddp_sim", 0, 2), ("ddp", 4, 4)])

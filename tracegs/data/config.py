@@ -244,8 +244,8 @@ class SfmConfig:
 def with_variant_teacher(dense_views: list[int | None], teacher_views: int | None,
                          student_views: list[int]) -> list[int | None]:
     """``dense_views`` and the dense teacher of the variant a command runs for (``teacher.views``; None: all training
-    views), so a Table 3 variant brings the teacher condition it reads: ``tracegs-prepare ablation=C`` fits the
-    12-view teacher without naming it. A teacher seeing as many views as a student (B) is a sparse fit's final
+    views), so a Table 3 variant brings the teacher condition it reads: preparing for a variant with a 12-view
+    teacher fits that teacher without naming it. A teacher seeing as many views as a student is a sparse fit's final
     snapshot instead (``fits_variant_teacher``); a count between the student sets is no teacher a cache can hold,
     and is left for validation to refuse. Counts ascending, all views last, as the fits are listed."""
     privileged = teacher_views is None or not student_views or teacher_views > max(student_views)
@@ -255,5 +255,5 @@ def with_variant_teacher(dense_views: list[int | None], teacher_views: int | Non
 
 def fits_variant_teacher(student_final_fits: bool, teacher_views: int | None, student_views: list[int]) -> bool:
     """``student_final_fits``, or the variant's teacher is the smallest sparse set fitted to its final snapshot
-    (variant B's teacher, Table 3)."""
+    (the non-privileged teacher of Table 3)."""
     return bool(student_final_fits) or (bool(student_views) and teacher_views == min(student_views))

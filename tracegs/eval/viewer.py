@@ -192,8 +192,8 @@ class Viewer:
                                                                    **splat_arrays(model), visible=False)
                                  for method, model in unit.models.items()}
         centres = np.stack([c.center.numpy() for c in unit.cameras.values()]) if unit.cameras else np.zeros((1, 3))
-        # Frusta a tenth of the cameras' spread: visible around the splats without hiding them.
-        size = 0.1 * float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)) or 1.0)
+        # Frusta a twentieth of the cameras' spread: visible around the splats without hiding them.
+        size = 0.05 * float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)) or 1.0)
         captured = set(unit.record["captured"])
         self.frusta[unit.key] = {
             view: scene.add_camera_frustum(
@@ -217,9 +217,11 @@ class Viewer:
             # Where the held-out camera's axis passes closest to the middle of the cameras: what they look at.
             depth = max(float((centres.mean(axis=0) - pose["position"]) @ forward), 1e-3)
             self.server.scene.set_up_direction(tuple(world_up(cameras)))
-            # Behind the held-out camera, so its frustum and its neighbours are in sight around the splats.
-            self.server.initial_camera.position = tuple(pose["position"] - 0.8 * depth * forward)
+            # A little behind the held-out camera with a wider view: the splats as that camera saw them, its
+            # frustum and its neighbours in sight.
+            self.server.initial_camera.position = tuple(pose["position"] - 0.25 * depth * forward)
             self.server.initial_camera.look_at = tuple(pose["position"] + depth * forward)
+            self.server.initial_camera.fov = min(1.4 * pose["fov"], math.radians(90.0))
         self.show()
 
     def show(self) -> None:

@@ -7,6 +7,7 @@ the splats, and switching the method from the server changes the open page's ima
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 import urllib.request
@@ -113,14 +114,18 @@ def test_splats_are_the_ply_gaussians(run_folder):
     assert arrays["rgbs"].min() >= 0.0 and arrays["rgbs"].max() <= 1.0
 
 
-def test_a_missing_or_empty_folder_is_refused_in_one_line(tmp_path, entry_point):
-    """Through the console script in a child process: exit code 2, one line naming the folder, nothing written."""
-    for folder in (tmp_path / "no_such_run", tmp_path / "empty"):
-        if folder.name == "empty":
-            folder.mkdir()
+def test_a_missing_or_empty_folder_is_refused_in_one_line(run_folder, tmp_path, entry_point):
+    """Through the console script in a child process: exit code 2, one line naming the folder (or the file missing
+    from it), nothing written; no server starts."""
+    (tmp_path / "empty").mkdir()
+    part = shutil.copytree(run_folder, tmp_path / "copied_in_part")
+    unit = unit_record(part)
+    lost = part / unit["cameras"][str(unit["test"][0])]["image"]
+    lost.unlink()
+    for folder, named in ((tmp_path / "no_such_run", None), (tmp_path / "empty", None), (part, lost)):
         before = files_under(tmp_path)
         result = entry_point("view", [str(folder), "--port", "0"], tmp_path)
-        assert_refused(result, "view", str(folder), files_under(tmp_path) - before)
+        assert_refused(result, "view", str(named or folder), files_under(tmp_path) - before)
 
 
 # viser's notice that WebGL runs in software (it does here: SwiftShader) covers a corner of the canvas.

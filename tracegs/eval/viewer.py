@@ -82,6 +82,11 @@ def load_run(folder: str | Path) -> list[UnitView]:
         if not paths or not all(path.is_file() for path in paths.values()):
             continue
         cameras = {int(view): Camera.from_record(camera) for view, camera in record.get("cameras", {}).items()}
+        images = [folder / camera["image"] for camera in record.get("cameras", {}).values()]
+        missing = [path for path in images if not path.is_file()]
+        if missing:
+            raise InputFileError(missing[0], "a view image the unit's record names is missing",
+                                 "copy or move the whole run folder")
         try:
             models = {method: load_ply(path) for method, path in paths.items()}
         except ValueError as error:  # a file named .ply that is not a 3DGS PLY

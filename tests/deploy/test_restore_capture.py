@@ -6,58 +6,28 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import imageio.v3 as iio
 import pytest
 from support.report_page import checked_page
+from support.restores import RESTORE_A, restore, runs, small_capture
 
-from tracegs.data.config import SyntheticConfig
-from tracegs.data.synthetic import generate_scene
 from tracegs.splat.ply import load_ply
-
-RESTORE = Path(sys.executable).with_name("tracegs-restore")
-SMALLEST = [
-    "experiment.frame_height=24", "experiment.frame_width=32",
-    "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
-    "data.prepare.fit.densification.enabled=false",
-    "deploy.total_iters=40", "deploy.repair_iters=[10,25]", "deploy.steps=2", "deploy.max_clips_per_round=1",
-    "deploy.trajectory.ellipse_frames=24", "evaluation.video_frames=6", "evaluation.grid_views=2",
-    "evaluation.progress=false",
-]
-
-
-def restore(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(RESTORE), f"paths.root_dir={tmp_path}", *overrides], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=900)
 
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("captures")
-    cfg = SyntheticConfig(root=str(root), num_views=16, height=24, width=32, num_objects=1,
-                          gaussians_per_unit_area=150, init_points=400)
-    return generate_scene(3, cfg, root)
+    return small_capture(tmp_path_factory.mktemp("captures"))
 
 
 @pytest.fixture(scope="module")
 def restored(capture, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
-    """(launch folder, result) of one restore of ``capture``. ablation=A deploys the baseline restorer; with no
-    baseline weights it is the randomly initialised tiny backbone (what a user without trained weights has),
-    run through the whole restore-refine loop."""
+    """(launch folder, result) of one restore of ``capture`` (variant A, support.restores)."""
     root = tmp_path_factory.mktemp("restore")
     result = restore(root, *RESTORE_A, f"capture.path={capture}")
     assert result.returncode == 0, result.stderr[-3000:]
     return root, result
-
-
-RESTORE_A = ("capture.views=3", "ablation=A", "artifacts.baseline_weights=null", *SMALLEST)
-
-
-def runs(root: Path) -> list[Path]:
-    """The run folders of variant A's restores under ``root`` (one per capture identity)."""
-    return sorted((root / "outputs" / "embedded" / "restore" / "A").iterdir())
 
 
 def test_restore_writes_ply_video_grid_and_scores(capture, restored):
@@ -76,6 +46,9 @@ def test_restore_writes_ply_video_grid_and_scores(capture, restored):
     assert (run / unit["media"]["video"]).stat().st_size > 0
     frames = sorted((run / unit["media"]["frames"]["baseline"]).glob("frame_*.png"))
     assert len(frames) == 6 and iio.imread(frames[0]).shape == (24, 32, 3)
+    # The cameras of the views fitted to and scored on, with their images, for tracegs-view.
+    assert set(unit["cameras"]) == {str(view) for view in unit["captured"] + unit["test"]}
+    assert iio.imread(run / unit["cameras"][str(unit["test"][0])]["image"]).shape == (24, 32, 3)
     assert f"refined 3DGS (baseline): {run.resolve() / unit['models']['baseline']}" in result.stdout
     assert not list(run.rglob("*.tmp"))
 

@@ -38,7 +38,13 @@ from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
 from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips, require_lpips_convention
 from tracegs.eval.per_step import per_step_psnr
-from tracegs.eval.report import METHOD_LABELS, save_comparison_video, save_frames, save_qualitative_grid
+from tracegs.eval.report import (
+    METHOD_LABELS,
+    save_comparison_video,
+    save_frames,
+    save_qualitative_grid,
+    save_view_images,
+)
 from tracegs.io import write_json_atomic
 from tracegs.processes import die_with_parent
 from tracegs.products import Product, blank_unread
@@ -140,6 +146,22 @@ def _save_media(unit: SceneUnit, cfg: EvaluationConfig, test_renders: Mapping[st
                            for m in models}
     return media
 
+def _save_views(unit: SceneUnit, directory: Path) -> dict[str, dict]:
+    """The unit's captured and held-out cameras (the normalised world its refined PLYs live in) with the images
+    each view was fitted to or scored on, by view index: what ``tracegs-view`` shows beside the PLYs, so the
+    folder holds them whether or not the scene it was made from is still where it was."""
+    cameras = {**dict(zip(unit.captured_ids, (v.camera for v in unit.captured))),
+               **dict(zip(unit.test_ids, unit.test_cameras))}
+    images = {**dict(zip(unit.captured_ids, (v.image for v in unit.captured))),
+              **dict(zip(unit.test_ids, unit.test_images))}
+    paths = save_view_images(images, directory)
+    return {str(view): {**camera.as_record(), "image": str(paths[view])} for view, camera in sorted(cameras.items())}
+
+
+def views_path(out_dir: str | Path, scene: str, views: int) -> Path:
+    return Path(out_dir) / "models" / scene / f"views_{views}_images"
+
+
 PER_STEP = "per_step"  # the part of a unit that computes its Fig. 6 curves
 
 
@@ -209,12 +231,15 @@ class _UnitJob:
             record["models"] = {method: str(save_model(model, model_path(cfg.out_dir, unit.scene.name, unit.views,
                                                                            method)))
                                 for method, model in models.items()}
+            record["cameras"] = _save_views(unit, views_path(cfg.out_dir, unit.scene.name, unit.views))
         record["fingerprint"] = self.unit_fingerprint(key)
         record["variant"] = cfg.variant
         # Paths relative to the evaluation folder: the record stays true when its root is copied or moved.
         for files in (record.get("media", {}), record.get("media", {}).get("frames", {}), record.get("models", {})):
             files.update({name: os.path.relpath(path, cfg.out_dir)
                           for name, path in files.items() if isinstance(path, str)})
+        for view in record.get("cameras", {}).values():
+            view["image"] = os.path.relpath(view["image"], cfg.out_dir)
         write_json_atomic(record, unit_path(cfg.out_dir, unit.scene.name, unit.views))
         return record
 

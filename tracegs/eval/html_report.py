@@ -17,6 +17,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 from tracegs.eval.conclusions import HOLDS, REVERSED
+from tracegs.eval.merge import unit_records
 from tracegs.io import atomic_write
 
 REPORT_PAGE = "report.html"
@@ -156,8 +157,7 @@ def _media(path: str) -> str:
 def _units(folder: Path) -> list[str]:
     """Each evaluation unit's grid, video and refined PLYs (the files its record names)."""
     out: list[str] = []
-    for path in sorted((folder / "units").glob("*/views_*.json")):
-        unit = json.loads(path.read_text())
+    for unit in unit_records(folder):
         media, models = unit.get("media", {}), unit.get("models", {})
         if not media and not models:
             continue

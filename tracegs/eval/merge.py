@@ -22,9 +22,15 @@ from tracegs.io import write_json_atomic
 def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
     return Path(out_dir) / "units" / scene / f"views_{views}.json"
 
+def unit_records(folder: str | Path) -> list[dict]:
+    """The records of the evaluation units under ``folder`` (none: an empty list), ordered by scene and K as
+    their files are; the merge, the report page and the viewer all read the units this way."""
+    return [json.loads(f.read_text()) for f in sorted((Path(folder) / "units").glob("*/views_*.json"))]
+
+
 def read_units(folder: str | Path) -> dict[tuple[str, int], dict]:
     """The evaluation units under ``folder`` by (scene, K)."""
-    units = [json.loads(f.read_text()) for f in sorted((Path(folder) / "units").glob("*/views_*.json"))]
+    units = unit_records(folder)
     if not units:
         raise FileNotFoundError(f"no evaluation units under {Path(folder) / 'units'}")
     return {(u["scene"], int(u["views"])): u for u in units}

@@ -287,7 +287,17 @@ def _upscale_factor(height: int, min_height: int) -> int:
 def save_qualitative_grid(columns: Mapping[str, Sequence[Tensor]], path: str | Path,
                           min_cell_height: int = 144) -> Path:
     """PNG grid: one column per entry of ``columns`` (e.g. 3DGS / baseline / TRACE-GS / GT), one row per
-    test view, captions on top. Small renders are upscaled (nearest) so the grid stays readable."""
+    test view, captions on top (:func:`qualitative_grid`)."""
+    grid = qualitative_grid(columns, min_cell_height)
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        iio.imwrite(tmp, grid, extension=".png")
+    return path
+
+
+def qualitative_grid(columns: Mapping[str, Sequence[Tensor]], min_cell_height: int = 144) -> np.ndarray:
+    """The grid of :func:`save_qualitative_grid` as an H x W x 3 uint8 array (tracegs-view shows one row of it).
+    Small renders are upscaled (nearest) so the grid stays readable."""
     labels = list(columns)
     counts = {len(v) for v in columns.values()}
     if len(counts) != 1 or 0 in counts:
@@ -295,11 +305,7 @@ def save_qualitative_grid(columns: Mapping[str, Sequence[Tensor]], path: str | P
     first = next(iter(columns.values()))[0]
     factor = _upscale_factor(first.shape[-2], min_cell_height)
     rows = [_row([columns[label][i] for label in labels], factor) for i in range(counts.pop())]
-    grid = np.concatenate([_label_strip(labels, first.shape[-1] * factor), *rows], axis=0)
-    path = Path(path)
-    with atomic_write(path) as tmp:
-        iio.imwrite(tmp, grid, extension=".png")
-    return path
+    return np.concatenate([_label_strip(labels, first.shape[-1] * factor), *rows], axis=0)
 
 
 def save_frames(frames: Tensor, directory: str | Path) -> Path:
@@ -309,6 +315,16 @@ def save_frames(frames: Tensor, directory: str | Path) -> Path:
         for index, frame in enumerate(frames):
             iio.imwrite(staging / f"frame_{index:04d}.png", to_uint8(frame), extension=".png")
     return directory
+
+
+def save_view_images(images: Mapping[int, Tensor], directory: str | Path) -> dict[int, Path]:
+    """Each ``images[view]`` [3,H,W] as ``view_<view>.png`` in ``directory`` (replaced whole, never half-written);
+    returns the path of each view's file."""
+    directory = Path(directory)
+    with atomic_directory(directory) as staging:
+        for view, image in images.items():
+            iio.imwrite(staging / f"view_{view:04d}.png", to_uint8(image), extension=".png")
+    return {view: directory / f"view_{view:04d}.png" for view in images}
 
 
 def video_extension() -> str:

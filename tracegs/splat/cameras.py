@@ -77,6 +77,18 @@ class Camera:
                              device=self.K.device)
         return Camera(self.K * scale[:, None], self.world_to_camera.clone(), width, height)
 
+    def as_record(self) -> dict:
+        """The camera as JSON values (the names of a prepared scene's scene.json), for a record beside a product."""
+        return {"intrinsics": self.K.tolist(), "world_to_camera": self.world_to_camera.tolist(),
+                "size": [self.height, self.width]}
+
+    @staticmethod
+    def from_record(record: dict) -> Camera:
+        """The camera :meth:`as_record` wrote."""
+        height, width = record["size"]
+        return Camera(torch.tensor(record["intrinsics"], dtype=torch.float32),
+                      torch.tensor(record["world_to_camera"], dtype=torch.float32), int(width), int(height))
+
     @staticmethod
     def from_pose(K: Tensor, rotation: Tensor, center: Tensor, width: int, height: int) -> Camera:
         """Camera from a world-to-camera rotation and a world-space centre."""

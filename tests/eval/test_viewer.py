@@ -128,6 +128,14 @@ def test_a_missing_or_empty_folder_is_refused_in_one_line(run_folder, tmp_path, 
         assert_refused(result, "view", str(named or folder), files_under(tmp_path) - before)
 
 
+def test_an_address_this_machine_cannot_listen_on_is_refused_in_one_line(run_folder, tmp_path, entry_point):
+    """``--host`` naming another machine's address: one line naming ``--host`` and exit 2, instead of waiting for a
+    server that never binds (192.0.2.1: TEST-NET-1, reserved for documentation, no machine's address)."""
+    before = files_under(tmp_path)
+    result = entry_point("view", [str(run_folder), "--host", "192.0.2.1", "--port", "0"], tmp_path)
+    assert_refused(result, "view", "--host: 192.0.2.1", files_under(tmp_path) - before)
+
+
 # viser's notice that WebGL runs in software (it does here: SwiftShader) covers a corner of the canvas.
 REMOVE_NOTICES = "document.querySelectorAll('[class*=\"Notification\"]').forEach(e => e.remove())"
 # The canvas away from the GUI panel (top right) and the axes (bottom left) of the 1000 x 557 page that a

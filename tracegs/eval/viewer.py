@@ -16,6 +16,7 @@ Everything is read from the folder alone, so a copied or moved folder views the 
 from __future__ import annotations
 
 import math
+import socket
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ import numpy as np
 import torch
 import viser
 
-from tracegs.errors import InputFileError
+from tracegs.errors import InputFileError, TraceGSError
 from tracegs.eval.labels import METHOD_LABELS
 from tracegs.eval.merge import unit_records
 from tracegs.eval.report import qualitative_grid
@@ -267,4 +268,18 @@ class Viewer:
 
 def serve(folder: str | Path, host: str = "127.0.0.1", port: int = 8080) -> Viewer:
     """Load ``folder`` (refusing a bad one before any server starts) and serve it; the caller stops it."""
-    return Viewer(load_run(folder), host, port)
+    units = load_run(folder)
+    require_listenable(host)
+    return Viewer(units, host, port)
+
+
+def require_listenable(host: str) -> None:
+    """Refuse in one line an address this machine cannot listen on: viser's server thread would fail to bind
+    there and leave the command waiting for it."""
+    try:
+        family = socket.getaddrinfo(host, None)[0][0]
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((host, 0))
+    except OSError as error:
+        raise TraceGSError("--host", f"{host}: this machine cannot listen there ({error.strerror or error})",
+                           "give one of its addresses, 127.0.0.1 or 0.0.0.0") from error

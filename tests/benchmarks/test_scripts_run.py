@@ -17,7 +17,8 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 # stage2_memory.py runs in test_stage2_memory.py, gpu_check.py in tests/rehearsal/test_gpu_check.py (on a machine
 # without a GPU it says so instead of printing figures); prepare_data.py prepares the whole demo cache (4 min),
-# which the prepare tests cover.
+# which the prepare tests cover; clean_clone.py runs `make test` and `make demo` on a clone (12 min), which CI and
+# the demo tests cover.
 RUNS = {
     "rasterizer.py": [],
     "restorer.py": [],

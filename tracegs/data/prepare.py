@@ -421,7 +421,8 @@ def clip_latents(plan: ScenePlan, clip: dict, index: int, conditions: dict[str, 
     whichever of its clips comes first, also on a resumed run), and each clip encodes its own student conditions
     only."""
     dense = dense_condition(cfg)
-    if not cfg.shared_trajectories:
+    # A held-out clip through captured photographs (tracegs.data.held_out) belongs to no drawn trajectory.
+    if not cfg.shared_trajectories or "trajectory" not in clip:
         if cfg.pseudo_target != "restorer":
             target = pseudo_target(plan, clip, index, conditions, ground_truth, None, references, caption, cfg,
                                    backbone, pipeline)

@@ -29,7 +29,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from tracegs.config.identity import derive_seed
-from tracegs.config.overrides import override_key
+from tracegs.config.overrides import override_key, with_overrides
 from tracegs.console import show
 from tracegs.errors import ConfigError, TraceGSError
 from tracegs.eval.html_report import write_report_page
@@ -101,12 +101,6 @@ def teacher_overrides(variants: Sequence[Variant], student_views: Sequence[int])
             f"data.prepare.student_final_fits={str(final).lower()}"]
 
 
-def _merge(defaults: Sequence[str], user: Sequence[str]) -> list[str]:
-    """``defaults`` with any key the user set on the command line replaced by the user's value."""
-    given = {override_key(o) for o in user}
-    return [o for o in defaults if override_key(o) not in given] + list(user)
-
-
 def _listed(values: Sequence) -> str:
     return "[" + ",".join(map(str, values)) + "]"
 
@@ -161,7 +155,7 @@ def benchmark_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
                                      f"evaluation.held_out_cache={test_cache}",
                                      f"report.output_dir={quoted(diagnostics_dir(out_dir, seed))}"),
                           f"seed {seed}: trajectory diagnostics"))
-    return [Step(step.app, tuple(_merge(step.overrides, user)), step.label) for step in steps]
+    return [Step(step.app, tuple(with_overrides(step.overrides, user)), step.label) for step in steps]
 
 
 def eval_dir(out_dir: Path, seed: int) -> Path:

@@ -45,9 +45,9 @@ def train_and_validate(cfg: DictConfig) -> float | None:
     search maximises (``hparams_search=``, Optuna through Hydra's sweeper); None without a held-out cache. A
     finished run is not trained again: its recorded curve gives the metric."""
     train(cfg)
-    curve = Path(cfg.run_dir) / HELD_OUT_CURVE
     if cfg.stage.held_out_eval.cache is None:
         return None
+    curve = Path(cfg.run_dir) / HELD_OUT_CURVE
     if not curve.is_file():
         raise FileNotFoundError(f"stage.held_out_eval.cache: {curve} was not written; the run finished before the "
                                 "held-out cache was named, so train it again in a fresh run_dir")

@@ -16,7 +16,7 @@ from typing import Any
 from hydra import compose
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.overrides import describes_the_dataset, override_key
+from tracegs.config.overrides import describes_the_dataset, override_key, with_overrides
 from tracegs.config.schema import AUTO
 from tracegs.config.validate import validate
 from tracegs.training.run import PRODUCTS
@@ -93,9 +93,7 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
 def compose_run(cfg: DictConfig, config_name: str, extra: Sequence[str]) -> DictConfig:
     """``conf/<config_name>.yaml`` with the command-line overrides of ``cfg`` and ``extra`` (which wins),
     validated."""
-    replaced = {override.split("=", 1)[0] for override in extra}
-    user = [o for o in cfg.command_line if o.split("=", 1)[0] not in replaced]
-    cfg = composed(config_name, [*user, *extra])
+    cfg = composed(config_name, with_overrides(cfg.command_line, extra))
     validate(cfg)
     return cfg
 

@@ -51,8 +51,9 @@ from tracegs.data.prepare import (
     teacher_view_counts,
     trajectory_count,
 )
-from tracegs.pipeline.steps import Step, main_table_steps, sweep_steps
-from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, teacher_overrides
+from tracegs.pipeline.runner import Step, override
+from tracegs.pipeline.steps import main_table_steps, sweep_steps
+from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, variants_teachers
 from tracegs.splat.trajectory import reference_pairs
 
 HOUR = 3600.0
@@ -219,16 +220,6 @@ def per_step_work(cfg: DictConfig, scenes: int) -> Work:
     return Work(encodes=rollouts, forwards=2 * rollouts * forwards, decodes=rollouts * (steps + 1))
 
 
-def expand(step: Step) -> list[list[str]]:
-    """The jobs of a multirun step: one override list per value of its swept ``ablation``."""
-    overrides = list(step.overrides)
-    swept = [o for o in overrides if o.startswith("ablation=") and "," in o]
-    if not swept:
-        return [overrides]
-    rest = [o for o in overrides if o not in swept]
-    return [[*rest, f"ablation={name}"] for name in swept[0].split("=", 1)[1].split(",")]
-
-
 def test_scenes(cfg: DictConfig, dl3dv: int) -> int:
     """Benchmark scenes of the job's dataset: DL3DV-Benchmark's 28 (paper Sec. 4.2; its list is the user's), else
     the published list that ships with the configs."""
@@ -241,16 +232,17 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
     """(label, command, work) of every command, in order, and how many variants train a Stage-2 student."""
     common = [*PAPER_JOB, *overrides]
     variants = table3_variants()
-    steps = [Step("prepare", tuple(common), "prepare DL3DV training cache (every teacher)")]
+    steps = [Step.of("prepare", "prepare DL3DV training cache (every teacher)").passing(common)]
     report = compose(config_name="report", overrides=common)
     others = [d for d in report.report.datasets if d != report.training_data]
     steps += sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], common, others)
-    steps += main_table_steps(report.report.main_datasets, report.training_data, common, report.report.datasets)
+    steps += main_table_steps(report.report.main_datasets, report.training_data, swept=report.report.datasets,
+                              user=common)
     rows = []
     for step in steps:
         work = Work()
-        for job in expand(step):
-            cfg = compose(config_name=step.app, overrides=job)
+        for job in step.jobs():
+            cfg = compose(config_name=step.app, overrides=list(job.overrides))
             if step.app == "prepare":
                 scenes = train_scenes if cfg.data.prepare.split == "train" else test_scenes(cfg, dl3dv_scenes)
                 work += prepare_work(cfg, scenes)
@@ -267,9 +259,9 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
 
 def scope_prepare_work(overrides: list[str], train_scenes: int) -> Work:
     """The training cache of the paper's own scope, one student (F): only the teacher F distils from
-    (``teacher_overrides``), so the sparse fits stop at their last student snapshot."""
-    cfg = compose(config_name="prepare", overrides=[*PAPER_JOB, *overrides,
-                                                    *teacher_overrides(table3_configs(["F"]))])
+    (``variants_teachers``), so the sparse fits stop at their last student snapshot."""
+    teachers = [override(key, value) for key, value in variants_teachers(table3_configs(["F"])).items()]
+    cfg = compose(config_name="prepare", overrides=[*PAPER_JOB, *overrides, *teachers])
     return prepare_work(cfg, train_scenes)
 
 

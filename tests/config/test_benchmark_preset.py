@@ -3,6 +3,7 @@ depend on the training seed, and each variant and seed finds its own upstream pr
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -15,10 +16,10 @@ from tracegs.pipeline.benchmark import (
     benchmark_steps,
     benchmark_variants,
     estimate_minutes,
-    teacher_overrides,
+    variant_teachers,
 )
 from tracegs.pipeline.diagnostics import diagnostics_report
-from tracegs.pipeline.steps import Step
+from tracegs.pipeline.runner import Step
 from tracegs.pipeline.upstream import upstream_config
 from tracegs.pipeline.variants import table3_variants
 
@@ -66,30 +67,22 @@ def test_every_variant_is_run_and_the_caches_hold_every_teacher():
     variants = benchmark_variants()
     assert [v.name for v in variants] == [v.name for v in table3_variants()]  # conf/ablation/, Table 3's rows
     # C and D need the 12- and 18-view teachers, B the sparse fits' final snapshots (as the sweep prepares).
-    assert teacher_overrides(variants, [3]) == ["data.prepare.dense_views=[12,18,null]",
-                                                "data.prepare.student_final_fits=true"]
+    assert variant_teachers(variants, [3, 6, 9]) == {"data.prepare.dense_views": [12, 18, None],
+                                                     "data.prepare.student_final_fits": True}
     chosen = benchmark_variants(["F", "A"])
     assert [v.name for v in chosen] == ["A", "F"] and not chosen[0].trained
-    assert teacher_overrides(chosen, [3]) == ["data.prepare.dense_views=[null]",
-                                              "data.prepare.student_final_fits=false"]
+    assert variant_teachers(chosen, [3, 6, 9]) == {"data.prepare.dense_views": [None],
+                                                   "data.prepare.student_final_fits": False}
     for names, problem in ((["A", "G"], r"\['G'\] are not variants"), (["A", "A"], "repeats"), ([], "at least one")):
         with pytest.raises(ConfigError, match=f"benchmark.variants.*{problem}"):
             benchmark_variants(names)
 
 
 def _single(steps) -> list[Step]:
-    """The steps as single runs: a multirun's jobs, one per variant (how Hydra expands ``ablation=A,F``)."""
-    out = []
-    for step in steps:
-        if "--multirun" not in step.overrides:
-            out.append(step)
-            continue
-        kept = [o for o in step.overrides if o != "--multirun" and not o.startswith(("hydra/", "hydra."))]
-        (sweep,) = [o for o in kept if o.startswith("ablation=")]
-        for name in sweep.split("=", 1)[1].split(","):
-            out.append(Step(step.app, tuple(f"ablation={name}" if o == sweep else o for o in kept),
-                            f"{step.label} {name}"))
-    return out
+    """The steps as single runs: a multirun's jobs, one per variant (how Hydra expands ``ablation=A,F``), without
+    its multirun folder."""
+    return [replace(job, settings=tuple((k, v) for k, v in job.settings if k != "hydra.sweep.dir"))
+            for step in steps for job in step.jobs()]
 
 
 def test_every_step_composes_and_validates(tmp_path, entry_config):

@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 
 from tracegs.cli.app import CONF_DIR
 from tracegs.config.validate import ConfigError, validate
+from tracegs.pipeline.runner import override
 from tracegs.pipeline.steps import SWEEP_TEACHERS
 
 CONF = Path(CONF_DIR)
@@ -131,7 +132,7 @@ def test_dataset_options_are_sized_by_the_experiment(data):
 @pytest.mark.parametrize("variant", sorted(ABLATION_GRID))
 def test_ablation_variants_match_design(variant):
     views, privileged, on_policy, lambda_ret, trains = ABLATION_GRID[variant]
-    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *SWEEP_TEACHERS])
+    cfg = compose(config_name="train", overrides=[f"ablation={variant}", *(override(k, v) for k, v in SWEEP_TEACHERS.items())])
     validate(cfg)
     assert cfg.ablation.name == variant
     assert cfg.teacher.views == views

@@ -13,6 +13,7 @@ from unittest import mock
 import pytest
 import yaml
 
+from tracegs.pipeline.runner import Commands, override
 from tracegs.pipeline.steps import SWEEP_TEACHERS, sweep_steps
 
 REPO = Path(__file__).resolve().parents[2]
@@ -92,11 +93,12 @@ def test_every_step_of_the_sweep_is_a_multirun_through_the_launcher(launcher):
     embedded = sweep_steps(variants, trained)
     assert [step.app for step in embedded] == ["prepare", "train", "train", "train", "evaluate", "report", "prepare",
                                                "report"]
+    teachers = {override(key, value) for key, value in SWEEP_TEACHERS.items()}
     for step in embedded:
-        command = step.multirun(launcher)
+        command = Commands(launcher, every_step_multirun=True).command(step)
         assert command[-len(step.overrides) - 2:-len(step.overrides)] == ["-m", f"hydra/launcher={launcher}"]
         assert Path(command[0]).name == f"tracegs-{step.app}" or command[1:3] == ["-m", f"tracegs.cli.{step.app}"]
-        assert set(SWEEP_TEACHERS) <= set(step.overrides)  # the embedded sweep's own cache, every teacher
+        assert teachers <= set(step.overrides)  # the embedded sweep's own cache, every teacher
     stage2, evaluate = embedded[3].overrides, embedded[4].overrides
     assert "ablation=B,F" in stage2 and "ablation=A,B,F" in evaluate
     assert "evaluation.methods=[${ablation.method}]" in evaluate
@@ -105,7 +107,7 @@ def test_every_step_of_the_sweep_is_a_multirun_through_the_launcher(launcher):
     paper = sweep_steps(variants, trained, ["experiment=paper"], ["mipnerf360"])
     assert [step.app for step in paper] == ["train", "train", "train", "evaluate", "evaluate", "report", "prepare",
                                             "report"]
-    assert all(not set(SWEEP_TEACHERS) & set(step.overrides) for step in paper)
+    assert all(not teachers & set(step.overrides) for step in paper)
     out_of_domain, held_out, fig6 = paper[4].overrides, paper[6].overrides, paper[7].overrides
     assert "data=mipnerf360" in out_of_domain and "ablation=A,B,F" in out_of_domain
     assert {"data=mipnerf360", "data.prepare.split=test", "data.prepare.pseudo_target=gt"} <= set(held_out)
@@ -128,11 +130,11 @@ def test_the_sweep_script_launches_the_declared_steps_over_the_config_variants()
 def test_the_teachers_prepared_are_those_the_variants_distil_from(hydra_context):
     """The embedded sweep's cache holds exactly Table 3's teachers; one variant's run needs only its own (F: the
     all-view set, whose R_d also feeds the pseudo-targets, and no sparse final fits; B: the 3-view final fit)."""
-    from tracegs.pipeline.variants import table3_configs, teacher_overrides
+    from tracegs.pipeline.variants import table3_configs, variants_teachers
 
-    assert teacher_overrides(table3_configs()) == SWEEP_TEACHERS
-    assert teacher_overrides(table3_configs(["F"])) == ("data.prepare.dense_views=[null]",
-                                                        "data.prepare.student_final_fits=false")
-    assert teacher_overrides(table3_configs(["A", "B"])) == ("data.prepare.dense_views=[null]",
-                                                             "data.prepare.student_final_fits=true")
-    assert teacher_overrides(table3_configs(["C", "F"]))[0] == "data.prepare.dense_views=[12,null]"
+    assert variants_teachers(table3_configs()) == SWEEP_TEACHERS
+    assert variants_teachers(table3_configs(["F"])) == {"data.prepare.dense_views": [None],
+                                                        "data.prepare.student_final_fits": False}
+    assert variants_teachers(table3_configs(["A", "B"])) == {"data.prepare.dense_views": [None],
+                                                             "data.prepare.student_final_fits": True}
+    assert variants_teachers(table3_configs(["C", "F"]))["data.prepare.dense_views"] == [12, None]

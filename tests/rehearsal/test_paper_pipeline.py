@@ -41,7 +41,8 @@ from tracegs.data.datamodule import clip_record, read_conditioning
 from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report
-from tracegs.pipeline.steps import Step, out_of_domain_steps, restorer_steps
+from tracegs.pipeline.runner import Step
+from tracegs.pipeline.steps import out_of_domain_steps, restorer_steps
 from tracegs.pipeline.train import train
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
@@ -150,14 +151,15 @@ def test_table_3_in_the_paper_layout_from_the_pipeline_steps_at_rehearsal(tmp_pa
     root = fresh_root(tmp_path, rehearsal_root, paper_data)
     (root / "data" / "mipnerf360").symlink_to(paper_data["mipnerf360"])  # where data=mipnerf360 looks
     common = tuple(o for o in BUDGET if not o.startswith("evaluation.views="))
-    evaluation = ("evaluation.methods=[${ablation.method}]", "evaluation.save_media=false")
+    evaluation = {"evaluation.methods": ["${ablation.method}"], "evaluation.save_media": False}
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         variants = [variant.name for variant in table3_variants()]
-    steps = [Step("prepare", common, "prepare")]
+    steps = [Step.of("prepare", "prepare").passing(common)]
     for variant in variants:
-        steps += restorer_steps(variant, common, evaluation)
+        steps += restorer_steps(variant, evaluation=evaluation, user=common)
         # The rehearsal's Mip-NeRF 360 root holds one scene of the published nine.
-        steps += out_of_domain_steps(variant, ["mipnerf360"], common, (*evaluation, "evaluation.scenes=[scene_100]"))
+        steps += out_of_domain_steps(variant, ["mipnerf360"], evaluation={**evaluation, "evaluation.scenes": ["scene_100"]},
+                                     user=common)
     for step in steps:
         run_rehearsal_task(TASKS[step.app], root, step.app, step.overrides)
     table = run_rehearsal_task(report, root, "report", (*common, "report.kind=ablation"))

@@ -19,25 +19,24 @@ Stage-2 students and its evaluations are one multirun each (Hydra's local launch
 from __future__ import annotations
 
 import logging
-import shlex
-import subprocess
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
 
 from tracegs.config.identity import derive_seed
-from tracegs.config.overrides import override_key, with_overrides
+from tracegs.config.overrides import override_key
 from tracegs.console import show
-from tracegs.errors import ConfigError, TraceGSError
+from tracegs.errors import ConfigError
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.replicates import BenchmarkInputs, write_benchmark_report
 from tracegs.io import write_json_atomic
-from tracegs.pipeline.steps import Step, data_steps
-from tracegs.pipeline.upstream import quoted
-from tracegs.pipeline.variants import table3_configs, table3_names
+from tracegs.pipeline.runner import Commands, Step, Sweep, run_steps
+from tracegs.pipeline.steps import data_steps
+from tracegs.pipeline.variants import table3_configs, table3_names, teacher_settings
 from tracegs.provenance import describe, peak_rss_gib
 
 log = logging.getLogger("tracegs")
@@ -86,76 +85,62 @@ def benchmark_variants(names: Sequence[str] | None = None) -> list[Variant]:
                     cfg.ablation.description) for cfg in table3_configs(names)]
 
 
-def teacher_conditions(variants: Sequence[Variant], student_views: Sequence[int]) -> tuple[list[int | None], bool]:
-    """What preparation must render for the chosen variants' teachers, as ``launch/sweep_ablation.sh`` prepares
-    them: every privileged view count and the all-view teacher (the embedded default's), and whether the sparse
-    fits run to their final snapshot, which is the teacher of a variant seeing as many views as a student (B)."""
-    views = {v.teacher_views for v in variants if v.trained}
-    dense: list[int | None] = sorted(k for k in views if k is not None and k not in student_views)
-    return [*dense, None], any(k in student_views for k in views if k is not None)
-
-
-def teacher_overrides(variants: Sequence[Variant], student_views: Sequence[int]) -> list[str]:
-    dense, final = teacher_conditions(variants, student_views)
-    return [f"data.prepare.dense_views={_listed(['null' if k is None else k for k in dense])}",
-            f"data.prepare.student_final_fits={str(final).lower()}"]
-
-
-def _listed(values: Sequence) -> str:
-    return "[" + ",".join(map(str, values)) + "]"
+def variant_teachers(variants: Sequence[Variant], student_views: Sequence[int]) -> dict[str, Any]:
+    """The teacher conditions the chosen variants' students distil from (tracegs.pipeline.variants.teacher_settings),
+    prepared once for every replicate."""
+    return teacher_settings([v.teacher_views for v in variants if v.trained], student_views)
 
 
 def benchmark_steps(variants: Sequence[Variant], root_seed: int, training_seeds: Sequence[int], out_dir: Path,
                     user: Sequence[str] = (), held_out_clips_per_scene: int = 2,
-                    views: Sequence[int] = (3,)) -> list[Step]:
+                    views: Sequence[int] = (3,), student_views: Sequence[int] = (3, 6, 9)) -> list[Step]:
     """The steps of one benchmark run, in order: the data once, plain 3DGS once, then per training seed A,
     Stage 1, every student, every variant's deployment and the trajectory diagnostics (see the module
-    docstring for what is shared)."""
+    docstring for what is shared). ``user``: the command line's overrides, passed to every step."""
     if not training_seeds:
         raise ValueError("benchmark.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
         raise ValueError(f"benchmark.training_seeds: {list(training_seeds)} repeats a seed")
-    train_cache, test_cache = quoted(out_dir / "cache" / "train"), quoted(out_dir / "cache" / "test")
-    shared = ["experiment=benchmark",
-              f"data.prepare.seed={derive_seed(root_seed, 'prepare')}",
-              f"data.prepare.fit.seed={derive_seed(root_seed, 'fit')}",
-              f"deploy.seed={derive_seed(root_seed, 'deploy')}",
-              f"evaluation.views={_listed(views)}",
-              *teacher_overrides(variants, views)]
-    names = ",".join(v.name for v in variants)
-    trained = ",".join(v.name for v in variants if v.trained)
+    train_cache, test_cache = out_dir / "cache" / "train", out_dir / "cache" / "test"
+    shared = {"experiment": "benchmark",
+              "data.prepare.seed": derive_seed(root_seed, "prepare"),
+              "data.prepare.fit.seed": derive_seed(root_seed, "fit"),
+              "deploy.seed": derive_seed(root_seed, "deploy"),
+              "evaluation.views": list(views),
+              **variant_teachers(variants, student_views)}
+    names = Sweep(tuple(v.name for v in variants))
+    trained = Sweep(tuple(v.name for v in variants if v.trained))
     steps = data_steps(
-        common=[*shared, f"seed={root_seed}"], training=[f"data.prepare.cache_dir={train_cache}"],
-        held_out=[f"data.prepare.clips_per_scene={held_out_clips_per_scene}", f"data.prepare.cache_dir={test_cache}",
+        common={**shared, "seed": root_seed}, training={"data.prepare.cache_dir": train_cache},
+        held_out={"data.prepare.clips_per_scene": held_out_clips_per_scene, "data.prepare.cache_dir": test_cache,
                   # The diagnostics restore the held-out clips at the deployed view counts only.
-                  f"data.prepare.student_views={_listed(views)}"])
+                  "data.prepare.student_views": list(views)})
     # Fig. 6 comes from the held-out clips (the diagnostics), so deployment computes no per-step curves.
-    deployment = ["evaluation.per_step=false"]
-    steps.append(Step("evaluate", (*shared, f"seed={root_seed}", "evaluation.methods=[3dgs]", *deployment,
-                                   f"evaluation.out_dir={quoted(three_dgs_dir(out_dir))}"), "evaluate plain 3DGS"))
+    deployment = {"evaluation.per_step": False}
+    steps.append(Step.of("evaluate", "evaluate plain 3DGS", shared, {"seed": root_seed},
+                         {"evaluation.methods": ["3dgs"]}, deployment,
+                         {"evaluation.out_dir": three_dgs_dir(out_dir)}))
     for seed in training_seeds:
-        common = [*shared, f"seed={seed}", f"data.datamodule.cache_dir={train_cache}"]
+        common = {**shared, "seed": seed, "data.datamodule.cache_dir": train_cache}
 
-        def multirun(kind: str, seed: int = seed) -> list[str]:
-            return ["--multirun", "hydra/launcher=local",
-                    f"hydra.sweep.dir={quoted(out_dir / 'multirun' / f'seed{seed}' / kind)}"]
+        def multirun(kind: str, seed: int = seed) -> dict[str, Path]:
+            return {"hydra.sweep.dir": out_dir / "multirun" / f"seed{seed}" / kind}
 
-        steps += [Step("train", (*common, "stage=baseline"), f"seed {seed}: train A"),
-                  Step("train", (*common, "stage=stage1"), f"seed {seed}: train Stage 1")]
-        if trained:
-            steps.append(Step("train", (*multirun("stage2"), *common, "stage=stage2", f"ablation={trained}"),
-                              f"seed {seed}: train Stage 2 ({trained})"))
-        # Each variant is deployed by the method standing for it (A: the baseline restorer; else its student).
-        # The seed's folder, quoted, with each job's variant name interpolated inside the quotes.
-        variant_dir = quoted(eval_dir(out_dir, seed))[:-1] + "/${ablation.name}'"
-        steps.append(Step("evaluate", (*multirun("evaluate"), *common, f"ablation={names}",
-                                       "evaluation.methods=[${ablation.method}]", *deployment,
-                                       f"evaluation.out_dir={variant_dir}"), f"seed {seed}: evaluate ({names})"))
-        steps.append(Step("report", (*common, "report.kind=diagnostics", f"report.inputs=[{names}]",
-                                     f"evaluation.held_out_cache={test_cache}",
-                                     f"report.output_dir={quoted(diagnostics_dir(out_dir, seed))}"),
-                          f"seed {seed}: trajectory diagnostics"))
-    return [Step(step.app, tuple(with_overrides(step.overrides, user)), step.label) for step in steps]
+        steps += [Step.of("train", f"seed {seed}: train A", common, {"stage": "baseline"}),
+                  Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": "stage1"})]
+        if trained.values:
+            steps.append(Step.of("train", f"seed {seed}: train Stage 2 ({','.join(trained.values)})",
+                                 multirun("stage2"), common, {"stage": "stage2", "ablation": trained}))
+        # Each variant is deployed by the method standing for it (A: the baseline restorer; else its student), into
+        # the seed's folder of its name.
+        steps.append(Step.of("evaluate", f"seed {seed}: evaluate ({','.join(names.values)})", multirun("evaluate"),
+                             common, {"ablation": names, "evaluation.methods": ["${ablation.method}"]}, deployment,
+                             {"evaluation.out_dir": f"{eval_dir(out_dir, seed)}/${{ablation.name}}"}))
+        steps.append(Step.of("report", f"seed {seed}: trajectory diagnostics", common,
+                             {"report.kind": "diagnostics", "report.inputs": list(names.values),
+                              "evaluation.held_out_cache": test_cache,
+                              "report.output_dir": diagnostics_dir(out_dir, seed)}))
+    return [step.passing(user) for step in steps]
 
 
 def eval_dir(out_dir: Path, seed: int) -> Path:
@@ -179,8 +164,9 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     views, seeds = list(cfg.evaluation.views), len(cfg.benchmark.training_seeds)
     train_scenes, test_scenes = len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds)
     trained = sum(v.trained for v in variants)
-    dense_views, final = teacher_conditions(variants, views)
-    dense = len(dense_views)
+    teachers = variant_teachers(variants, list(prepare.student_views))
+    dense = len(teachers["data.prepare.dense_views"])
+    final = teachers["data.prepare.student_final_fits"]
     sparse_iterations = fit.iterations if final else max(prepare.student_snapshots)
     snapshots = len(prepare.student_snapshots)
 
@@ -227,7 +213,8 @@ def benchmark(cfg: DictConfig) -> Path:
     user = [o for o in cfg.command_line
             if override_key(o).split(".")[0] not in ("benchmark", "seed", "ablation")]
     clips = cfg.benchmark.held_out_clips_per_scene
-    steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views))
+    steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views),
+                            list(cfg.data.prepare.student_views))
     parts = estimate_minutes(cfg, variants, steps)
     estimate = sum(parts.values())
     show(f"tracegs-benchmark: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
@@ -236,14 +223,7 @@ def benchmark(cfg: DictConfig) -> Path:
          + ", ".join(f"{part} {minutes:.1f}" for part, minutes in parts.items())
          + f"; up to twice that on a slow one); output in {out_dir}")
     start = time.perf_counter()
-    timings: dict[str, float] = {}
-    for index, step in enumerate(steps, 1):
-        log.info("[benchmark %d/%d] %s: %s", index, len(steps), step.label, shlex.join(step.command()[2:]))
-        step_start = time.perf_counter()
-        if subprocess.run(step.command(), check=False).returncode != 0:
-            raise TraceGSError(f"benchmark step '{step.label}'", "failed (its error is printed above)",
-                               f"rerun it alone: {shlex.join(step.command())}")
-        timings[step.label] = round(time.perf_counter() - step_start, 1)
+    timings = run_steps(steps, Commands("local"), "benchmark")
     wall_s = time.perf_counter() - start
     run = {**describe(cfg.seed), "training_seeds": seeds, "variants": [v.name for v in variants],
            "wall_s": round(wall_s, 1), "table3_minutes": round(wall_s / 60, 1),

@@ -9,7 +9,6 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import lightning
 from omegaconf import DictConfig
 
 from tracegs.console import LogBookmark, show
@@ -19,9 +18,9 @@ from tracegs.eval.seeds import per_step_points
 from tracegs.io import atomic_write, content_digest, write_json_atomic
 from tracegs.pipeline.evaluate import evaluate
 from tracegs.pipeline.prepare import prepare
-from tracegs.pipeline.steps import HELD_OUT_SPLIT, Step, data_steps, restorer_steps
+from tracegs.pipeline.runner import InProcess, Step, run_steps
+from tracegs.pipeline.steps import HELD_OUT_CACHE, HELD_OUT_SPLIT, data_steps, restorer_steps
 from tracegs.pipeline.train import train
-from tracegs.pipeline.upstream import compose_run, quoted
 from tracegs.provenance import describe, peak_rss_gib
 
 log = logging.getLogger("tracegs")
@@ -32,15 +31,16 @@ TABLE_SOURCES = ("results.json", "per_scene.json", "intervals.md", "held_out_cli
                  "per_step.json", "per_step_intervals.md")
 
 
-def demo_steps(variant: str, views: Sequence[int]) -> list[Step]:
+def demo_steps(variant: str, views: Sequence[int], out_dir: Path) -> list[Step]:
     """The demo's steps. The test scenes are prepared (held-out clips) and deployed at ``views`` input views
-    only (the demo's ``evaluation.views``); the training clips keep every student view count. The evaluation's
-    held-out cache is the test prepare's, filled in by ``demo``; it holds no teacher R_d (the held-out clips
-    score restorers from R_s only; ``report.kind=privileged`` needs a cache with one)."""
-    listed = "[" + ",".join(str(v) for v in views) + "]"
-    return [*data_steps(held_out=(f"data.prepare.student_views={listed}", "data.prepare.dense_views=[]")),
-            *restorer_steps(variant, evaluation=(HELD_OUT_SPLIT, f"evaluation.views={listed}",
-                                                 "evaluation.save_models=true"))]
+    only (the demo's ``evaluation.views``); the training clips keep every student view count. The evaluation
+    writes into ``out_dir`` and reads the held-out cache the test prepare hands on; that cache holds no teacher R_d
+    (the held-out clips score restorers from R_s only; ``report.kind=privileged`` needs a cache with one)."""
+    views = list(views)
+    return [*data_steps(held_out={"data.prepare.student_views": views, "data.prepare.dense_views": []}),
+            *restorer_steps(variant, evaluation={**HELD_OUT_SPLIT, "evaluation.views": views,
+                                                 "evaluation.save_models": True, "evaluation.out_dir": out_dir},
+                            evaluation_takes={"evaluation.held_out_cache": HELD_OUT_CACHE})]
 
 
 def demo(cfg: DictConfig) -> Path:
@@ -54,24 +54,8 @@ def demo(cfg: DictConfig) -> Path:
     start = time.perf_counter()
     bookmark = LogBookmark()
     out_dir = Path(cfg.run_dir)
-    timings: dict[str, float] = {}
-    steps = demo_steps(cfg.ablation.name, cfg.evaluation.views)
-    held_out_cache = None
-    for index, step in enumerate(steps, 1):
-        extra = step.overrides
-        if step.app == "evaluate":
-            # Quoted: the root the user chose may hold ',' or '=', which unquoted are override syntax.
-            extra = (*extra, f"evaluation.held_out_cache={quoted(held_out_cache)}",
-                     f"evaluation.out_dir={quoted(out_dir)}")
-        step_cfg = compose_run(cfg, step.app, extra)
-        if HELD_OUT_SPLIT in extra and step.app == "prepare":
-            held_out_cache = Path(step_cfg.data.prepare.cache_dir)
-        lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
-        log.info("[demo %d/%d] %s %s", index, len(steps), step.app, " ".join(extra))
-        step_start = time.perf_counter()
-        TASKS[step.app](step_cfg)
-        label = " ".join([step.app, *(e for e in extra if not e.startswith("evaluation."))])
-        timings[label] = round(time.perf_counter() - step_start, 1)
+    steps = demo_steps(cfg.ablation.name, cfg.evaluation.views, out_dir)
+    timings = run_steps(steps, InProcess(cfg, TASKS), "demo")
     products = {name: content_digest(out_dir / name) for name in TABLE_SOURCES if (out_dir / name).is_file()}
     record = out_dir / "run.json"
     earlier = json.loads(record.read_text()) if record.is_file() else None

@@ -1,171 +1,163 @@
 """The pipeline's steps, declared once: prepare (training and held-out clips) -> A -> Stage 1 -> Stage 2 ->
-evaluate -> report. ``tracegs-demo`` runs them in its own process; ``tracegs-benchmark`` runs them as child
-commands, the restorer's steps once per training seed; the Table 3 sweep runs each as one multirun over the
-variants (``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which
-``launch/sweep_ablation.sh`` calls). Each caller adds only the overrides of its own setting.
+evaluate -> report. ``tracegs-demo`` runs them in its own process, ``tracegs-replicate`` as child commands (the
+restorer's steps once per training seed), the Table 3 sweep as one multirun per step over the variants
+(``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which ``launch/sweep_ablation.sh`` calls):
+one runner (tracegs.pipeline.runner) for all three. Each caller adds only the settings of its own setting.
+
+Builders take typed settings (``common``: key -> value for every step) and the user's command-line overrides
+(``user``), which each step passes on and which win.
 """
 
 from __future__ import annotations
 
 import argparse
-import shlex
-import subprocess
+import logging
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from hydra import compose, initialize_config_dir
 
 from tracegs.config.location import CONF_DIR
-from tracegs.config.overrides import describes_the_dataset
+from tracegs.config.overrides import describes_the_dataset, override_key
 from tracegs.config.schema import register_configs
+from tracegs.errors import TraceGSError
+from tracegs.pipeline.runner import NO_SETTINGS, Commands, Step, Sweep, run_steps
 from tracegs.pipeline.variants import table3_variants
 
+log = logging.getLogger("tracegs")
+
 # The held-out cache: the test scenes prepared like the training clips, read only by evaluation.
-HELD_OUT_SPLIT = "data.prepare.split=test"
+HELD_OUT_SPLIT = {"data.prepare.split": "test"}
+# The product names a step hands on: the training and the held-out paired-clip caches.
+TRAINING_CACHE, HELD_OUT_CACHE = "training cache", "held-out cache"
+
+Settings = Mapping[str, Any]
 
 
-@dataclass(frozen=True)
-class Step:
-    """One command: the console script's module under ``tracegs.cli`` (and its ``conf/<app>.yaml``), its
-    overrides and what the logs call it."""
-
-    app: str
-    overrides: tuple[str, ...]
-    label: str
-
-    def command(self) -> list[str]:
-        """The step as a child process of this Python."""
-        return [sys.executable, "-m", f"tracegs.cli.{self.app}", *self.overrides]
-
-    def multirun(self, launcher: str) -> list[str]:
-        """The step as one Hydra multirun through ``hydra/launcher=<launcher>``, by its console script (beside
-        this Python) as a user would type it."""
-        script = Path(sys.executable).with_name(f"tracegs-{self.app}")
-        program = [str(script)] if script.is_file() else [sys.executable, "-m", f"tracegs.cli.{self.app}"]
-        return [*program, "-m", f"hydra/launcher={launcher}", *self.overrides]
+def data_steps(common: Settings = NO_SETTINGS, training: Settings = NO_SETTINGS, held_out: Settings = NO_SETTINGS,
+               user: Sequence[str] = ()) -> list[Step]:
+    """Prepare the training clips, then the test scenes' held-out clips; each hands its cache's folder on."""
+    return [Step.of("prepare", "prepare (training scenes)", common, training,
+                    hands={TRAINING_CACHE: "data.prepare.cache_dir"}).passing(user),
+            Step.of("prepare", "prepare (held-out test scenes)", common, HELD_OUT_SPLIT, held_out,
+                    hands={HELD_OUT_CACHE: "data.prepare.cache_dir"}).passing(user)]
 
 
-def data_steps(common: Sequence[str] = (), training: Sequence[str] = (), held_out: Sequence[str] = ()) -> list[Step]:
-    """Prepare the training clips, then the test scenes' held-out clips."""
-    return [Step("prepare", (*common, *training), "prepare (training scenes)"),
-            Step("prepare", (*common, HELD_OUT_SPLIT, *held_out), "prepare (held-out test scenes)")]
+def restorer_steps(variant: str | Sweep, common: Settings = NO_SETTINGS, evaluation: Settings = NO_SETTINGS,
+                   evaluated: str | Sweep | None = None, stage2: Settings = NO_SETTINGS, user: Sequence[str] = (),
+                   evaluation_takes: Mapping[str, str] | None = None) -> list[Step]:
+    """Train A, the Stage-1 adapter and ``variant``'s Stage-2 student, then deploy and evaluate them. A sweep names
+    several variants (a :class:`Sweep`), evaluates ``evaluated`` (default: ``variant``) and adds ``stage2`` to its
+    Stage-2 step; ``evaluation_takes`` fills evaluation keys from earlier steps' products."""
+    return [Step.of("train", "train A", common, {"stage": "baseline"}).passing(user),
+            Step.of("train", "train Stage 1", common, {"stage": "stage1"}).passing(user),
+            Step.of("train", "train Stage 2", common, {"stage": "stage2", "ablation": variant}, stage2).passing(user),
+            Step.of("evaluate", "evaluate", common, {"ablation": evaluated or variant}, evaluation,
+                    takes=evaluation_takes or {}).passing(user)]
 
 
-def restorer_steps(variant: str, common: Sequence[str] = (), evaluation: Sequence[str] = (),
-                   privileged: Sequence[str] | None = None, evaluated: str | None = None,
-                   stage2: Sequence[str] = ()) -> list[Step]:
-    """Train A, the Stage-1 adapter and ``variant``'s Stage-2 student, then deploy and evaluate them; with
-    ``privileged`` (the report's overrides), measure the student's privileged gap as well. A sweep names several
-    variants comma-separated, evaluates ``evaluated`` (default: ``variant``) and adds ``stage2`` to its Stage-2
-    step."""
-    chosen = f"ablation={variant}"
-    steps = [Step("train", (*common, "stage=baseline"), "train A"),
-             Step("train", (*common, "stage=stage1"), "train Stage 1"),
-             Step("train", (*common, "stage=stage2", chosen, *stage2), "train Stage 2"),
-             Step("evaluate", (*common, f"ablation={evaluated or variant}", *evaluation), "evaluate")]
-    if privileged is not None:
-        steps.append(Step("report", (*common, chosen, "report.kind=privileged", *privileged), "privileged gap"))
-    return steps
-
-
-def out_of_domain_steps(variant: str, datasets: Sequence[str], common: Sequence[str] = (),
-                        evaluation: Sequence[str] = ()) -> list[Step]:
+def out_of_domain_steps(variant: str | Sweep, datasets: Sequence[str], common: Settings = NO_SETTINGS,
+                        evaluation: Settings = NO_SETTINGS, user: Sequence[str] = ()) -> list[Step]:
     """Evaluate ``variant``'s restorers, trained on the training data (``training_data``), on each of ``datasets``
-    (``data=<name>``, e.g. Mip-NeRF 360): paper Table 2, and Table 3's out-of-domain columns (report.datasets)."""
-    return [Step("evaluate", (*common, f"ablation={variant}", f"data={dataset}", *evaluation), f"evaluate on {dataset}")
+    (``data=<name>``, e.g. Mip-NeRF 360): paper Table 2, and Table 3's out-of-domain columns (report.datasets). The
+    settings of the command's own dataset are left out: they describe the training data."""
+    return [Step.of("evaluate", f"evaluate on {dataset}", _foreign(common),
+                    {"ablation": variant, "data": dataset}, evaluation).passing(user, describes_the_dataset)
             for dataset in datasets]
 
 
-def main_table_steps(datasets: Sequence[str], training_data: str, common: Sequence[str] = (),
-                     swept: Sequence[str] = ()) -> list[Step]:
+def _foreign(settings: Settings) -> dict[str, Any]:
+    """``settings`` less those of the command's own dataset (a DL3DV root or scene list must not become another
+    dataset's)."""
+    return {key: value for key, value in settings.items() if not describes_the_dataset(key)}
+
+
+def main_table_steps(datasets: Sequence[str], training_data: str, common: Settings = NO_SETTINGS,
+                     swept: Sequence[str] = (), user: Sequence[str] = ()) -> list[Step]:
     """Tables 1/2 (paper Table 1 on DL3DV, Table 2 out of domain: ``report.main_datasets``): on each of
     ``datasets``, plain 3DGS, A and TRACE-GS (F), the restorers trained on ``training_data``, merged by
     ``report.kind=main``: one evaluation of the three, or on a dataset the Table 3 sweep evaluated (``swept``) an
     evaluation of 3DGS alone with A and F taken from the sweep's (``report.main_from_sweep``). On another dataset
-    (``data=<name>``) the steps leave out ``common``'s data settings, which describe the training data."""
+    (``data=<name>``) the steps leave out the data settings, which describe the training data."""
     steps = []
     for dataset in datasets:
-        own = tuple(common) if dataset == training_data else (
-            *(o for o in common if not describes_the_dataset(o)), f"data={dataset}")
+        own, left_out = (common, None) if dataset == training_data else (
+            {**_foreign(common), "data": dataset}, describes_the_dataset)
         if dataset in swept:
-            steps += [Step("evaluate", (*own, "evaluation.methods=[3dgs]"),
-                           f"evaluate 3DGS on {dataset} (Tables 1/2: A and F from the Table 3 sweep)"),
-                      Step("report", (*own, "report.kind=main", "report.main_from_sweep=true"),
-                           f"Tables 1/2 on {dataset}")]
+            steps += [Step.of("evaluate", f"evaluate 3DGS on {dataset} (Tables 1/2: A and F from the Table 3 sweep)",
+                              own, {"evaluation.methods": ["3dgs"]}),
+                      Step.of("report", f"Tables 1/2 on {dataset}", own,
+                              {"report.kind": "main", "report.main_from_sweep": True})]
         else:
-            steps += [Step("evaluate", own, f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)"),
-                      Step("report", (*own, "report.kind=main"), f"Tables 1/2 on {dataset}")]
+            steps += [Step.of("evaluate", f"evaluate 3DGS, A and F on {dataset} (Tables 1/2)", own),
+                      Step.of("report", f"Tables 1/2 on {dataset}", own, {"report.kind": "main"})]
+        steps[-2:] = [step.passing(user, left_out or (lambda _: False)) for step in steps[-2:]]
     return steps
 
 
-# The embedded benchmark's cache holds only the all-view teacher (F); Table 3's C and D need 12 and 18 views and
-# B the sparse fits' final snapshots, so the sweep prepares its own cache with them (resumed when there): what
-# tracegs.pipeline.variants.teacher_overrides derives from Table 3's variants (a test keeps the two equal).
-SWEEP_TEACHERS = ("data.prepare.dense_views=[12,18,null]", "data.prepare.student_final_fits=true")
+# The embedded sweep's cache holds every Table 3 teacher: C and D need 12 and 18 views and B the sparse fits'
+# final snapshots (what tracegs.pipeline.variants.teacher_overrides derives from Table 3's variants; a test keeps
+# the two equal).
+SWEEP_TEACHERS = {"data.prepare.dense_views": [12, 18, None], "data.prepare.student_final_fits": True}
 # Overrides that leave the embedded synthetic benchmark (its held-out clips are rendered from the known scenes).
 NOT_EMBEDDED = ("experiment", "data")
 # Fig. 6 on a real dataset: held-out clips through captured images with their photographs as per-frame ground
 # truth (tracegs.data.held_out), scored against that truth, so no teacher and no restored pseudo-target; captures
 # too short for 49-frame clips at K = 6 and 9 repeat captured frames (data.prepare.held_out_repeat_frames). The
 # clips are made at the view counts the tables evaluate (paper: 3, 6 and 9), over which Fig. 6 is averaged.
-HELD_OUT_CAPTURED = (HELD_OUT_SPLIT, "data.prepare.dense_views=[]", "data.prepare.pseudo_target=gt",
-                     "data.prepare.student_final_fits=false", "data.prepare.held_out_repeat_frames=true",
-                     "data.prepare.student_views=${evaluation.views}")
-# The per-step report reads the held-out cache its own overrides name.
-PER_STEP = ("report.kind=per_step", "evaluation.held_out_cache=${data.prepare.cache_dir}")
+HELD_OUT_CAPTURED = {**HELD_OUT_SPLIT, "data.prepare.dense_views": [], "data.prepare.pseudo_target": "gt",
+                     "data.prepare.student_final_fits": False, "data.prepare.held_out_repeat_frames": True,
+                     "data.prepare.student_views": "${evaluation.views}"}
+# The per-step report reads the held-out cache its own settings name.
+PER_STEP = {"report.kind": "per_step", "evaluation.held_out_cache": "${data.prepare.cache_dir}"}
 
 
-def sweep_steps(variants: Sequence[str], trained: Sequence[str], overrides: Sequence[str] = (),
+def sweep_steps(variants: Sequence[str], trained: Sequence[str], user: Sequence[str] = (),
                 other_datasets: Sequence[str] = ()) -> list[Step]:
     """Table 3 as multiruns: (embedded scale: prepare) -> A -> one shared Stage-1 adapter -> Stage 2 for the
     ``trained`` variants (each cloning the same Stage-1 checkpoint) -> evaluation of every variant by the method
     standing for it, on the training data's test scenes and on each of ``other_datasets`` (Table 3's
     out-of-domain columns) -> Table 3 -> Fig. 6 of the per-step variants on held-out clips (embedded: the
-    synthetic test scenes; otherwise: each of ``other_datasets``, paper Fig. 6 on Mip-NeRF 360).
+    synthetic test scenes; otherwise: each of ``other_datasets``, paper Fig. 6 on Mip-NeRF 360). ``user``: the
+    command line's overrides, passed to every step.
 
     A SLURM array carries one name: the swept steps name themselves after their first and last variants."""
-    embedded = not any(o.split("=", 1)[0].lstrip("+~") in NOT_EMBEDDED for o in overrides)
-    common = (*SWEEP_TEACHERS, *overrides) if embedded else tuple(overrides)
-    steps = [Step("prepare", common, "prepare (training scenes, every teacher)")] if embedded else []
+    embedded = not any(override_key(o).split("/")[0] in NOT_EMBEDDED for o in user)
+    common = SWEEP_TEACHERS if embedded else {}
+    steps = [Step.of("prepare", "prepare (training scenes, every teacher)", common).passing(user)] if embedded else []
     # Each variant is scored by the method standing for it (the frozen A or its student).
-    evaluation = ("evaluation.methods=[${ablation.method}]", f"job_name=evaluate-{variants[0]}-{variants[-1]}")
-    steps += restorer_steps(",".join(trained), common, evaluated=",".join(variants),
-                            stage2=(f"job_name=train-stage2-{trained[0]}-{trained[-1]}",), evaluation=evaluation)
-    # Steps on another dataset leave out the command line's data settings: they describe the training data (a
-    # DL3DV root or scene list must not become Mip-NeRF 360's), as the report's lookup of those steps leaves them out.
-    foreign = tuple(o for o in common if not describes_the_dataset(o))
-    steps += out_of_domain_steps(",".join(variants), other_datasets, foreign, evaluation)
-    steps.append(Step("report", (*common, "report.kind=ablation"), "Table 3"))
+    evaluation = {"evaluation.methods": ["${ablation.method}"], "job_name": f"evaluate-{variants[0]}-{variants[-1]}"}
+    steps += restorer_steps(Sweep(tuple(trained)), common, evaluation, evaluated=Sweep(tuple(variants)),
+                            stage2={"job_name": f"train-stage2-{trained[0]}-{trained[-1]}"}, user=user)
+    steps += out_of_domain_steps(Sweep(tuple(variants)), other_datasets, common, evaluation, user)
+    steps.append(Step.of("report", "Table 3", common, {"report.kind": "ablation"}).passing(user))
     if embedded:
-        steps += [Step("prepare", (*common, HELD_OUT_SPLIT), "prepare (held-out test scenes)"),
-                  Step("report", (*common, HELD_OUT_SPLIT, *PER_STEP), "Fig. 6")]
+        steps += [Step.of("prepare", "prepare (held-out test scenes)", common, HELD_OUT_SPLIT).passing(user),
+                  Step.of("report", "Fig. 6", common, HELD_OUT_SPLIT, PER_STEP).passing(user)]
     for dataset in other_datasets:
-        held_out = (*foreign, f"data={dataset}", *HELD_OUT_CAPTURED)
-        steps += [Step("prepare", held_out, f"prepare (held-out {dataset} clips)"),
-                  Step("report", (*held_out, *PER_STEP), f"Fig. 6 on {dataset}")]
+        held_out = {**_foreign(common), "data": dataset, **HELD_OUT_CAPTURED}
+        steps += [Step.of("prepare", f"prepare (held-out {dataset} clips)", held_out),
+                  Step.of("report", f"Fig. 6 on {dataset}", held_out, PER_STEP)]
+        steps[-2:] = [step.passing(user, describes_the_dataset) for step in steps[-2:]]
     return steps
 
 
-def run_sweep(launcher: str, overrides: Sequence[str], dry_run: bool = False) -> int:
-    """Run the sweep's steps one after the other, each a multirun through ``launcher`` (on SLURM the submitit
-    launcher waits for a step's jobs, so each step runs on compute nodes and sees the one before finished).
-    Stops at the first failed step with its exit status."""
+def run_sweep(launcher: str, user: Sequence[str], dry_run: bool = False) -> int:
+    """Run the sweep's steps one after the other, each a multirun through ``launcher`` (tracegs.pipeline.runner);
+    stops at the first failed step, exit status 1."""
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         variants = table3_variants()
-        table = compose(config_name="report", overrides=list(overrides))
+        table = compose(config_name="report", overrides=list(user))
     other_datasets = [name for name in table.report.datasets if name != table.training_data]
-    steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], overrides,
+    steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], user,
                         other_datasets)
-    for index, step in enumerate(steps, 1):
-        command = step.multirun(launcher)
-        print(f"[sweep {index}/{len(steps)}] {step.label}: {shlex.join(command)}", flush=True)
-        if not dry_run:
-            status = subprocess.run(command).returncode
-            if status != 0:
-                return status
+    try:
+        run_steps(steps, Commands(launcher, every_step_multirun=True), "sweep", dry_run)
+    except TraceGSError as error:
+        print(f"sweep: error: {error}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -176,6 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--dry-run", action="store_true", help="print the commands without running them")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every step, e.g. experiment=paper")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     return run_sweep(args.sweep, args.overrides, args.dry_run)
 
 

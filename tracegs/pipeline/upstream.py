@@ -96,9 +96,3 @@ def compose_run(cfg: DictConfig, config_name: str, extra: Sequence[str]) -> Dict
     cfg = composed(config_name, with_overrides(cfg.command_line, extra))
     validate(cfg)
     return cfg
-
-
-def quoted(path: Path) -> str:
-    """A path as a quoted Hydra override value: run folder names paste safely, but the root the user chose may
-    hold commas, brackets or '=', which would otherwise be parsed as override syntax."""
-    return "'" + str(path).replace("\\", "\\\\").replace("'", "\\'") + "'"

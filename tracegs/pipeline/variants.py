@@ -9,7 +9,8 @@ evaluates it and the Table 3 report lists it.
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from typing import Any
 
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -17,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
+from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 
@@ -59,23 +61,24 @@ def table3_variants() -> list[AblationConfig]:
     return [OmegaConf.to_object(cfg.ablation) for cfg in table3_configs()]
 
 
-def teacher_overrides(configs: Iterable[DictConfig]) -> tuple[str, str]:
-    """The ``data.prepare`` overrides that make the teacher conditions the variants of ``configs`` (their training
-    configs, :func:`table3_configs`) distil from, and no others: each privileged teacher's view set as a dense set,
-    the all-view set always (its R_d feeds the pseudo-targets and the privileged report), and the sparse fits'
-    final snapshots only for a teacher on a student view set (variant B's three views)."""
-    dense: set[int] = set()
-    sparse_final = False
-    for cfg in configs:
-        views = cfg.teacher.views
-        if not cfg.ablation.train_stage2 or views is None:
-            continue
-        if views in cfg.data.prepare.student_views:
-            sparse_final = True
-        else:
-            dense.add(views)
-    listed = ",".join([*(str(views) for views in sorted(dense)), "null"])
-    return f"data.prepare.dense_views=[{listed}]", f"data.prepare.student_final_fits={str(sparse_final).lower()}"
+def teacher_settings(teacher_views: Iterable[int | None], student_views: Sequence[int]) -> dict[str, Any]:
+    """The ``data.prepare`` settings that make the teacher conditions of variants distilling from teachers of
+    ``teacher_views`` (None: all training views), and no others: tracegs.data.config's rule for the variant a
+    command runs for, applied to each. The all-view set is always prepared (its R_d feeds the pseudo-targets and the
+    privileged report); a teacher on a student view set (variant B's three views) is that set's final snapshot."""
+    dense: list[int | None] = [None]
+    final = False
+    for views in teacher_views:
+        dense = with_variant_teacher(dense, views, list(student_views))
+        final = fits_variant_teacher(final, views, list(student_views))
+    return {"data.prepare.dense_views": dense, "data.prepare.student_final_fits": final}
+
+
+def variants_teachers(configs: Iterable[DictConfig]) -> dict[str, Any]:
+    """:func:`teacher_settings` of the variants whose training configs are ``configs`` (:func:`table3_configs`)."""
+    trained = [cfg for cfg in configs if cfg.ablation.train_stage2]
+    student_views = list(trained[0].data.prepare.student_views) if trained else []
+    return teacher_settings([cfg.teacher.views for cfg in trained], student_views)
 
 
 def in_table_order(names: Iterable[str]) -> list[str]:

@@ -115,7 +115,7 @@ def markdown_html(text: str) -> str:
 
 
 def _href(relative: str | Path) -> str:
-    """A path relative to the folder (as units name their files, tracegs.eval.evaluate) as an escaped link."""
+    """A path relative to the folder (as units name their files, tracegs.eval.scoring) as an escaped link."""
     return html.escape(quote(Path(relative).as_posix()))
 
 

@@ -147,14 +147,14 @@ def test_optuna_chooses_stage2s_learning_rate_on_the_validation_scenes(demo, run
     assert trials[best.best_params["experiment.stage2_lr"]] == best.best_value
 
 
-def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
-    """``tracegs-benchmark`` (make benchmark) at its smallest size, two variants on two test scenes with one
+def test_replicate_measures_table3_at_its_smallest_size(run, tmp_path_factory):
+    """``tracegs-replicate`` (make replicate) at its smallest size, two variants on two test scenes with one
     training seed: every step runs as a child command, and the report holds Table 3, the orderings, both
     diagnostics and Fig. 6, its JSON record the wall time and the F - A interval."""
-    root = tmp_path_factory.mktemp("benchmark")
-    result = run("benchmark", root, "benchmark.training_seeds=[0]", "benchmark.held_out_clips_per_scene=1",
-                 "benchmark.variants=[A,F]", "data.synthetic.test_seeds=[100,101]")
-    (report,) = root.rglob("benchmark.md")
+    root = tmp_path_factory.mktemp("replicate")
+    result = run("replicate", root, "replicate.training_seeds=[0]", "replicate.held_out_clips_per_scene=1",
+                 "replicate.variants=[A,F]", "data.synthetic.test_seeds=[100,101]")
+    (report,) = root.rglob("replicate.md")
     text = report.read_text()
     assert "## Table 3 (deployment)" in text and "training seeds [0]" in text and "## Exposure gap" in text
     assert "## Teacher advantage at the student's states" in text and "## Fig. 6" in text
@@ -171,5 +171,5 @@ def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
     # Data twice, plain 3DGS once; A, Stage 1, the students' multirun, the evaluations' and the diagnostics.
     assert len(record["step_s"]) == 3 + 5
     assert text.strip() in result.stdout
-    _, links = checked_page(report.parent, "benchmark.md")
+    _, links = checked_page(report.parent, "replicate.md")
     assert {"eval/3dgs/report.html", "eval/seed0/A/report.html", "eval/seed0/F/report.html"} <= set(links)

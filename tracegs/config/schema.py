@@ -51,7 +51,7 @@ class Task(Mode):
     restore = "restore"
     report = "report"
     demo = "demo"
-    benchmark = "benchmark"
+    replicate = "replicate"
 
 
 class ReportKind(Mode):
@@ -199,8 +199,8 @@ class ReportConfig:
 
 
 @dataclass
-class BenchmarkConfig:
-    """``tracegs-benchmark``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
+class ReplicateConfig:
+    """``tracegs-replicate``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
     deployment noise that the root ``seed`` fixes for every replicate (so plain 3DGS is computed once)."""
 
     training_seeds: list[int] = execution(factory=lambda: [0, 1, 2])
@@ -260,7 +260,7 @@ class TraceGSConfig:
     evaluation: EvaluationConfig = reads(DEPLOYMENT, factory=EvaluationConfig)
     report: ReportConfig = execution(factory=ReportConfig)
     capture: CaptureConfig = reads(RESTORE, factory=CaptureConfig)  # tracegs-restore's own scene
-    benchmark: BenchmarkConfig = execution(factory=BenchmarkConfig)
+    replicate: ReplicateConfig = execution(factory=ReplicateConfig)
 
 
 def register_configs(schema: type = TraceGSConfig) -> None:

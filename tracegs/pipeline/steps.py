@@ -1,5 +1,5 @@
 """The pipeline's steps, declared once: prepare (training and held-out clips) -> A -> Stage 1 -> Stage 2 ->
-evaluate -> report. ``tracegs-demo`` runs them in its own process; ``tracegs-benchmark`` runs them as child
+evaluate -> report. ``tracegs-demo`` runs them in its own process; ``tracegs-replicate`` runs them as child
 commands, the restorer's steps once per training seed; the Table 3 sweep runs each as one multirun over the
 variants (``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which
 ``launch/sweep_ablation.sh`` calls). Each caller adds only the overrides of its own setting.

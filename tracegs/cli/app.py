@@ -1,7 +1,7 @@
 """One decorator turns a task function into a Hydra app with the project's conventions.
 
 Every console script (`tracegs-prepare`, `-train`, `-deploy`, `-evaluate`, `-report`, `-demo`) is a
-Hydra app over the same ``conf/`` tree and root schema, so ``-m`` sweeps, ``--cfg job`` and
+Hydra app over the same ``conf/`` tree and root schema, so ``-m`` multiruns, ``--cfg job`` and
 ``hydra/launcher=...`` work on each. The wrapper registers the schema, validates cross-field rules,
 seeds everything, and turns the errors a user can fix into one line on stderr and exit code 2
 (set ``TRACEGS_TRACEBACK=1`` to see the traceback instead).

@@ -85,14 +85,20 @@ def test_the_demo_models_evaluate_on_other_test_scenes_without_naming_them(demo,
         assert results[method]["3"]["psnr"] > 0
 
 
-def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
+def test_the_last_shard_of_a_prepare_merges_the_manifests(demo, run):
+    """A shard that finds another unfinished leaves the cache without its manifest; the last one writes it: the
+    first shard's settings and both shards' scenes in name order."""
     root = demo[0]
     held_out = ("data.prepare.split=test", "data.synthetic.test_seeds=[100,101]", "data.prepare.num_shards=2")
-    for shard in (0, 1):
-        run("prepare", root, *held_out, f"data.prepare.shard_index={shard}")
-    run("report", root, *held_out, "report.kind=prepare")
-    (shards,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
-    assert set(json.loads((shards / "manifest.json").read_text())["scenes"]) == {"scene_100", "scene_101"}
+    first = run("prepare", root, *held_out, "data.prepare.shard_index=0")
+    (cache,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
+    assert not (cache / "manifest.json").exists() and "1 of 2 shards still to finish" in first.stdout + first.stderr
+    run("prepare", root, *held_out, "data.prepare.shard_index=1")
+    shards = [json.loads((cache / f"manifest_shard{i:03d}_of002.json").read_text()) for i in (0, 1)]
+    merged = {**{k: v for k, v in shards[0].items() if k != "scenes"},
+              "scenes": dict(sorted({**shards[0]["scenes"], **shards[1]["scenes"]}.items()))}
+    assert (cache / "manifest.json").read_text() == json.dumps(merged, indent=2) + "\n"
+    assert list(merged["scenes"]) == ["scene_100", "scene_101"]
 
 
 def test_report_privileged_restores_from_both_view_sets(demo, run, entry_point, tmp_path):

@@ -58,7 +58,6 @@ class ReportKind(Mode):
     """What ``tracegs-report`` merges (tracegs.pipeline.reports)."""
 
     main = "main"  # evaluation shards -> results.json (Tables 1/2)
-    prepare = "prepare"  # prepare shards -> one cache manifest
     ablation = "ablation"  # an ablation sweep -> Table 3
     per_step = "per_step"  # Fig. 6 across variants on the held-out clips
     seeds = "seeds"  # several demo runs -> mean, sd and range of each figure

@@ -1,4 +1,4 @@
-# Two set-up commands (README): `make demo` and `make test`; `make benchmark` runs the measuring
+# Two set-up commands (README): `make demo` and `make test`; `make replicate` runs the measuring
 # instrument (Table 3: 8 test scenes x 3 training seeds, about 47 min on two idle cores). Each creates or reuses .venv,
 # installs torch==2.13.0 only when no torch is importable (a plain `torch` requirement would pull
 # a multi-GB CUDA build), installs the package with its dev extras once, then runs.
@@ -7,7 +7,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.tracegs-installed
 
-.PHONY: setup demo benchmark test test-all test-browser lint bench clean
+.PHONY: setup demo replicate test test-all test-browser lint clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -23,8 +23,8 @@ setup: $(STAMP)
 demo: setup
 	$(BIN)/tracegs-demo
 
-benchmark: setup
-	$(BIN)/tracegs-benchmark
+replicate: setup
+	$(BIN)/tracegs-replicate
 
 # The suite runs on every core (pytest-xdist, work stealing): each test is single-threaded (tests/conftest.py),
 # so two workers on two cores roughly halve the wall time; `pytest FILE` alone still runs in one process.

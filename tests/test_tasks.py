@@ -82,14 +82,20 @@ def test_the_demo_models_evaluate_on_other_test_scenes_without_naming_them(demo,
         assert results[method]["3"]["psnr"] > 0
 
 
-def test_report_prepare_merges_the_shards_of_a_cache(demo, run):
+def test_the_last_shard_of_a_prepare_merges_the_manifests(demo, run):
+    """A shard that finds another unfinished leaves the cache without its manifest; the last one writes it: the
+    first shard's settings and both shards' scenes in name order."""
     root = demo[0]
     held_out = ("data.prepare.split=test", "data.synthetic.test_seeds=[100,101]", "data.prepare.num_shards=2")
-    for shard in (0, 1):
-        run("prepare", root, *held_out, f"data.prepare.shard_index={shard}")
-    run("report", root, *held_out, "report.kind=prepare")
-    (shards,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
-    assert set(json.loads((shards / "manifest.json").read_text())["scenes"]) == {"scene_100", "scene_101"}
+    first = run("prepare", root, *held_out, "data.prepare.shard_index=0")
+    (cache,) = {p.parent for p in root.rglob("manifest_shard*_of002.json")}
+    assert not (cache / "manifest.json").exists() and "1 of 2 shards still to finish" in first.stdout + first.stderr
+    run("prepare", root, *held_out, "data.prepare.shard_index=1")
+    shards = [json.loads((cache / f"manifest_shard{i:03d}_of002.json").read_text()) for i in (0, 1)]
+    merged = {**{k: v for k, v in shards[0].items() if k != "scenes"},
+              "scenes": dict(sorted({**shards[0]["scenes"], **shards[1]["scenes"]}.items()))}
+    assert (cache / "manifest.json").read_text() == json.dumps(merged, indent=2) + "\n"
+    assert list(merged["scenes"]) == ["scene_100", "scene_101"]
 
 
 def test_report_privileged_restores_from_both_view_sets(demo, run, entry_point, tmp_path):
@@ -144,14 +150,14 @@ def test_optuna_chooses_stage2s_learning_rate_on_the_validation_scenes(demo, run
     assert trials[best.best_params["experiment.stage2_lr"]] == best.best_value
 
 
-def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
-    """``tracegs-benchmark`` (make benchmark) at its smallest size, two variants on two test scenes with one
+def test_replicate_measures_table3_at_its_smallest_size(run, tmp_path_factory):
+    """``tracegs-replicate`` (make replicate) at its smallest size, two variants on two test scenes with one
     training seed: every step runs as a child command, and the report holds Table 3, the orderings, both
     diagnostics and Fig. 6, its JSON record the wall time and the F - A interval."""
-    root = tmp_path_factory.mktemp("benchmark")
-    result = run("benchmark", root, "benchmark.training_seeds=[0]", "benchmark.held_out_clips_per_scene=1",
-                 "benchmark.variants=[A,F]", "data.synthetic.test_seeds=[100,101]")
-    (report,) = root.rglob("benchmark.md")
+    root = tmp_path_factory.mktemp("replicate")
+    result = run("replicate", root, "replicate.training_seeds=[0]", "replicate.held_out_clips_per_scene=1",
+                 "replicate.variants=[A,F]", "data.synthetic.test_seeds=[100,101]")
+    (report,) = root.rglob("replicate.md")
     text = report.read_text()
     assert "## Table 3 (deployment)" in text and "training seeds [0]" in text and "## Exposure gap" in text
     assert "## Teacher advantage at the student's states" in text and "## Fig. 6" in text
@@ -168,5 +174,5 @@ def test_benchmark_measures_table3_at_its_smallest_size(run, tmp_path_factory):
     # Data twice, plain 3DGS once; A, Stage 1, the students' multirun, the evaluations' and the diagnostics.
     assert len(record["step_s"]) == 3 + 5
     assert text.strip() in result.stdout
-    _, links = checked_page(report.parent, "benchmark.md")
+    _, links = checked_page(report.parent, "replicate.md")
     assert {"eval/3dgs/report.html", "eval/seed0/A/report.html", "eval/seed0/F/report.html"} <= set(links)

@@ -12,7 +12,7 @@ cache (``prepare``), variant A's restorer (``baseline``), the Stage-1 adapter (`
   restoration, never A or Stage 1. A cache is no product's input in this sense: a trained restorer reads the
   data settings it depends on itself (``reads(PREPARE, BASELINE)``).
 - ``execution()``: no product; how or where a run executes (paths, workers, logging, shards, checkpoint
-  cadence) or what a command does with the products (reports, the benchmark's plan, Table 3's layout).
+  cadence) or what a command does with the products (reports, tracegs-replicate's plan, Table 3's layout).
 - ``handed_in(*products)``: an input given by path instead of located (its default interpolates the located
   product, whose settings are already named); given, those products read its content, never its path.
 

@@ -62,7 +62,7 @@ def test_walk_finds_every_group():
     expected = {"backbone", "data", "splat", "stage", "teacher", "policy", "loss", "trainer", "experiment",
                 "ablation", "debug", "deploy", "evaluation", "hydra/launcher"}
     assert expected <= groups
-    assert set(PRIMARY) == {"prepare", "train", "deploy", "evaluate", "report", "demo", "restore", "benchmark"}
+    assert set(PRIMARY) == {"prepare", "train", "deploy", "evaluate", "report", "demo", "restore", "replicate"}
 
 
 @pytest.mark.parametrize("name", PRIMARY)

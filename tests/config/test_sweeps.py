@@ -1,4 +1,4 @@
-"""Sweeps and clusters: `-m` with `--cfg`, a failing sweep job, the SLURM launcher's requests and names."""
+"""Sweeps and clusters: `-m` with `--cfg`, a failing multirun job, the SLURM launcher's requests and names."""
 
 from __future__ import annotations
 
@@ -73,13 +73,13 @@ def test_a_one_process_command_asks_slurm_for_one_task_and_one_gpu(command):
     assert (training["nodes"], training["tasks_per_node"], training["gpus_per_node"]) == (2, 4, 4)
 
 
-def test_a_failing_sweep_job_is_reported_and_the_others_run(tmp_path):
+def test_a_failing_multirun_job_is_reported_and_the_others_run(tmp_path):
     # Variant A trains no Stage 2, so its valid job finishes at once; rollout N=40 fails validation.
     result = subprocess.run(
         [str(Path(sys.executable).with_name("tracegs-train")), "-m", "ablation=A", "stage.rollout_steps=40,5",
          f"paths.root_dir={tmp_path}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 2
-    summary = result.stderr[result.stderr.index("tracegs-train: 1 of 2 sweep jobs succeeded"):].splitlines()
+    summary = result.stderr[result.stderr.index("tracegs-train: 1 of 2 multirun jobs succeeded"):].splitlines()
     assert summary[1].startswith("  #0 ablation=A stage.rollout_steps=40 ")
     assert "failed: config field 'stage.rollout_steps'" in summary[1]
     assert summary[2].startswith("  #1 ablation=A stage.rollout_steps=5 ") and summary[2].endswith(": ok")

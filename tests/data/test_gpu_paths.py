@@ -16,7 +16,7 @@ from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark, gr
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
 from tracegs.deploy.restorers import GroundTruthRestorer
 from tracegs.deploy.scenes import deploy_scenes
-from tracegs.eval.evaluate import evaluate
+from tracegs.eval.scoring import score_units
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
@@ -36,7 +36,7 @@ def test_gsplat_without_cuda_is_refused_before_any_work(stage, tmp_path):
     source = SceneSourceConfig(root=str(tmp_path / "no_such_root"))
     cfg = EvaluationConfig(out_dir=str(out), views=[3], progress=False)
     run = {
-        "evaluate": lambda: evaluate(cfg, source, RefinementConfig(), fit, {"3dgs": None}, scenes=["x"]),
+        "evaluate": lambda: score_units(cfg, source, RefinementConfig(), fit, {"3dgs": None}, scenes=["x"]),
         "deploy": lambda: deploy_scenes(cfg, source, RefinementConfig(), fit, None, ["x"], out),
         "fit": lambda: GaussianFitter(GaussianModel.random(10), fit, 1.0),
     }[stage]

@@ -154,13 +154,26 @@ def test_workers_die_with_a_killed_parent(tmp_path, prepared):
     assert set((tmp_path / "work").rglob("*.ply")) == written
 
 
-def test_sharded_manifests_merge(tmp_path, prepared, backbone):
+def test_the_last_shard_to_finish_merges_the_manifests(tmp_path, prepared, backbone):
     _, synthetic, source, _, _ = prepared
+    cache = tmp_path / "cache"
+    assert merge_manifests(cache, 2) is None  # no shard finished yet
     prepare = replace(tiny_configs(tmp_path)[2], num_shards=2, shard_index=0)
     shard = run_prepare(prepare, source, backbone, synthetic, progress=False)
     assert shard.name == "manifest_shard000_of002.json"
-    merged = json.loads(merge_manifests(tmp_path / "cache").read_text())
-    assert list(merged["scenes"]) == ["scene_000"]
+    assert merge_manifests(cache, 2) is None and not (cache / "manifest.json").exists()  # shard 1 still runs
+    # Shard 1 finishes (its manifest: the same settings, another scene); shard 0, rerun, finds it and merges.
+    first = json.loads(shard.read_text())
+    (cache / "manifest_shard001_of002.json").write_text(json.dumps({**first, "scenes": {"scene_001": {}}}))
+    assert run_prepare(prepare, source, backbone, synthetic, progress=False) == shard
+    merged = (cache / "manifest.json").read_text()
+    assert json.loads(merged) == {**first, "scenes": {"scene_000": first["scenes"]["scene_000"], "scene_001": {}}}
+    stamp = (cache / "manifest.json").stat().st_mtime_ns
+    assert merge_manifests(cache, 2) == cache / "manifest.json"  # merging again writes nothing new
+    assert (cache / "manifest.json").read_text() == merged and (cache / "manifest.json").stat().st_mtime_ns == stamp
+    (cache / "manifest_shard001_of002.json").write_text(json.dumps({**first, "version": -1, "scenes": {}}))
+    with pytest.raises(PrepareError, match="settings differ"):
+        merge_manifests(cache, 2)
 
 
 @pytest.mark.parametrize("damage", ["missing_image_folder", "missing_image", "radial_camera", "too_many_views"])

@@ -54,10 +54,10 @@ def test_a_demo_tables_md_stands_for_the_parts_it_is_made_of(tmp_path):
 
 
 def test_the_project_markdown_becomes_headings_tables_lists_and_paragraphs():
-    page = markdown_html("## Held-out clips\n\nPSNR (dB), `make benchmark`:\n\n| a | b |\n|---|---:|\n| 1 < 2 | x |\n\n"
+    page = markdown_html("## Held-out clips\n\nPSNR (dB), `make replicate`:\n\n| a | b |\n|---|---:|\n| 1 < 2 | x |\n\n"
                          "- F > A: **reversed** (-0.1)\n- A > 3DGS: **not resolved**\n")
     assert page.splitlines() == [
-        "<h3>Held-out clips</h3>", "<p>PSNR (dB), <code>make benchmark</code>:</p>",
+        "<h3>Held-out clips</h3>", "<p>PSNR (dB), <code>make replicate</code>:</p>",
         "<table>", "<thead><tr><th>a</th><th>b</th></tr></thead>", "<tbody>", "<tr><td>1 &lt; 2</td><td>x</td></tr>",
         "</tbody>", "</table>",
         "<ul>", '<li>F &gt; A: <strong class="reversed">reversed</strong> (-0.1)</li>',

@@ -1,5 +1,5 @@
-"""The benchmark's report: Table 3's variants over training seeds, the orderings marked, both trajectory
-diagnostics and Fig. 6, assembled from the per-seed results the benchmark's steps write."""
+"""tracegs-replicate's report: Table 3's variants over training seeds, the orderings marked, both trajectory
+diagnostics and Fig. 6, assembled from the per-seed results tracegs-replicate's steps write."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 
 from tracegs.eval.replicates import (
-    BenchmarkInputs,
+    ReplicateInputs,
     diagnostics_markdown,
     instrument,
     label,
     mean_tree,
-    write_benchmark_report,
+    write_replicate_report,
 )
 from tracegs.io import write_json_atomic
 
@@ -42,8 +42,8 @@ def _diagnostics(variant: str, content: float, seed: int) -> dict:
             "input": 16.5 + content}
 
 
-def write_run(root: Path, seeds: list[int]) -> BenchmarkInputs:
-    """A benchmark's results: plain 3DGS once, every variant's deployment and the diagnostics per seed."""
+def write_run(root: Path, seeds: list[int]) -> ReplicateInputs:
+    """A tracegs-replicate run's results: plain 3DGS once, every variant's deployment and the diagnostics per seed."""
     write_json_atomic({s: {"3dgs": {"3": _row(18.0 + c)}} for s, c in zip(SCENES, CONTENT)},
                       root / "eval" / "3dgs" / "per_scene.json")
     for seed in seeds:
@@ -55,7 +55,7 @@ def write_run(root: Path, seeds: list[int]) -> BenchmarkInputs:
                                          for s, c in zip(SCENES, CONTENT)},
                            "conditions": ["s3_it140", "s3_it340"], "clips": 16, "steps": STEPS},
                           root / "diagnostics" / f"seed{seed}" / "diagnostics.json")
-    return BenchmarkInputs(seeds=seeds, variants=VARIANTS, descriptions={v: f"variant {v}" for v in VARIANTS},
+    return ReplicateInputs(seeds=seeds, variants=VARIANTS, descriptions={v: f"variant {v}" for v in VARIANTS},
                            methods={v: "baseline" if v == "A" else "tracegs" for v in VARIANTS},
                            eval_dirs={s: root / "eval" / f"seed{s}" for s in seeds},
                            three_dgs_dir=root / "eval" / "3dgs",
@@ -78,8 +78,8 @@ def test_variants_are_named_as_in_the_paper():
 
 
 def test_report_assembles_table3_from_three_seeds(tmp_path):
-    path, figures = write_benchmark_report(tmp_path / "report", write_run(tmp_path, [0, 1, 2]),
-                                           header="# Embedded benchmark: Table 3\n")
+    path, figures = write_replicate_report(tmp_path / "report", write_run(tmp_path, [0, 1, 2]),
+                                           header="# Table 3 replicated over training seeds (embedded scale)\n")
     text = path.read_text()
     # Seeds averaged per scene: F - A = 0.3 + 0.1 (mean seed offset) on every scene, a zero-width interval.
     assert "the 95% interval of (F) − (A) at 3 views is +0.40 [+0.40, +0.40] dB" in text and "met" in text
@@ -139,8 +139,8 @@ def test_a_missing_seed_result_is_named(tmp_path):
     inputs = write_run(tmp_path, [0])
     inputs.seeds, inputs.eval_dirs[1] = [0, 1], tmp_path / "eval" / "seed1"
     with pytest.raises(FileNotFoundError, match="seed1/A/per_scene.json is missing"):
-        write_benchmark_report(tmp_path / "report", inputs)
-    assert not (tmp_path / "report" / "benchmark.md").exists()
+        write_replicate_report(tmp_path / "report", inputs)
+    assert not (tmp_path / "report" / "replicate.md").exists()
     assert json.loads((tmp_path / "eval" / "seed0" / "F" / "per_scene.json").read_text())
 
 

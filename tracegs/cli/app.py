@@ -1,7 +1,7 @@
 """One decorator turns a task function into a Hydra app with the project's conventions.
 
 Every console script (`tracegs-prepare`, `-train`, `-deploy`, `-evaluate`, `-report`, `-demo`) is a
-Hydra app over the same ``conf/`` tree and root schema, so ``-m`` sweeps, ``--cfg job`` and
+Hydra app over the same ``conf/`` tree and root schema, so ``-m`` multiruns, ``--cfg job`` and
 ``hydra/launcher=...`` work on each. The wrapper registers the schema, validates cross-field rules,
 seeds everything, and turns the errors a user can fix into one line on stderr and exit code 2
 (set ``TRACEGS_TRACEBACK=1`` to see the traceback instead).
@@ -27,9 +27,9 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
+from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
-from tracegs.cli.sweep import JobFailed, print_configs, sweeping
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
@@ -109,7 +109,7 @@ def remove_attempt_records(cfg: DictConfig) -> None:
     Created by this command: every file in it is younger than this process. (Hydra names the folder from the
     command line only once the job starts, so its path is read here, from the job's runtime config.) The
     folders above it that are left empty go too, up to the root."""
-    if sweeping() or not HydraConfig.initialized():
+    if in_multirun() or not HydraConfig.initialized():
         return
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     files = [p for p in run_dir.rglob("*") if not p.is_dir()]
@@ -146,7 +146,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         @functools.wraps(task)
         def run(cfg: DictConfig) -> Any:
             try:
-                if sweeping():
+                if in_multirun():
                     with overrides_for_launched_ranks():
                         return run_task(task, cfg)
                 return run_task(task, cfg)
@@ -162,7 +162,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                 if error is None or os.environ.get("TRACEGS_TRACEBACK"):
                     raise
                 message = report_one_line(config_name, error)
-                if sweeping():  # the other sweep points still run; SweepSummary lists the failures at the end
+                if in_multirun():  # the other multirun jobs still run; MultirunSummary lists the failures at the end
                     return JobFailed(message)
                 remove_attempt_records(cfg)
                 sys.exit(2)

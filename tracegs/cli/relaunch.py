@@ -3,9 +3,9 @@
 Lightning starts each further local rank with the launching command line plus ``hydra.run.dir=...``,
 ``hydra.job.name=...`` and ``hydra.output_subdir=null``
 (lightning.fabric.strategies.launchers.subprocess_script._hydra_subprocess_cmd) and a copy of the launching
-process's environment. Under ``-m`` that command line is the whole sweep, so the new rank would run every sweep
-point itself. The launching job therefore puts its own overrides in the environment, and a launched rank runs
-those instead of the sweep.
+process's environment. Under ``-m`` that command line is the whole multirun, so the new rank would run every
+job of it itself. The launching job therefore puts its own overrides in the environment, and a launched rank runs
+those instead of the multirun.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""`tracegs-report`: merge evaluation or prepare shards, or build Table 3 from an ablation sweep (conf/report.yaml)."""
+"""`tracegs-report`: merge evaluation shards, or build Table 3 from an ablation sweep (conf/report.yaml)."""
 
 from tracegs.cli.app import hydra_app
 from tracegs.pipeline.reports import report

@@ -51,14 +51,13 @@ class Task(Mode):
     restore = "restore"
     report = "report"
     demo = "demo"
-    benchmark = "benchmark"
+    replicate = "replicate"
 
 
 class ReportKind(Mode):
     """What ``tracegs-report`` merges (tracegs.pipeline.reports)."""
 
     main = "main"  # evaluation shards -> results.json (Tables 1/2)
-    prepare = "prepare"  # prepare shards -> one cache manifest
     ablation = "ablation"  # an ablation sweep -> Table 3
     per_step = "per_step"  # Fig. 6 across variants on the held-out clips
     seeds = "seeds"  # several demo runs -> mean, sd and range of each figure
@@ -199,8 +198,8 @@ class ReportConfig:
 
 
 @dataclass
-class BenchmarkConfig:
-    """``tracegs-benchmark``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
+class ReplicateConfig:
+    """``tracegs-replicate``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
     deployment noise that the root ``seed`` fixes for every replicate (so plain 3DGS is computed once)."""
 
     training_seeds: list[int] = execution(factory=lambda: [0, 1, 2])
@@ -260,7 +259,7 @@ class TraceGSConfig:
     evaluation: EvaluationConfig = reads(DEPLOYMENT, factory=EvaluationConfig)
     report: ReportConfig = execution(factory=ReportConfig)
     capture: CaptureConfig = reads(RESTORE, factory=CaptureConfig)  # tracegs-restore's own scene
-    benchmark: BenchmarkConfig = execution(factory=BenchmarkConfig)
+    replicate: ReplicateConfig = execution(factory=ReplicateConfig)
 
 
 def register_configs(schema: type = TraceGSConfig) -> None:

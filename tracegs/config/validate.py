@@ -299,7 +299,7 @@ MIN_CAPTURED_VIEWS = 2
 
 
 # Commands that score images (and so compute LPIPS when the experiment requires it).
-SCORING_TASKS = ("evaluate", "restore", "demo", "benchmark")
+SCORING_TASKS = ("evaluate", "restore", "demo", "replicate")
 
 
 def _validate_evaluation(cfg: DictConfig) -> None:

@@ -14,13 +14,15 @@ loads them.
 Work units and resumability: one PLY per (scene, view set, snapshot) in ``work_dir`` and one safetensors
 shard per (scene, clip) in ``cache_dir``, written after the scene files it indexes; every file is written
 atomically, finished units are skipped, and ``force`` redoes them. Runs can be sharded by scene
-(``shard_index`` / ``num_shards``); each shard writes its own manifest and ``merge_manifests`` joins them.
+(``shard_index`` / ``num_shards``); each shard writes its own manifest, and the last to finish joins them all
+into the cache's manifest (``merge_manifests``).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -71,6 +73,8 @@ from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import load_ply, save_ply
 from tracegs.splat.render import render_clip, require_available
 from tracegs.splat.trajectory import round_clips, with_captured_ends
+
+log = logging.getLogger(__name__)
 
 MIN_INIT_POINTS = 64  # fewer triangulated points than this: initialise the fit randomly instead
 
@@ -724,12 +728,19 @@ def shard_manifest_path(cache_dir: Path, shard_index: int, num_shards: int) -> P
     return cache_dir / f"manifest_shard{shard_index:03d}_of{num_shards:03d}.json"
 
 
-def merge_manifests(cache_dir: str | Path) -> Path:
-    """Join the per-shard manifests of a sharded run into ``manifest.json``; settings must agree."""
+def merge_manifests(cache_dir: str | Path, num_shards: int) -> Path | None:
+    """Join the manifests of the ``num_shards`` shards of a cache into ``manifest.json`` once every shard has
+    written its own (their settings must agree); None, logging how many are left, while some shard has not.
+
+    Every shard calls it as it ends, so the last to finish merges; shards that finish together write the same
+    bytes, each atomically, and a rerun leaves an identical manifest untouched."""
     cache_dir = Path(cache_dir)
-    parts = sorted(cache_dir.glob("manifest_shard*_of*.json"))
-    if not parts:
-        raise FileNotFoundError(f"{cache_dir}: no shard manifests (manifest_shard*_of*.json) to merge")
+    parts = [shard_manifest_path(cache_dir, index, num_shards) for index in range(num_shards)]
+    left = sum(not part.is_file() for part in parts)
+    if left:
+        log.info("%s: %d of %d shards still to finish; the last to finish merges their manifests", cache_dir,
+                 left, num_shards)
+        return None
     merged: dict | None = None
     for part in parts:
         data = json.loads(part.read_text())
@@ -747,7 +758,8 @@ def merge_manifests(cache_dir: str | Path) -> Path:
 
 def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Backbone,
                 synthetic: SyntheticConfig | None = None, progress: bool = True) -> Path:
-    """Prepare the paired-clip cache and return the path of this shard's manifest.
+    """Prepare the paired-clip cache and return the path of this shard's manifest (the last shard of a sharded
+    run to finish also merges every shard's manifest into the cache's: ``merge_manifests``).
 
     With ``synthetic`` given, the benchmark is generated first (idempotent) and, unless ``source.scenes``
     names scenes, the seeds of its ``prepare.split`` are prepared (``test``: a held-out cache that only
@@ -800,4 +812,6 @@ def _run_prepare(pool: WorkerPool | None, prepare: PrepareConfig, source: SceneS
     manifest = {**manifest_header(prepare, backbone.cfg.name), "scenes": entries}
     path = shard_manifest_path(cache_dir, prepare.shard_index, prepare.num_shards)
     write_if_changed(manifest, path)
+    if prepare.num_shards > 1:
+        merge_manifests(cache_dir, prepare.num_shards)
     return path

@@ -3,7 +3,7 @@
 One *unit* is a (scene, K) pair: the scene split exactly as ``prepare`` splits it, its sparse views V_s
 and the sparse-only cold start fitted from them. Units are the shards of a Hydra multirun / SLURM array
 (``shard_index`` / ``num_shards``). ``deploy_scenes`` refines each unit with one restorer and saves the
-3DGS; scoring the refined models is evaluation (``tracegs.eval.evaluate``).
+3DGS; scoring the refined models is evaluation (``tracegs.eval.scoring``).
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ POLICY_ORDERING = Ordering(("E", "F-", "F"))
 REFERENCE_VARIANT = "A"
 # The variant standing for each method of Tables 1/2: A is the frozen baseline restorer, F the full method.
 METHOD_VARIANTS = {"3dgs": "3dgs", "baseline": REFERENCE_VARIANT, "tracegs": "F"}
-# Every ordering of Tables 1-3 in the variants' names (plain 3DGS keeps its own): the benchmark marks them all.
+# Every ordering of Tables 1-3 in the variants' names (plain 3DGS keeps its own): tracegs-replicate marks them all.
 TABLE3_ORDERINGS = (Ordering(tuple(METHOD_VARIANTS[m] for m in MAIN_ORDERING.chain)), GEOMETRY_ORDERING,
                     POLICY_ORDERING)
 # Fig. 6 claims (better, worse): on-policy F predicts the clean frame better along its own trajectory than

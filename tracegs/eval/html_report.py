@@ -1,4 +1,4 @@
-"""``report.html``: one page per result folder (a demo's, an evaluation's, a restore's, a benchmark's) that opens
+"""``report.html``: one page per result folder (a demo's, an evaluation's, a restore's, a replicate run's) that opens
 from disk without a server and shows what the folder holds: the run record (commit, machine, timings), the
 tables with their intervals and verdicts, Fig. 6, each scene's qualitative grid and video and its refined PLYs.
 
@@ -22,8 +22,8 @@ from tracegs.io import atomic_write
 
 REPORT_PAGE = "report.html"
 # A demo's tables.md holds the evaluation's tables beside the run that made them; the parts it is made of show
-# only where it is absent (an evaluation's or a restore's folder). A benchmark's tables are in benchmark.md.
-COMBINED = ("tables.md", "benchmark.md")
+# only where it is absent (an evaluation's or a restore's folder). tracegs-replicate's tables are in replicate.md.
+COMBINED = ("tables.md", "replicate.md")
 PARTS = {"table.md": "Results", "intervals.md": "95% intervals and the paper's orderings",
          "held_out_clips.md": "Held-out clips", "per_step_intervals.md": "Fig. 6 at each reverse step"}
 FIG6 = "fig6_per_step.png"
@@ -115,12 +115,12 @@ def markdown_html(text: str) -> str:
 
 
 def _href(relative: str | Path) -> str:
-    """A path relative to the folder (as units name their files, tracegs.eval.evaluate) as an escaped link."""
+    """A path relative to the folder (as units name their files, tracegs.eval.scoring) as an escaped link."""
     return html.escape(quote(Path(relative).as_posix()))
 
 
 def _run_header(record: dict) -> list[str]:
-    """The run record (run.json of a demo or a benchmark): commit, seed, machine, wall time, peak memory and
+    """The run record (run.json of a demo or of tracegs-replicate): commit, seed, machine, wall time, peak memory and
     the time of each step."""
     machine = record.get("machine", {})
     facts = [f"commit <code>{html.escape(str(record['commit']))}</code>" if "commit" in record else "",
@@ -173,7 +173,7 @@ def _units(folder: Path) -> list[str]:
 
 
 def _nested(folder: Path) -> list[str]:
-    """Links to the pages of the folders inside this one (a benchmark's evaluations)."""
+    """Links to the pages of the folders inside this one (tracegs-replicate's evaluations)."""
     pages = sorted(p for p in folder.rglob(REPORT_PAGE) if p.parent != folder)
     if not pages:
         return []

@@ -1,6 +1,6 @@
 """Merge evaluation units (from one or many shards) into the results layout of Tables 1/2 and Fig. 6.
 
-Units are the ``units/<scene>/views_<K>.json`` files ``tracegs.eval.evaluate`` writes; the merge is
+Units are the ``units/<scene>/views_<K>.json`` files ``tracegs.eval.scoring`` writes; the merge is
 separate so shards of a SLURM array can be merged by ``tracegs-report`` once all of them finished.
 """
 

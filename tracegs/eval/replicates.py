@@ -1,4 +1,4 @@
-"""The benchmark's report: Table 3's variants, each trained for several training seeds, on the same test scenes.
+"""tracegs-replicate's report: Table 3's variants, each trained for several training seeds, on the same test scenes.
 
 Per seed, each variant's evaluation folder holds ``per_scene.json`` (deployment; plain 3DGS is evaluated once, in
 its own folder, and shared by every seed), and the seed's diagnostics folder ``diagnostics.json`` (held-out clips:
@@ -52,8 +52,8 @@ def label(name: str) -> str:
 
 
 @dataclass
-class BenchmarkInputs:
-    """Where one benchmark run's results are: ``eval_dirs[seed] / <variant> / per_scene.json`` (scored under
+class ReplicateInputs:
+    """Where one tracegs-replicate run's results are: ``eval_dirs[seed] / <variant> / per_scene.json`` (scored under
     ``methods[variant]``), ``three_dgs_dir / per_scene.json`` and ``diagnostics_dirs[seed] / diagnostics.json``;
     ``variants`` in Table 3's row order, each described as its config does."""
 
@@ -83,11 +83,11 @@ def mean_tree(trees: Sequence[Any]) -> Any:
 
 def _read(path: Path) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"benchmark report: {path} is missing (did that seed's step finish?)")
+        raise FileNotFoundError(f"replicate report: {path} is missing (did that seed's step finish?)")
     return json.loads(path.read_text())
 
 
-def seed_tables(inputs: BenchmarkInputs) -> list[dict]:
+def seed_tables(inputs: ReplicateInputs) -> list[dict]:
     """Per seed, ``{scene: {variant or "3dgs": {views: {metric: value}}}}``: each variant's deployment under the
     method standing for it, and the shared plain 3DGS."""
     plain = _read(inputs.three_dgs_dir / "per_scene.json")
@@ -310,7 +310,7 @@ def mechanism_figures(held_out: Mapping, per_seed: Sequence[Mapping], variants: 
 def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str], start: str | None = None) -> str:
     """One training seed's diagnostics (``tracegs-report report.kind=diagnostics``): the held-out clip table (with
     ``start``, each student against the Stage-1 adapter's row), each variant's first clean prediction and final
-    sample, the exposure gap per step with its later-half mean, and the mechanism figures of the benchmark's run
+    sample, the exposure gap per step with its later-half mean, and the mechanism figures of the tracegs-replicate run
     record (intervals over scenes)."""
     _, _, gap_late = per_step_table(diagnostics, variants, "visited", "noised")
     first = {n: mean_interval([curve[0] for curve in _scene_values(diagnostics, n, "visited").values()])
@@ -331,8 +331,8 @@ def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str], start: s
 # ------------------------------------------------------------------------------------------------ report
 
 
-def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header: str = "") -> tuple[Path, dict]:
-    """``benchmark.md`` (+ per-scene CSVs, the Fig. 6 plot with bands) in ``out_dir``; returns its path and the
+def write_replicate_report(out_dir: str | Path, inputs: ReplicateInputs, header: str = "") -> tuple[Path, dict]:
+    """``replicate.md`` (+ per-scene CSVs, the Fig. 6 plot with bands) in ``out_dir``; returns its path and the
     run record's figures (the F - A interval per view count, each ordering's verdict)."""
     out_dir = Path(out_dir)
     per_seed = seed_tables(inputs)
@@ -391,7 +391,7 @@ def write_benchmark_report(out_dir: str | Path, inputs: BenchmarkInputs, header:
                      "", advantage_table, _extreme(advantage_bands), ""]
     figures["exposure_gap_largest_db"] = round(max(abs(i.mean) for b in gap_bands.values() for i in b), 4)
     figures.update(mechanism_figures(held_out, per_seed, inputs.variants, views, gap_late))
-    path = out_dir / "benchmark.md"
+    path = out_dir / "replicate.md"
     with atomic_write(path) as tmp:
         tmp.write_text("\n".join(sections))
     return path, figures

@@ -1,6 +1,6 @@
 """Reports of the evaluation: Tables 1/2 and 3, qualitative grids, videos and the Fig. 6 plot.
 
-The results layout shared with ``eval/evaluate.py`` is
+The results layout shared with ``eval/scoring.py`` is
 ``{method: {views: {"psnr": float, "ssim": float, "lpips": float | None}}}`` with methods such as
 ``3dgs``/``baseline``/``tracegs`` and view counts as strings (``"3"``, ``"6"``, ``"9"``), plus an
 optional ``"meta"`` entry (LPIPS convention, scenes, variant) that every table repeats.
@@ -103,7 +103,7 @@ def _csv_value(value: float | None) -> str:
 
 
 def load_results(path: str | Path) -> dict:
-    """Read a ``results.json`` written by ``eval.evaluate`` (clear error naming the file)."""
+    """Read a ``results.json`` written by ``eval.scoring`` (clear error naming the file)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"results file not found: {path}")

@@ -96,7 +96,7 @@ def demo_tables_markdown(out_dir: Path, run: dict) -> str:
     if intervals.is_file():
         scenes = len(json.loads((out_dir / "per_scene.json").read_text()))
         lines += [f"The same with 95% intervals over its {scenes} test scenes (with this few scenes the intervals "
-                  "are wide; `make benchmark` runs enough scenes and seeds to resolve smaller gaps):", "",
+                  "are wide; `make replicate` runs enough scenes and seeds to resolve smaller gaps):", "",
                   intervals.read_text()]
     held_out = out_dir / "held_out_clips.md"
     if held_out.is_file():

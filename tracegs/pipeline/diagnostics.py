@@ -7,7 +7,7 @@ the distilled variants, the advantage of their teacher (the Stage-1 adapter on t
 student's states (tracegs.eval.diagnostics). All restorers share one backbone: A's weights, the Stage-1 adapter
 and each student adapter loaded once.
 
-Any split's prepared cache works: the test split's held-out clips (the benchmark's), or the validation split's
+Any split's prepared cache works: the test split's held-out clips (tracegs-replicate's), or the validation split's
 (``tracegs-prepare data.prepare.split=val``), on which a schedule or Stage-2 budget that makes the trajectory
 matter would be chosen. Its teacher conditions must cover the variants' (``data.prepare.dense_views``,
 ``data.prepare.student_final_fits``).
@@ -33,7 +33,7 @@ TEACHER = STAGE1  # the adapter name of the frozen Stage-1 teacher on the shared
 
 
 def diagnostics_report(cfg: DictConfig) -> Path:
-    """``diagnostics.json`` in ``report.output_dir`` (the benchmark's report reads it); returns its path."""
+    """``diagnostics.json`` in ``report.output_dir`` (tracegs-replicate's report reads it); returns its path."""
     if cfg.evaluation.held_out_cache is None:
         raise ConfigError("evaluation.held_out_cache", "report.kind=diagnostics needs a prepared held-out cache "
                                                        "(tracegs-prepare data.prepare.split=test)")

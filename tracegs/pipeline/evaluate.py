@@ -11,9 +11,9 @@ from omegaconf import DictConfig
 from tracegs.data.cache_keys import MANIFEST
 from tracegs.deploy.scenes import deploy_scenes
 from tracegs.eval.clips import clip_restoration_psnr
-from tracegs.eval.evaluate import evaluate as run_evaluation
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.report import write_held_out_report
+from tracegs.eval.scoring import score_units
 from tracegs.io import content_digest
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
 from tracegs.pipeline.restorers import (
@@ -41,7 +41,7 @@ def evaluate(cfg: DictConfig) -> dict:
     generate_test_scenes(cfg)
     shard = (cfg.evaluation.shard_index, cfg.evaluation.num_shards)
     with product_lock(cfg.evaluation.out_dir, "evaluation.out_dir", shard):
-        results = run_evaluation(
+        results = score_units(
             section(cfg.evaluation),
             section(cfg.data.source),
             section(cfg.deploy),

@@ -7,7 +7,6 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from tracegs.console import show
-from tracegs.data.prepare import merge_manifests
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
 from tracegs.eval.clips import (
     clip_restoration_psnr,
@@ -32,10 +31,8 @@ from tracegs.pipeline.variants import per_step_variants, table3_variants
 
 
 def report(cfg: DictConfig) -> Path:
-    """Merge evaluation shards (main), prepare shards (prepare), an ablation sweep (ablation), or another kind."""
+    """Merge evaluation shards (main), an ablation sweep (ablation), or another kind."""
     kind = cfg.report.kind
-    if kind == "prepare":
-        return merge_manifests(cfg.data.prepare.cache_dir)
     if kind == "main":
         out = Path(cfg.evaluation.out_dir)
         sources = swept_method_evaluations(cfg) if cfg.report.main_from_sweep else None

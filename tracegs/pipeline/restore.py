@@ -14,10 +14,10 @@ from tracegs.console import show
 from tracegs.data.sfm import reconstruct_photos, reconstruct_video
 from tracegs.data.splits import SplitError
 from tracegs.errors import ConfigError
-from tracegs.eval.evaluate import evaluate as run_evaluation
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.merge import unit_path
 from tracegs.eval.report import results_table_markdown
+from tracegs.eval.scoring import score_units
 from tracegs.pipeline.records import product_lock
 from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import section
@@ -57,8 +57,8 @@ def restore(cfg: DictConfig) -> Path:
     evaluation = section(cfg.evaluation)
     with product_lock(evaluation.out_dir, "evaluation.out_dir"):
         try:
-            results = run_evaluation(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
-                                     restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
+            results = score_units(evaluation, source, section(cfg.deploy), section(cfg.data.prepare.fit),
+                                  restorers_for_run(cfg, evaluation.methods), scenes=[capture.name])
         except SplitError as error:  # the user chose the count: capture.views
             raise ConfigError("capture.views", f"{cfg.capture.views}: {capture}: {error}; ask for fewer views or "
                                                "capture more images") from error

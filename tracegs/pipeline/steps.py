@@ -2,10 +2,10 @@
 evaluate -> report. ``tracegs-demo`` runs them in its own process, ``tracegs-replicate`` as child commands (the
 restorer's steps once per training seed), the Table 3 sweep as one multirun per step over the variants
 (``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which ``launch/sweep_ablation.sh`` calls):
-one runner (tracegs.pipeline.runner) for all three. Each caller adds only the settings of its own setting.
+one runner (tracegs.pipeline.runner) for all three. Each caller adds only its own settings.
 
 Builders take typed settings (``common``: key -> value for every step) and the user's command-line overrides
-(``user``), which each step passes on and which win.
+(``user``), which each step passes on; a step's own settings win over them.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def main_table_steps(datasets: Sequence[str], training_data: str, common: Settin
 
 
 # The embedded sweep's cache holds every Table 3 teacher: C and D need 12 and 18 views and B the sparse fits'
-# final snapshots (what tracegs.pipeline.variants.teacher_overrides derives from Table 3's variants; a test keeps
+# final snapshots (what tracegs.pipeline.variants.variants_teachers derives from Table 3's variants; a test keeps
 # the two equal).
 SWEEP_TEACHERS = {"data.prepare.dense_views": [12, 18, None], "data.prepare.student_final_fits": True}
 # Overrides that leave the embedded synthetic benchmark (its held-out clips are rendered from the known scenes).

@@ -1,4 +1,4 @@
-"""`make benchmark`: the preset composes, every step's command validates, the replicates share what does not
+"""`make replicate`: the preset composes, every step's command validates, the replicates share what does not
 depend on the training seed, and each variant and seed finds its own upstream products."""
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from omegaconf import OmegaConf
 
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
-from tracegs.pipeline.benchmark import (
-    benchmark_steps,
-    benchmark_variants,
+from tracegs.pipeline.diagnostics import diagnostics_report
+from tracegs.pipeline.replicate import (
     estimate_minutes,
+    replicate_steps,
+    replicate_variants,
     variant_teachers,
 )
-from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.runner import Step
 from tracegs.pipeline.upstream import upstream_config
 from tracegs.pipeline.variants import table3_variants
@@ -30,11 +30,11 @@ pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
 
 
 def test_preset_has_enough_scenes_and_seeds():
-    cfg = compose(config_name="benchmark")
+    cfg = compose(config_name="replicate")
     validate(cfg)
-    assert cfg.experiment.name == "benchmark"
+    assert cfg.experiment.name == "replicate"
     assert len(cfg.data.synthetic.test_seeds) >= 8
-    assert len(cfg.benchmark.training_seeds) >= 3
+    assert len(cfg.replicate.training_seeds) >= 3
     assert 3 in cfg.evaluation.views
     # Apart from the scenes and the deployment tables' settings, it is the demo's experiment unchanged.
     embedded = compose(config_name="demo")
@@ -44,38 +44,38 @@ def test_preset_has_enough_scenes_and_seeds():
 
 
 def test_the_default_run_estimate_is_bounded_and_follows_the_config():
-    cfg = compose(config_name="benchmark")
-    variants = benchmark_variants()
-    steps = benchmark_steps(variants, cfg.seed, list(cfg.benchmark.training_seeds), Path("/tmp/bench"))
+    cfg = compose(config_name="replicate")
+    variants = replicate_variants()
+    steps = replicate_steps(variants, cfg.seed, list(cfg.replicate.training_seeds), Path("/tmp/bench"))
     parts = estimate_minutes(cfg, variants, steps)
     # The multi-step default trains 200 Stage-2 steps per student and seed (estimate ~74 min): the bound keeps the
     # estimate from growing unnoticed; the measured run is in the README.
     assert sum(parts.values()) < 80
     # The estimate follows the config's sizes: each further training seed costs a seed's training,
     # deployment and diagnostics, and nothing more of the data; three view counts deploy three times as much.
-    more_seeds = estimate_minutes(compose(config_name="benchmark", overrides=["benchmark.training_seeds=[0,1,2,3]"]),
+    more_seeds = estimate_minutes(compose(config_name="replicate", overrides=["replicate.training_seeds=[0,1,2,3]"]),
                                   variants, steps)
     for part in ("training", "diagnostics"):
         assert more_seeds[part] == pytest.approx(parts[part] * 4 / 3)
     assert more_seeds["data"] == parts["data"]
-    every_view = estimate_minutes(compose(config_name="benchmark", overrides=["evaluation.views=[3,6,9]"]),
+    every_view = estimate_minutes(compose(config_name="replicate", overrides=["evaluation.views=[3,6,9]"]),
                                   variants, steps)
     assert every_view["deployment"] == pytest.approx(3 * parts["deployment"])
 
 
 def test_every_variant_is_run_and_the_caches_hold_every_teacher():
-    variants = benchmark_variants()
+    variants = replicate_variants()
     assert [v.name for v in variants] == [v.name for v in table3_variants()]  # conf/ablation/, Table 3's rows
     # C and D need the 12- and 18-view teachers, B the sparse fits' final snapshots (as the sweep prepares).
     assert variant_teachers(variants, [3, 6, 9]) == {"data.prepare.dense_views": [12, 18, None],
                                                      "data.prepare.student_final_fits": True}
-    chosen = benchmark_variants(["F", "A"])
+    chosen = replicate_variants(["F", "A"])
     assert [v.name for v in chosen] == ["A", "F"] and not chosen[0].trained
     assert variant_teachers(chosen, [3, 6, 9]) == {"data.prepare.dense_views": [None],
                                                    "data.prepare.student_final_fits": False}
     for names, problem in ((["A", "G"], r"\['G'\] are not variants"), (["A", "A"], "repeats"), ([], "at least one")):
-        with pytest.raises(ConfigError, match=f"benchmark.variants.*{problem}"):
-            benchmark_variants(names)
+        with pytest.raises(ConfigError, match=f"replicate.variants.*{problem}"):
+            replicate_variants(names)
 
 
 def _single(steps) -> list[Step]:
@@ -88,7 +88,7 @@ def _single(steps) -> list[Step]:
 def test_every_step_composes_and_validates(tmp_path, entry_config):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
-    steps = benchmark_steps(benchmark_variants(["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
+    steps = replicate_steps(replicate_variants(["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
     for step in _single(steps):
         cfg = entry_config(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
@@ -106,7 +106,7 @@ def _step(steps, label):
 
 
 def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, entry_config):
-    steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
     plain = entry_config("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
     evaluations = [entry_config("evaluate", list(_step(steps, f"seed {s}: evaluate (A,F) F").overrides))
                    for s in (0, 1)]
@@ -124,7 +124,7 @@ def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, entry_con
 
 
 def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
-    steps = _single(benchmark_steps(benchmark_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
     for seed in (0, 1):
         trained = {stage: str(entry_config("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
                               .run_dir)
@@ -143,11 +143,11 @@ def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
 
 
 def test_seeds_must_be_listed_once(tmp_path):
-    variants = benchmark_variants(["A", "F"])
+    variants = replicate_variants(["A", "F"])
     with pytest.raises(ValueError, match="repeats"):
-        benchmark_steps(variants, 0, [1, 1], tmp_path)
+        replicate_steps(variants, 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):
-        benchmark_steps(variants, 0, [], tmp_path)
+        replicate_steps(variants, 0, [], tmp_path)
 
 
 def test_diagnostics_need_a_held_out_cache_and_known_variants(tmp_path, entry_config):

@@ -1,7 +1,7 @@
-"""``tracegs-benchmark``: Table 3 of the paper measured at the embedded scale, over test scenes and training seeds.
+"""``tracegs-replicate``: Table 3 of the paper measured at the embedded scale, over test scenes and training seeds.
 
-Every variant of conf/ablation/ (or ``benchmark.variants``) is trained and deployed on the same test scenes for
-each training seed in ``benchmark.training_seeds`` (root ``seed`` of those runs): A, the Stage-1 adapter and the
+Every variant of conf/ablation/ (or ``replicate.variants``) is trained and deployed on the same test scenes for
+each training seed in ``replicate.training_seeds`` (root ``seed`` of those runs): A, the Stage-1 adapter and the
 distilled students B ... F are trained from scratch once per seed, the students from that seed's Stage-1
 adapter. Everything else is fixed by this run's own root ``seed`` and shared by every variant and replicate: the
 synthetic scenes, the prepared training and held-out caches (prepared once, with every teacher condition the
@@ -11,7 +11,7 @@ seed's values). Plain 3DGS does not depend on the restorer and is evaluated once
 
 Each step is the command a user would type (``tracegs-prepare``, ``-train``, ``-evaluate``, ``-report``), run as
 a child process with its overrides on its own command line, so each finds its upstream products by the
-run-identity rule exactly as when typed by hand, and every step resumes when the benchmark is rerun. A seed's
+run-identity rule exactly as when typed by hand, and every step resumes when the command is rerun. A seed's
 Stage-2 students and its evaluations are one multirun each (Hydra's local launcher), as
 ``launch/sweep_ablation.sh`` runs them: one interpreter start per step rather than per variant.
 """
@@ -32,7 +32,7 @@ from tracegs.config.overrides import override_key
 from tracegs.console import show
 from tracegs.errors import ConfigError
 from tracegs.eval.html_report import write_report_page
-from tracegs.eval.replicates import BenchmarkInputs, write_benchmark_report
+from tracegs.eval.replicates import ReplicateInputs, write_replicate_report
 from tracegs.io import write_json_atomic
 from tracegs.pipeline.runner import Commands, Step, Sweep, run_steps
 from tracegs.pipeline.steps import data_steps
@@ -61,7 +61,7 @@ CORES = 2
 
 @dataclass(frozen=True)
 class Variant:
-    """One Table 3 variant as the benchmark runs it: whether it trains a Stage-2 student, the teacher's view
+    """One Table 3 variant as tracegs-replicate runs it: whether it trains a Stage-2 student, the teacher's view
     count it is distilled from (None = all training views) and the evaluation method standing for it."""
 
     name: str
@@ -71,16 +71,16 @@ class Variant:
     description: str
 
 
-def benchmark_variants(names: Sequence[str] | None = None) -> list[Variant]:
+def replicate_variants(names: Sequence[str] | None = None) -> list[Variant]:
     """The variants of conf/ablation/ in Table 3's rows (``names``: only those), read from their configs."""
     if names is not None:
         unknown = sorted(set(names) - set(table3_names()))
         if unknown:
-            raise ConfigError("benchmark.variants", f"{unknown} are not variants of conf/ablation/")
+            raise ConfigError("replicate.variants", f"{unknown} are not variants of conf/ablation/")
         if len(set(names)) != len(names):
-            raise ConfigError("benchmark.variants", f"{list(names)} repeats a variant")
+            raise ConfigError("replicate.variants", f"{list(names)} repeats a variant")
         if not names:
-            raise ConfigError("benchmark.variants", "list at least one variant")
+            raise ConfigError("replicate.variants", "list at least one variant")
     return [Variant(cfg.ablation.name, bool(cfg.ablation.train_stage2), cfg.teacher.views, str(cfg.ablation.method),
                     cfg.ablation.description) for cfg in table3_configs(names)]
 
@@ -91,18 +91,18 @@ def variant_teachers(variants: Sequence[Variant], student_views: Sequence[int]) 
     return teacher_settings([v.teacher_views for v in variants if v.trained], student_views)
 
 
-def benchmark_steps(variants: Sequence[Variant], root_seed: int, training_seeds: Sequence[int], out_dir: Path,
+def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds: Sequence[int], out_dir: Path,
                     user: Sequence[str] = (), held_out_clips_per_scene: int = 2,
                     views: Sequence[int] = (3,), student_views: Sequence[int] = (3, 6, 9)) -> list[Step]:
-    """The steps of one benchmark run, in order: the data once, plain 3DGS once, then per training seed A,
+    """The steps of one tracegs-replicate run, in order: the data once, plain 3DGS once, then per training seed A,
     Stage 1, every student, every variant's deployment and the trajectory diagnostics (see the module
     docstring for what is shared). ``user``: the command line's overrides, passed to every step."""
     if not training_seeds:
-        raise ValueError("benchmark.training_seeds: list at least one training seed")
+        raise ValueError("replicate.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
-        raise ValueError(f"benchmark.training_seeds: {list(training_seeds)} repeats a seed")
+        raise ValueError(f"replicate.training_seeds: {list(training_seeds)} repeats a seed")
     train_cache, test_cache = out_dir / "cache" / "train", out_dir / "cache" / "test"
-    shared = {"experiment": "benchmark",
+    shared = {"experiment": "replicate",
               "data.prepare.seed": derive_seed(root_seed, "prepare"),
               "data.prepare.fit.seed": derive_seed(root_seed, "fit"),
               "deploy.seed": derive_seed(root_seed, "deploy"),
@@ -161,7 +161,7 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     config's sizes (fits and their iterations, clips and their conditions, training steps and batch, deployment
     rounds and reverse steps)."""
     prepare, fit, deploy, exp = cfg.data.prepare, cfg.data.prepare.fit, cfg.deploy, cfg.experiment
-    views, seeds = list(cfg.evaluation.views), len(cfg.benchmark.training_seeds)
+    views, seeds = list(cfg.evaluation.views), len(cfg.replicate.training_seeds)
     train_scenes, test_scenes = len(cfg.data.synthetic.train_seeds), len(cfg.data.synthetic.test_seeds)
     trained = sum(v.trained for v in variants)
     teachers = variant_teachers(variants, list(prepare.student_views))
@@ -177,7 +177,7 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
         return fits + scenes * clips * conditions * PREPARED_CONDITION_S
 
     data = (prepare_s(train_scenes, len(prepare.student_views), exp.clips_per_scene)
-            + prepare_s(test_scenes, len(views), cfg.benchmark.held_out_clips_per_scene))
+            + prepare_s(test_scenes, len(views), cfg.replicate.held_out_clips_per_scene))
     training = seeds * (exp.batch_size * (exp.baseline_steps * BASELINE_SAMPLE_S + exp.stage1_steps * STAGE1_SAMPLE_S)
                         + exp.stage2_batch_size * trained * exp.stage2_steps * cfg.stage.rollout_steps
                         * STAGE2_SAMPLE_STATE_S)
@@ -195,7 +195,7 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     # teacher's for a distilled variant), each over the clip's student conditions at the deployed view counts.
     clip_conditions = len(views) * snapshots
     forwards = reverse_steps * clip_conditions * (2 * len(variants) + trained)
-    diagnostics = seeds * test_scenes * cfg.benchmark.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
+    diagnostics = seeds * test_scenes * cfg.replicate.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
     # The multiruns' further jobs, and the diagnostics' composition of each variant's config and its upstream.
     jobs = seeds * (trained + 2 * len(variants))
     starts = len(steps) * PROCESS_START_S + jobs * JOB_START_S
@@ -204,26 +204,26 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     return {part: seconds / 60 for part, seconds in parts.items()}
 
 
-def benchmark(cfg: DictConfig) -> Path:
-    """Run every step (each resumes when rerun), then write ``benchmark.md`` and ``run.json`` into
+def replicate(cfg: DictConfig) -> Path:
+    """Run every step (each resumes when rerun), then write ``replicate.md`` and ``run.json`` into
     ``cfg.run_dir``."""
     out_dir = Path(cfg.run_dir).resolve()
-    seeds = list(cfg.benchmark.training_seeds)
-    variants = benchmark_variants(None if cfg.benchmark.variants is None else list(cfg.benchmark.variants))
+    seeds = list(cfg.replicate.training_seeds)
+    variants = replicate_variants(None if cfg.replicate.variants is None else list(cfg.replicate.variants))
     user = [o for o in cfg.command_line
-            if override_key(o).split(".")[0] not in ("benchmark", "seed", "ablation")]
-    clips = cfg.benchmark.held_out_clips_per_scene
-    steps = benchmark_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views),
+            if override_key(o).split(".")[0] not in ("replicate", "seed", "ablation")]
+    clips = cfg.replicate.held_out_clips_per_scene
+    steps = replicate_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views),
                             list(cfg.data.prepare.student_views))
     parts = estimate_minutes(cfg, variants, steps)
     estimate = sum(parts.values())
-    show(f"tracegs-benchmark: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
+    show(f"tracegs-replicate: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
          f"{len(cfg.data.synthetic.test_seeds)} test scenes at {list(cfg.evaluation.views)} views: {len(steps)} "
          f"steps, about {estimate:.0f} min on an idle 2-core machine ("
          + ", ".join(f"{part} {minutes:.1f}" for part, minutes in parts.items())
          + f"; up to twice that on a slow one); output in {out_dir}")
     start = time.perf_counter()
-    timings = run_steps(steps, Commands("local"), "benchmark")
+    timings = run_steps(steps, Commands("local"), "replicate")
     wall_s = time.perf_counter() - start
     run = {**describe(cfg.seed), "training_seeds": seeds, "variants": [v.name for v in variants],
            "wall_s": round(wall_s, 1), "table3_minutes": round(wall_s / 60, 1),
@@ -231,19 +231,19 @@ def benchmark(cfg: DictConfig) -> Path:
            "stage2_steps": cfg.experiment.stage2_steps,
            "estimate_parts_min": {part: round(minutes, 1) for part, minutes in parts.items()}}
     machine = run["machine"]
-    header = (f"# Embedded benchmark: Table 3\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "
+    header = (f"# Table 3 replicated over training seeds (embedded scale)\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "
               f"cores, torch {machine['torch']}): wall time {run['table3_minutes']:.1f} min (estimated "
               f"{estimate:.0f}), peak RSS {run['peak_rss_gib']:.2f} GiB (largest step). Data, 3DGS fits and "
               f"deployment noise from seed {cfg.seed}; every restorer trained from scratch for each training "
               "seed.\n")
-    inputs = BenchmarkInputs(seeds=seeds, variants=[v.name for v in variants],
+    inputs = ReplicateInputs(seeds=seeds, variants=[v.name for v in variants],
                              descriptions={v.name: v.description for v in variants},
                              methods={v.name: v.method for v in variants},
                              eval_dirs={s: eval_dir(out_dir, s) for s in seeds}, three_dgs_dir=three_dgs_dir(out_dir),
                              diagnostics_dirs={s: diagnostics_dir(out_dir, s) for s in seeds})
-    report, figures = write_benchmark_report(out_dir, inputs, header)
+    report, figures = write_replicate_report(out_dir, inputs, header)
     write_json_atomic({**run, **figures}, out_dir / "run.json")
     page = write_report_page(out_dir)
     show(report.read_text())
-    show(f"tracegs-benchmark: the tables, Fig. 6 and the evaluations' pages in {page}")
+    show(f"tracegs-replicate: the tables, Fig. 6 and the evaluations' pages in {page}")
     return report

@@ -1,4 +1,4 @@
-"""Multirun bookkeeping: a job that fails on bad input does not stop the sweep, and the sweep ends with a
+"""Multirun bookkeeping: a job that fails on bad input does not stop the multirun, and the multirun ends with a
 summary of every job (a Hydra callback, registered in each primary config under ``hydra.callbacks``).
 
 Hydra's basic launcher stops at the first job that exits, and reports a failed job only as a traceback
@@ -28,12 +28,12 @@ from tracegs.config.validate import validate
 
 @dataclass
 class JobFailed:
-    """What a sweep job returns when it stopped on bad input (already reported on stderr in one line)."""
+    """What a multirun job returns when it stopped on bad input (already reported on stderr in one line)."""
 
     message: str
 
 
-def sweeping() -> bool:
+def in_multirun() -> bool:
     """Whether this job is one point of a multirun launched in this process (Hydra's basic launcher).
 
     Jobs on other machines (the SLURM launcher) still exit with status 2: each is its own SLURM job, so
@@ -44,8 +44,8 @@ def sweeping() -> bool:
     return hydra_cfg.mode == RunMode.MULTIRUN and hydra_cfg.launcher._target_.endswith(".BasicLauncher")
 
 
-class SweepSummary(Callback):
-    """Collects each job's outcome in the launching process; prints them after the sweep, exit 2 on failures.
+class MultirunSummary(Callback):
+    """Collects each job's outcome in the launching process; prints them after the multirun, exit 2 on failures.
 
     Jobs that run in other processes (the SLURM launcher) report in their own logs instead.
     """
@@ -69,7 +69,7 @@ class SweepSummary(Callback):
         failed = [o for o in self.outcomes if o[1] != "ok"]
         app = config.hydra.help.app_name
         succeeded = len(self.outcomes) - len(failed)
-        print(f"{app}: {succeeded} of {len(self.outcomes)} sweep jobs succeeded", file=sys.stderr)
+        print(f"{app}: {succeeded} of {len(self.outcomes)} multirun jobs succeeded", file=sys.stderr)
         for number, (overrides, outcome) in enumerate(self.outcomes):
             print(f"  #{number} {overrides}: {outcome}", file=sys.stderr)
         if failed:
@@ -77,7 +77,7 @@ class SweepSummary(Callback):
 
 
 def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:
-    """``--cfg`` where Hydra refuses or crashes: with ``-m`` (one YAML document per sweep job, expanded by
+    """``--cfg`` where Hydra refuses or crashes: with ``-m`` (one YAML document per multirun job, expanded by
     Hydra's own basic sweeper) and ``--cfg hydra|all --resolve`` (Hydra prints its node without the job
     config that run_dir and the launcher's resources interpolate). Returns False when Hydra can do it.
     """

@@ -320,9 +320,9 @@ def _run_units(job: _UnitJob, keys: list[tuple[str, int]], workers: int, progres
         _FORKED_JOB = None
 
 
-def evaluate(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
-             fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],
-             scenes: Sequence[str], gt_renderer: GroundTruthRenderer | None = None) -> dict:
+def score_units(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: RefinementConfig,
+                fit_cfg: GaussianFitConfig, restorers: Mapping[str, ClipRestorer | None],
+                scenes: Sequence[str], gt_renderer: GroundTruthRenderer | None = None) -> dict:
     """Evaluate this shard's units (skipping finished ones) and, for an unsharded run, merge them.
 
     ``restorers`` maps each method to its restorer (``None`` = plain 3DGS). ``scenes`` are the test scenes as the

@@ -23,8 +23,8 @@ from tracegs.data.synthetic import generate_scene, ground_truth_model, render_gr
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
 from tracegs.deploy.restorers import DiffusionRestorer, GroundTruthRestorer
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
-from tracegs.eval.evaluate import evaluate
 from tracegs.eval.merge import merge_results, unit_path
+from tracegs.eval.scoring import score_units
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.restorer.sampler import RestorationPipeline
@@ -56,7 +56,7 @@ def _configs():
     return fit_cfg, refine_cfg
 
 
-def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_path):
+def test_score_units_writes_results_media_and_resumes(scene_root, backbone, tmp_path):
     source = SceneSourceConfig(root=str(scene_root))
     scene = load_scene(source, scene_name(SEED))
     fit_cfg, refine_cfg = _configs()
@@ -67,8 +67,8 @@ def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_pat
     }
     cfg = EvaluationConfig(out_dir=str(tmp_path / "eval"), views=[3], grid_views=2, video_frames=6,
                            progress=False, variant="F")
-    results = evaluate(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name],
-                       gt_renderer=render_ground_truth)
+    results = score_units(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name],
+                          gt_renderer=render_ground_truth)
 
     on_disk = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert on_disk == json.loads(json.dumps(results))
@@ -91,12 +91,12 @@ def test_evaluate_writes_results_media_and_resumes(scene_root, backbone, tmp_pat
 
     # a rerun with the same settings skips the finished unit; a changed restorer recomputes it
     stamp = unit_file.stat().st_mtime_ns
-    evaluate(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name])
+    score_units(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name])
     assert unit_file.stat().st_mtime_ns == stamp
     restorers["baseline"].identity = "retrained"
     cfg.save_media = cfg.per_step = False
-    evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None, **{k: restorers[k] for k in ("baseline", "tracegs")}},
-             scenes=[scene.name])
+    score_units(cfg, source, refine_cfg, fit_cfg, {"3dgs": None, **{k: restorers[k] for k in ("baseline", "tracegs")}},
+                scenes=[scene.name])
     assert unit_file.stat().st_mtime_ns != stamp
 
 
@@ -107,10 +107,10 @@ def test_a_unit_scored_without_lpips_is_scored_again_once_it_can_be(scene_root, 
     weights = tmp_path / "vgg16-397923af.pth"
     cfg = EvaluationConfig(out_dir=str(tmp_path / "eval"), views=[3], methods=["3dgs"], lpips_weights=str(weights),
                            save_media=False, per_step=False, progress=False, workers=1)
-    first = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
+    first = score_units(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
     assert first["3dgs"]["3"]["lpips"] is None and "not found" in first["meta"]["lpips"]
     write_vgg16_weights(weights)
-    again = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
+    again = score_units(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[scene_name(SEED)])
     assert isinstance(again["3dgs"]["3"]["lpips"], float) and again["meta"]["lpips"].startswith("LPIPS-VGG")
     assert again["3dgs"]["3"]["psnr"] == first["3dgs"]["3"]["psnr"]  # the same fit, now with its LPIPS
 
@@ -124,19 +124,19 @@ def test_sharded_and_parallel_evaluation_agree(scene_root, tmp_path):
     for shard in (0, 1):
         cfg = EvaluationConfig(out_dir=str(tmp_path / "sharded"), methods=["3dgs"], views=[3, 4], workers=1,
                                shard_index=shard, num_shards=2, save_media=False, progress=False)
-        units = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
+        units = score_units(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
         assert list(units) == [f"{name}/views_{3 + shard}"]
     assert not (tmp_path / "sharded" / "results.json").exists()
     merged = merge_results(tmp_path / "sharded", views=[3, 4], methods=["3dgs"])
     one = EvaluationConfig(out_dir=str(tmp_path / "one"), methods=["3dgs"], views=[3, 4], workers=1,
                            save_media=False, progress=False)
-    evaluate(one, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
+    score_units(one, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
     whole = merge_results(tmp_path / "one", views=[3, 4], methods=["3dgs"])
     assert {k: merged["3dgs"][k] for k in ("3", "4")} == {k: whole["3dgs"][k] for k in ("3", "4")}
     # the same two units in one run, evaluated by two forked worker processes
     cfg = EvaluationConfig(out_dir=str(tmp_path / "parallel"), methods=["3dgs"], views=[3, 4], workers=2,
                            save_media=False, progress=False)
-    parallel = evaluate(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
+    parallel = score_units(cfg, source, refine_cfg, fit_cfg, {"3dgs": None}, scenes=[name])
     for k in ("3", "4"):
         assert parallel["3dgs"][k]["psnr"] == pytest.approx(merged["3dgs"][k]["psnr"], abs=1e-4)
 
@@ -152,7 +152,7 @@ def test_forked_evaluation_splits_a_unit_into_its_methods(scene_root, tmp_path):
     for workers in (1, 2):
         cfg = EvaluationConfig(out_dir=str(tmp_path / f"workers{workers}"), methods=["3dgs", "tracegs"], views=[3],
                                workers=workers, save_media=False, progress=False)
-        evaluate(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name])
+        score_units(cfg, source, refine_cfg, fit_cfg, restorers, scenes=[scene.name])
         units[workers] = json.loads(unit_path(cfg.out_dir, scene.name, 3).read_text())
     assert list(units[2]["methods"]) == ["3dgs", "tracegs"]
     for method in ("3dgs", "tracegs"):

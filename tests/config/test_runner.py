@@ -5,6 +5,7 @@ the command that reruns it."""
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import pytest
 from hydra import compose
@@ -80,3 +81,12 @@ def test_a_failing_command_stops_the_chain_and_says_how_to_rerun_it(tmp_path):
     assert "step 'train A': failed" in str(error.value)
     assert f"rerun it alone: {sys.executable}" in str(error.value) or "tracegs-train" in str(error.value)
     assert "no_such_key=1" in str(error.value) and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.usefixtures("hydra_context")
+def test_a_child_command_hands_on_the_folder_its_config_names(tmp_path):
+    """What a child process wrote is found where its config says, read in the parent without running it."""
+    step = Step.of("prepare", "prepare (held-out test scenes)", {"paths.root_dir": tmp_path, "data.prepare.split": "test"})
+    cache = Path(Commands().product(step, "data.prepare.cache_dir"))
+    assert cache.parent == tmp_path / "data" / "cache" and cache.name.startswith("synthetic-tiny-test-seed0-")
+    assert not cache.exists()  # named, not made

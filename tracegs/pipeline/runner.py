@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.overrides import with_overrides
 from tracegs.errors import TraceGSError
+from tracegs.pipeline.upstream import compose_run, composed
 
 log = logging.getLogger("tracegs")
 
@@ -74,8 +75,9 @@ def override(key: str, value: Any) -> str:
 class Step:
     """One command of a chain: the console script's module under ``tracegs.cli`` (and its ``conf/<app>.yaml``), its
     typed ``settings`` (key -> value, in order), the raw overrides it passes on from the user's command line
-    (``passed``; the step's own settings win over them), and what the logs call it. ``hands`` names products for later steps (product name ->
-    key of this step's composed config); ``takes`` fills keys from earlier steps' products (key -> product name)."""
+    (``passed``; the step's own settings win over them), and what the logs call it. ``hands`` names products for
+    later steps (product name -> key of this step's composed config); ``takes`` fills keys from earlier steps'
+    products (key -> product name)."""
 
     app: str
     settings: tuple[tuple[str, Any], ...]
@@ -104,9 +106,6 @@ class Step:
     @property
     def is_multirun(self) -> bool:
         return any(isinstance(v, Sweep) for _, v in self.settings)
-
-    def setting(self, key: str) -> Any:
-        return dict(self.settings)[key]
 
     def with_settings(self, settings: Mapping[str, Any]) -> Step:
         kept = tuple((k, v) for k, v in self.settings if k not in settings)
@@ -139,8 +138,6 @@ class InProcess:
         return [f"tracegs-{step.app}", *step.overrides]
 
     def run(self, step: Step) -> None:
-        from tracegs.pipeline.upstream import compose_run  # composes configs: imported where a step runs
-
         if step.is_multirun:
             raise ValueError(f"step '{step.label}' is a multirun; run its jobs() in this process")
         step_cfg = compose_run(self.cfg, step.app, step.overrides)
@@ -174,8 +171,7 @@ class Commands:
                                f"rerun it alone: {shlex.join(command)}")
 
     def product(self, step: Step, key: str) -> Any:
-        from tracegs.pipeline.upstream import composed
-
+        """Read from the step's config composed here: its child process made the product there."""
         return OmegaConf.select(composed(step.app, step.overrides), key)
 
 

@@ -86,7 +86,8 @@ def test_a_failing_command_stops_the_chain_and_says_how_to_rerun_it(tmp_path):
 @pytest.mark.usefixtures("hydra_context")
 def test_a_child_command_hands_on_the_folder_its_config_names(tmp_path):
     """What a child process wrote is found where its config says, read in the parent without running it."""
-    step = Step.of("prepare", "prepare (held-out test scenes)", {"paths.root_dir": tmp_path, "data.prepare.split": "test"})
+    step = Step.of("prepare", "prepare (held-out test scenes)",
+                   {"paths.root_dir": tmp_path, "data.prepare.split": "test"})
     cache = Path(Commands().product(step, "data.prepare.cache_dir"))
     assert cache.parent == tmp_path / "data" / "cache" and cache.name.startswith("synthetic-tiny-test-seed0-")
     assert not cache.exists()  # named, not made

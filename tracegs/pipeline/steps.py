@@ -25,8 +25,6 @@ from tracegs.errors import TraceGSError
 from tracegs.pipeline.runner import NO_SETTINGS, Commands, Step, Sweep, run_steps
 from tracegs.pipeline.variants import table3_variants
 
-log = logging.getLogger("tracegs")
-
 # The held-out cache: the test scenes prepared like the training clips, read only by evaluation.
 HELD_OUT_SPLIT = {"data.prepare.split": "test"}
 # The product names a step hands on: the training and the held-out paired-clip caches.

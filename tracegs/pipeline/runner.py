@@ -132,7 +132,7 @@ class InProcess:
 
     def __init__(self, cfg: DictConfig, tasks: Mapping[str, Callable[[DictConfig], Any]]) -> None:
         self.cfg, self.tasks = cfg, tasks
-        self.composed: dict[str, DictConfig] = {}
+        self.last: DictConfig | None = None  # the config of the step that ran last, whose products run_steps reads
 
     def command(self, step: Step) -> list[str]:
         return [f"tracegs-{step.app}", *step.overrides]
@@ -143,10 +143,11 @@ class InProcess:
         step_cfg = compose_run(self.cfg, step.app, step.overrides)
         lightning.seed_everything(step_cfg.seed, workers=True, verbose=False)
         self.tasks[step.app](step_cfg)
-        self.composed[step.label] = step_cfg
+        self.last = step_cfg
 
     def product(self, step: Step, key: str) -> Any:
-        return OmegaConf.select(self.composed[step.label], key)
+        """Read from the config ``step`` just ran on (run_steps asks right after running it)."""
+        return OmegaConf.select(self.last, key)
 
 
 class Commands:

@@ -27,17 +27,16 @@ from tracegs.pipeline.variants import table3_variants
 
 # The held-out cache: the test scenes prepared like the training clips, read only by evaluation.
 HELD_OUT_SPLIT = {"data.prepare.split": "test"}
-# The product names a step hands on: the training and the held-out paired-clip caches.
-TRAINING_CACHE, HELD_OUT_CACHE = "training cache", "held-out cache"
+# The product a step hands on to a later one: the held-out paired-clip cache, which the demo's evaluation reads.
+HELD_OUT_CACHE = "held-out cache"
 
 Settings = Mapping[str, Any]
 
 
 def data_steps(common: Settings = NO_SETTINGS, training: Settings = NO_SETTINGS, held_out: Settings = NO_SETTINGS,
                user: Sequence[str] = ()) -> list[Step]:
-    """Prepare the training clips, then the test scenes' held-out clips; each hands its cache's folder on."""
-    return [Step.of("prepare", "prepare (training scenes)", common, training,
-                    hands={TRAINING_CACHE: "data.prepare.cache_dir"}).passing(user),
+    """Prepare the training clips, then the test scenes' held-out clips, which hand their cache's folder on."""
+    return [Step.of("prepare", "prepare (training scenes)", common, training).passing(user),
             Step.of("prepare", "prepare (held-out test scenes)", common, HELD_OUT_SPLIT, held_out,
                     hands={HELD_OUT_CACHE: "data.prepare.cache_dir"}).passing(user)]
 

@@ -22,7 +22,7 @@ from hydra import initialize_config_dir
 
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
-from tracegs.pipeline.upstream import composed
+from tracegs.pipeline.runner import composed
 from tracegs.training.strategy import LAUNCH_ENV
 
 
@@ -67,8 +67,8 @@ def hydra_context():
 
 @pytest.fixture
 def entry_config():
-    """Compose as an entry point does (tracegs.pipeline.upstream.composed): the config keeps the overrides it was
-    given as its ``command_line``, from which the upstream lookup composes the earlier steps' configs."""
+    """Compose as an entry point does (tracegs.pipeline.runner.composed): the config keeps the overrides it was
+    given as its ``command_line``, from which an in-process runner composes its steps."""
     return composed
 
 

@@ -13,6 +13,8 @@ cache (``prepare``), variant A's restorer (``baseline``), the Stage-1 adapter (`
   data settings it depends on itself (``reads(PREPARE, BASELINE)``).
 - ``execution()``: no product; how or where a run executes (paths, workers, logging, shards, checkpoint
   cadence) or what a command does with the products (reports, tracegs-replicate's plan, Table 3's layout).
+- ``via(*fields)``: a setting other fields interpolate and that changes products only through them (a debug
+  preset's step budget reaches each stage's ``stage.max_steps``): their values are in the identity, it is not.
 - ``handed_in(*products)``: an input given by path instead of located (its default interpolates the located
   product, whose settings are already named); given, those products read its content, never its path.
 
@@ -65,11 +67,13 @@ _KEY = "tracegs.products"
 class Declaration:
     """What one field changes: ``products`` (made-from products included); ``split``: the split whose scenes
     it names, which a cache of another split does not read; ``content``: for an input handed in by path, the
-    files that stand for its content (none: all of it)."""
+    files that stand for its content (none: all of it); ``via``: the fields (dotted paths from the root) that
+    interpolate it and through which alone it changes products."""
 
     products: frozenset[Product]
     split: str | None = None
     content: tuple[str, ...] | None = None
+    via: tuple[str, ...] = ()
 
 
 def _made_from(products: Iterable[Product]) -> frozenset[Product]:
@@ -103,6 +107,12 @@ def reads(*products: Product | tuple[Product, ...], default: Any = dataclasses.M
 def execution(default: Any = dataclasses.MISSING, factory: Any = None) -> Any:
     """A field that changes no product."""
     return _field(Declaration(frozenset()), default, factory)
+
+
+def via(*fields: str, default: Any = dataclasses.MISSING, factory: Any = None) -> Any:
+    """A field that changes products only through ``fields`` (dotted paths from the root), which interpolate it:
+    their values name the products it changes, so no identity reads it a second time."""
+    return _field(Declaration(frozenset(), via=fields), default, factory)
 
 
 def handed_in(*products: Product, content: tuple[str, ...] = (), default: Any = dataclasses.MISSING) -> Any:

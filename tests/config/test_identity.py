@@ -31,9 +31,12 @@ def run_dir(overrides: list[str], config_name: str = "train") -> str:
 
 
 def trained(entry_config, root: Path, overrides: list[str], product: str) -> Path:
-    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job)."""
-    folder = Path(str(entry_config("train", [f"paths.root_dir={root}", *overrides]).run_dir)) / product
+    """The product a ``tracegs-train`` command line writes, made on disk under ``root`` (its own job), with the run
+    record a finished run keeps beside it."""
+    cfg = entry_config("train", [f"paths.root_dir={root}", *overrides])
+    folder = Path(str(cfg.run_dir)) / product
     folder.mkdir(parents=True)
+    write_run_record(cfg, cfg.stage.name, cfg.run_dir)
     return folder
 
 
@@ -385,10 +388,11 @@ def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(entry_con
     for dataset in ("dl3dv", "mipnerf360"):
         for variant in table3_variants():
             chosen = [] if dataset == "dl3dv" else [f"data={dataset}"]
-            folder = Path(str(entry_config("evaluate", [*common, f"ablation={variant.name}", *chosen])
-                              .evaluation.out_dir))
+            evaluation = entry_config("evaluate", [*common, f"ablation={variant.name}", *chosen])
+            folder = Path(str(evaluation.evaluation.out_dir))
             folder.mkdir(parents=True)
             (folder / "results.json").write_text("{}")
+            write_run_record(evaluation, "evaluate", folder)
             written.setdefault(dataset, []).append(folder)
     assert ablation_inputs(entry_config("report", report)) == written
 

@@ -7,9 +7,10 @@ from dataclasses import dataclass
 import pytest
 from hydra import compose
 
+from tracegs.config.identity import scoped_values
 from tracegs.config.schema import TraceGSConfig, register_configs
 from tracegs.errors import ConfigError
-from tracegs.products import STAGE1, STAGE2, reads
+from tracegs.products import STAGE1, STAGE2, declarations, reads
 from tracegs.training.config import LossConfig
 
 pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
@@ -59,3 +60,16 @@ def folders(*overrides: str) -> dict[str, str]:
 def test_a_field_read_by_stage2_moves_stage2_and_evaluation_only(stage2_field_schema):
     default, changed = folders(), folders("loss.lambda_new=0.9")
     assert {product for product in default if default[product] != changed[product]} == {"stage2", "evaluate"}
+
+
+def test_a_field_changed_through_others_is_named_by_their_values():
+    """``trainer.max_steps`` (the debug presets' budget for every stage) reaches the products through each stage's
+    ``stage.max_steps`` alone: every product moves, and no identity holds the field itself."""
+    declared = declarations(TraceGSConfig)
+    through = {path: found.via for path, found in declared.items() if found.via}
+    assert through == {"trainer.max_steps": ("stage.max_steps",)}
+    assert all(declared[target].products for targets in through.values() for target in targets)
+    default, budgeted = folders(), folders("trainer.max_steps=5")
+    assert all(default[product] != budgeted[product] for product in default)
+    assert "trainer.max_steps" not in scoped_values(compose(config_name="train", overrides=["trainer.max_steps=5"]),
+                                                    "stage2")

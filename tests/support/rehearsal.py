@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.cli.app import CONF_DIR, run_task
 from tracegs.config.schema import register_configs
-from tracegs.pipeline.upstream import composed
+from tracegs.pipeline.runner import composed
 
 # Dotted key -> why it is a size (or the run's name) and not science.
 SIZE_KEYS = {

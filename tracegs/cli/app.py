@@ -131,7 +131,7 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """What every entry point does with its composed config: validate the cross-field rules, route the
     libraries' messages through Hydra's logging, seed everything from ``cfg.seed``, run ``task``."""
     if HydraConfig.initialized():
-        # The one place the command line is read: the steps compose their upstream configs from the typed copy.
+        # The one place the command line is read: an in-process runner composes its steps from the typed copy.
         cfg.command_line = list(HydraConfig.get().overrides.task)
     validate(cfg)
     log_libraries_through_hydra()

@@ -139,8 +139,8 @@ def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
             continue
         parent, _, leaf = key.rpartition(".")
         holder = OmegaConf.select(cfg, parent)
-        # The node is read unresolved: resolving the default would locate the upstream product (composing its
-        # config), which the read fields already name.
+        # The node is read unresolved: resolving the default would locate the upstream product, which the read
+        # fields already name.
         node = holder._get_node(leaf) if isinstance(holder, DictConfig) and leaf in holder.keys() else None
         if node is None or node._is_interpolation() or node._is_none():
             continue
@@ -176,7 +176,7 @@ def cache_name(cfg: DictConfig, split: str) -> str:
 
 def register_resolvers() -> None:
     """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}``,
-    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}`` and the variant's teacher condition
+    ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}``, ``${tracegs.first_set:<a>,<b>,...}`` and the variant's teacher condition
     (``${tracegs.with_variant_teacher:...}``, ``${tracegs.fits_variant_teacher:...}``) for the YAML."""
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind), replace=True)
@@ -185,6 +185,7 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
     OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
+    OmegaConf.register_new_resolver("tracegs.first_set", first_set, replace=True)
     OmegaConf.register_new_resolver("tracegs.with_variant_teacher", with_variant_teacher, replace=True)
     OmegaConf.register_new_resolver("tracegs.fits_variant_teacher", fits_variant_teacher, replace=True)
 
@@ -211,6 +212,12 @@ def product_folder(path: str) -> str:
         log.warning("%s holds a second copy of %s, made under another spelling of the command line; nothing reads "
                     "it, remove it to reclaim the space", twin, folder)
     return path
+
+
+def first_set(*values: Any) -> Any:
+    """The first of ``values`` that is not None (None if all are): a setting with a fallback, e.g. a stage's step
+    budget, ``trainer.max_steps`` where a debug preset sets it, else the stage's own."""
+    return next((value for value in values if value is not None), None)
 
 
 def gpus_per_node(ranks: int, trainer_gpus: int) -> int:

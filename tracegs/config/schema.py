@@ -236,8 +236,8 @@ class TraceGSConfig:
     # timestamped, so later stages find earlier products and an interrupted run resumes in place.
     run_dir: str = execution(default="${paths.experiment_dir}/${task}")
     # The overrides this command was given on its command line (the entry point sets them; an in-process step
-    # gets its own): a later step composes the configs of the earlier steps whose products it loads from them
-    # (tracegs.pipeline.upstream). What a product is never depends on them, only on the typed values.
+    # gets its own): an in-process runner composes each of its steps from them (tracegs.pipeline.runner). What a
+    # product is, and where an earlier one lies (tracegs.pipeline.upstream), never depends on them.
     command_line: list[str] = execution(factory=list)
     # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
     job_name: str = execution(default="${task}-${stage.name}-${ablation.name}")

@@ -26,7 +26,7 @@ from tracegs.eval.diagnostics import VariantRoles, held_out_diagnostics
 from tracegs.eval.labels import STAGE1
 from tracegs.eval.replicates import diagnostics_markdown
 from tracegs.io import atomic_write, write_json_atomic
-from tracegs.pipeline.upstream import compose_run, locate_artifacts, section
+from tracegs.pipeline.upstream import as_variant, locate_artifacts, section
 from tracegs.pipeline.variants import in_table_order, table3_variants
 
 TEACHER = STAGE1  # the adapter name of the frozen Stage-1 teacher on the shared backbone
@@ -41,7 +41,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     unknown = sorted(set(cfg.report.inputs) - set(names))
     if unknown:
         raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")
-    variants = {name: compose_run(cfg, "report", [f"ablation={name}"]) for name in names}
+    variants = {name: as_variant(cfg, name) for name in names}
     distilled = any(variant.ablation.train_stage2 for variant in variants.values())
     if cfg.report.stage1_row and not distilled:
         raise ConfigError("report.stage1_row", "needs a distilled variant in report.inputs (A alone has no Stage-1 "

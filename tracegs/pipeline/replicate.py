@@ -10,8 +10,8 @@ the deployment noise (``data.prepare.seed``, ``data.prepare.fit.seed`` and ``dep
 seed's values). Plain 3DGS does not depend on the restorer and is evaluated once.
 
 Each step is the command a user would type (``tracegs-prepare``, ``-train``, ``-evaluate``, ``-report``), run as
-a child process with its overrides on its own command line, so each finds its upstream products by the
-run-identity rule exactly as when typed by hand, and every step resumes when the command is rerun. A seed's
+a child process with its overrides on its own command line, so each finds its upstream products exactly as when
+typed by hand (tracegs.pipeline.upstream), and every step resumes when the command is rerun. A seed's
 Stage-2 students and its evaluations are one multirun each (Hydra's local launcher), as
 ``launch/sweep_ablation.sh`` runs them: one interpreter start per step rather than per variant.
 """

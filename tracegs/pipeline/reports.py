@@ -26,7 +26,7 @@ from tracegs.eval.seeds import seed_spread_markdown
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run
-from tracegs.pipeline.upstream import compose_run, locate_artifacts, section, upstream_config
+from tracegs.pipeline.upstream import as_variant, locate_artifacts, product_folder, section
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 
 
@@ -49,7 +49,7 @@ def variant_evaluation(cfg: DictConfig, variant: str, dataset: str, asked_by: st
     """The folder of the evaluation of ``variant`` on ``dataset`` that this command line's settings give (what the
     ablation sweep's evaluate step made), refused in one line naming the field ``asked_by`` when it lacks
     ``product``."""
-    folder = Path(upstream_config(cfg, "evaluate", variant, data=dataset).evaluation.out_dir)
+    folder = product_folder(cfg, "evaluate", variant, data=dataset)
     if not (folder / product).exists():
         raise FileNotFoundError(f"{asked_by}: no evaluation of variant {variant} on {dataset} ({folder / product}); run "
                                 f"tracegs-evaluate ablation={variant} data={dataset} with this command's settings")
@@ -144,7 +144,7 @@ def per_step_report(cfg: DictConfig) -> Path:
     pipelines = {}
     for variant in list(cfg.report.inputs) or per_step_variants():
         # Each variant's own config says which restorer stands for it and where its student adapter is.
-        variant_cfg = compose_run(cfg, "report", [f"ablation={variant}"])
+        variant_cfg = as_variant(cfg, variant)
         method = variant_cfg.ablation.method
         pipelines[variant] = restorers_for_run(variant_cfg, [method])[method].pipeline
     clip_curves = held_out_clip_curves(pipelines, cfg.evaluation.held_out_cache, seed=cfg.deploy.seed,

@@ -24,11 +24,12 @@ from types import MappingProxyType
 from typing import Any
 
 import lightning
+from hydra import compose
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.overrides import with_overrides
+from tracegs.config.validate import validate
 from tracegs.errors import TraceGSError
-from tracegs.pipeline.upstream import compose_run, composed
 
 log = logging.getLogger("tracegs")
 
@@ -126,9 +127,24 @@ class Step:
         return [replace(self.with_settings({key: value}), label=f"{self.label} {value}") for value in values]
 
 
+def composed(config_name: str, overrides: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` under ``overrides``, which it keeps as its ``command_line``."""
+    cfg = compose(config_name=config_name, overrides=list(overrides))
+    cfg.command_line = list(overrides)
+    return cfg
+
+
+def compose_run(cfg: DictConfig, config_name: str, extra: Sequence[str]) -> DictConfig:
+    """``conf/<config_name>.yaml`` with the command-line overrides of ``cfg`` and ``extra`` (which wins),
+    validated: the config of a step this process runs, as its own command would compose it."""
+    cfg = composed(config_name, with_overrides(cfg.command_line, extra))
+    validate(cfg)
+    return cfg
+
+
 class InProcess:
     """Runs each step's task in this process on a config composed from ``cfg``'s command line and the step's
-    overrides (``tracegs.pipeline.upstream.compose_run``)."""
+    overrides (:func:`compose_run`)."""
 
     def __init__(self, cfg: DictConfig, tasks: Mapping[str, Callable[[DictConfig], Any]]) -> None:
         self.cfg, self.tasks = cfg, tasks

@@ -1,24 +1,42 @@
-"""Upstream lookup: the config of the earlier run whose product a run needs, and where that product lies.
+"""Upstream lookup: where the product of an earlier run lies, worked out from the typed config of the run that
+needs it.
 
-A later stage never asks where an earlier one wrote: it composes the earlier run's config from its own command
-line (``command_line``, which the entry point sets from the overrides it was given) and computes that run's
-folder from the typed values with the run-identity rule (tracegs.config.identity). No global Hydra state is
-read: a config composed here carries the overrides it was composed from, so it finds its own upstream the same
-way.
+Nothing is composed again from a command line. The earlier run's config is a projection of this one, and its
+folder follows from that by the run-identity rule (tracegs.config.identity), which reads the fields each product
+declares:
+
+- **its stage.** A stage's own sections (``stage``, ``optimizer``) hold what the ``stage`` group option sets
+  (conf/stage/<stage>.yaml: budgets and rates from ``experiment.<stage>_*``, the run folder) on the schema's
+  defaults. A training command's own overrides of them describe that command's stage only, so an earlier stage is
+  looked up at its option's values; an evaluation's describe the student it loads (its default stage).
+- **its variant.** A and the Stage-1 adapter are shared by every Table 3 variant: they are looked up with the
+  default variant's sections. A student or evaluation of another variant takes that variant's sections
+  (``ablation``, ``teacher``, ``policy``, ``loss``: conf/ablation/<variant>.yaml and the options it selects, composed
+  alone once per process; no command line is read).
+- **its data.** A product of this run's dataset shares its data section. The restorers trained on another one
+  (``training_data``, when this run evaluates another dataset) and an evaluation of another dataset (Table 3's
+  out-of-domain columns) are found by the run records beside the products (tracegs.pipeline.records): the one
+  finished product there made on that dataset with this run's every other setting.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import copy
+import json
+from collections.abc import Iterable, Sequence
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 from hydra import compose
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.overrides import describes_the_dataset, override_key, with_overrides
+from tracegs.config.identity import scoped_values
+from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AUTO
-from tracegs.config.validate import validate
+from tracegs.errors import ConfigError
+from tracegs.pipeline.records import RUN_RECORD
 from tracegs.training.run import PRODUCTS
 
 
@@ -27,72 +45,120 @@ def section(node: DictConfig) -> Any:
     return OmegaConf.to_object(node)
 
 
-# Overrides of Stage 2's own settings and of the ablation axes: they describe the run being started, not
-# the earlier runs it builds on (every Table 3 variant clones the one Stage-1 adapter).
-_STAGE_OWN = ("stage", "optimizer")
-_ABLATION_AXES = ("ablation", "teacher", "policy")
-
-
 # The products a training stage makes: they are looked up on the training data (``training_data``).
 TRAINED = ("baseline", "stage1", "stage2")
+# The sections a training stage's own settings live in; the stage group's options also set these keys elsewhere.
+STAGE_SECTIONS = ("stage", "optimizer")
+# The sections a Table 3 variant sets (conf/ablation/<name>.yaml and the teacher/policy/loss options it selects).
+VARIANT_SECTIONS = ("ablation", "teacher", "policy", "loss")
+# What A and Stage 1 read of a variant is the default variant's (every variant clones their products); its loss
+# differs between variants only in what Stage 2 reads, and stays the command's own.
+SHARED_BY_VARIANTS = ("ablation", "teacher", "policy")
 
 
-def _carried(override: str, upstream: str, from_training: bool, other_data: bool) -> bool:
-    root = override_key(override).split(".")[0].split("/")[0]
-    if root == "hydra" or (other_data and describes_the_dataset(override)):  # settings of the run's own dataset
-        return False
-    if from_training and root in _STAGE_OWN:
-        return False
-    return not (upstream in ("baseline", "stage1") and root in (*_STAGE_OWN, *_ABLATION_AXES))
+def stage_option(stage: str) -> dict[str, Any]:
+    """The ``stage`` group's option ``stage`` (conf/stage/<stage>.yaml) as written: interpolations unresolved."""
+    return OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "stage" / f"{stage}.yaml"), resolve=False)
 
 
-def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None, data: str | None = None) -> DictConfig:
-    """The config of the earlier run whose product ``cfg`` needs: the same command line, its own stage.
+def _search_path() -> tuple[str, ...]:
+    return tuple(str(source.path) for source in GlobalHydra.instance().config_loader().get_sources())
 
-    ``kind`` is "baseline", "stage1", "stage2" or "evaluate" (the last two for ``variant``, default the
-    variant of ``cfg.ablation``), on dataset ``data``: default the training data (``cfg.training_data``) for a
-    trained product, this run's for an evaluation. On a dataset other than this run's, the run's ``data``
-    overrides are left out (they describe its own dataset). The earlier run's folder follows from this config
-    by the run-identity rule (tracegs.config.identity).
-    """
-    from_training = cfg.task == "train"
-    variant = variant or cfg.ablation.name
+
+@lru_cache(maxsize=32)
+def _variant_sections(variant: str | None, search_path: tuple[str, ...]) -> DictConfig:
+    overrides = [] if variant is None else [f"ablation={variant}"]
+    cfg = compose(config_name="train", overrides=overrides)
+    return OmegaConf.masked_copy(cfg, list(VARIANT_SECTIONS))
+
+
+def variant_sections(variant: str | None) -> DictConfig:
+    """The sections a Table 3 variant sets (None: the default variant's), from its declaration alone; cached per
+    config search path."""
+    return _variant_sections(variant, _search_path())
+
+
+def _set_sections(cfg: DictConfig, source: DictConfig, names: Iterable[str]) -> None:
+    for name in names:
+        cfg[name] = copy.deepcopy(source[name])
+
+
+def as_variant(cfg: DictConfig, variant: str) -> DictConfig:
+    """A copy of ``cfg`` run for Table 3 variant ``variant``: its sections in place of this config's."""
+    projected = copy.deepcopy(cfg)
+    if variant != cfg.ablation.name:
+        _set_sections(projected, variant_sections(variant), VARIANT_SECTIONS)
+    return projected
+
+
+def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> DictConfig:
+    """The config of the earlier ``kind`` run ("baseline", "stage1", "stage2" or "evaluate"; the last two of
+    ``variant``, default this config's) whose product ``cfg`` needs, on this config's dataset: a projection of
+    ``cfg`` (see the module docstring). ``cfg``'s own folders and artifacts must not be pinned yet."""
+    if kind in ("baseline", "stage1"):
+        projected = copy.deepcopy(cfg)
+        _set_sections(projected, variant_sections(None), SHARED_BY_VARIANTS)
+    else:
+        projected = as_variant(cfg, variant or cfg.ablation.name)
+    if kind in TRAINED:
+        option = stage_option(kind)
+        if cfg.stage.name != kind:  # another stage's overrides of the stage sections are that stage's own
+            _set_sections(projected, OmegaConf.structured(OmegaConf.get_type(cfg)), STAGE_SECTIONS)
+            projected.merge_with(option)
+        projected.run_dir = option["run_dir"]
+    return projected
+
+
+def product_folder(cfg: DictConfig, kind: str, variant: str | None = None, data: str | None = None) -> Path:
+    """The folder of the earlier ``kind`` run whose product ``cfg`` needs (:func:`upstream_config`), on dataset
+    ``data``: default the training data (``training_data``) for a trained product, this run's for an evaluation.
+    On another dataset than this run's, the run record there that matches (:func:`recorded_folder`)."""
     data = data or (cfg.training_data if kind in TRAINED else cfg.data.name)
-    other_data = data != cfg.data.name
-    extra = {"evaluate": [f"ablation={variant}"],
-             "stage2": ["stage=stage2", f"ablation={variant}"]}.get(kind, [f"stage={kind}"])
-    extra += [f"data={data}"] if other_data else []
-    replaced = {override_key(o) for o in extra}
-    overrides = [o for o in cfg.command_line
-                 if _carried(o, kind, from_training, other_data) and override_key(o) not in replaced]
-    return composed("evaluate" if kind == "evaluate" else "train", [*overrides, *extra])
+    projected = upstream_config(cfg, kind, variant)
+    folder = Path(str(projected.run_dir if kind in TRAINED else projected.evaluation.out_dir))
+    if data == cfg.data.name:
+        return folder
+    return recorded_folder(projected, kind, data, folder.parent)
 
 
-def composed(config_name: str, overrides: Sequence[str]) -> DictConfig:
-    """``conf/<config_name>.yaml`` under ``overrides``, which it keeps as its ``command_line``."""
-    cfg = compose(config_name=config_name, overrides=list(overrides))
-    cfg.command_line = list(overrides)
-    return cfg
+# Record keys a product on another dataset is not compared by: that dataset's own section, the earlier products'
+# paths (their contents are recorded apart) and those contents.
+_NOT_COMPARED = ("data.", "artifacts.", "content.")
+
+
+def _compared(values: dict[str, Any]) -> dict[str, Any]:
+    return {key: value for key, value in values.items() if not key.startswith(_NOT_COMPARED)}
+
+
+def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -> Path:
+    """The folder under ``parent`` whose run record is a finished ``kind`` run on dataset ``data`` with every other
+    setting of ``projected`` (a config of this run's dataset). None made: a folder that does not exist, named so
+    that the error of whatever loads its product says what is missing; several: refused in one line."""
+    expected = _compared(scoped_values(projected, kind))
+    matches = []
+    for record in sorted(parent.glob(f"*/{RUN_RECORD}")):
+        values = json.loads(record.read_text())
+        if values.get("data.name") == data and _compared(values) == expected:
+            matches.append(record.parent)
+    if len(matches) > 1:
+        field = "artifacts." + next(k for k, v in PRODUCERS.items() if v == kind) if kind in TRAINED else "data"
+        raise ConfigError(field, f"{len(matches)} {kind} runs on {data} match this run's settings "
+                                 f"({', '.join(m.name for m in matches)} under {parent}); name the one to use")
+    return matches[0] if matches else parent / f"none-on-{data}-with-these-settings"
+
+
+# The earlier stage whose product each artifact is.
+PRODUCERS = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
 
 
 def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
-    """Replace each needed "auto" artifact by the product of the run the identity rule finds for ``cfg``.
+    """Replace each needed "auto" artifact by the product of the earlier run :func:`product_folder` finds.
 
-    The run's own folders are resolved first and kept, so they stay named by the configuration as given.
-    """
+    The run's own folders are resolved first and kept, so they stay named by the configuration as given."""
+    source = copy.deepcopy(cfg)
     for key in ("run_dir", "evaluation.out_dir"):
         OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
-    producers = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
     for artifact in needed:
-        if cfg.artifacts[artifact] != AUTO:
-            continue
-        producer = producers[artifact]
-        cfg.artifacts[artifact] = str(Path(upstream_config(cfg, producer).run_dir) / PRODUCTS[producer])
-
-
-def compose_run(cfg: DictConfig, config_name: str, extra: Sequence[str]) -> DictConfig:
-    """``conf/<config_name>.yaml`` with the command-line overrides of ``cfg`` and ``extra`` (which wins),
-    validated."""
-    cfg = composed(config_name, with_overrides(cfg.command_line, extra))
-    validate(cfg)
-    return cfg
+        if cfg.artifacts[artifact] == AUTO:
+            producer = PRODUCERS[artifact]
+            cfg.artifacts[artifact] = str(product_folder(source, producer) / PRODUCTS[producer])

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from tracegs.data.config import DataModuleConfig, SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.modes import Mode
-from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, reads
+from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, reads, via
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig
 
@@ -248,7 +248,10 @@ class TrainerConfig:
     deterministic: bool = reads(BASELINE, default=False)
     # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
     cpu_threads: int | None = execution(default=None)
-    # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection.
+    # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection, and every stage's
+    # step budget (None: each stage's own, experiment.<stage>_steps). The budget is set here, not in the stage section,
+    # so that a later stage's config still says what an earlier one ran (tracegs.pipeline.upstream).
+    max_steps: int | None = via("stage.max_steps", default=None)
     fast_dev_run: int = reads(BASELINE, default=0)
     overfit_batches: float = reads(BASELINE, default=0.0)
     detect_anomaly: bool = reads(BASELINE, default=False)

@@ -1,7 +1,8 @@
 """How many times each command composes and validates its config: the cost of finding the products it builds on.
 
-A command composes its own config (the command-line check before Hydra writes anything, then Hydra's own), and
-one more config for each earlier product it looks up (tracegs.pipeline.upstream: A's, Stage 1's, a student's).
+A command composes its own config (the command-line check before Hydra writes anything, then Hydra's own); an
+earlier product it looks up is a projection of that config (tracegs.pipeline.upstream), which composes only the
+declaration of a variant whose sections it needs (the default variant's for A and Stage 1), once per process.
 The demo's steps are composed in its process, once each. This script makes the smallest demo in a temporary root
 (about half a minute on two cores), then runs each command again on that finished root, in this process through
 its console entry point, counting Hydra's compositions (``ConfigLoaderImpl.load_configuration``) and the

@@ -199,6 +199,20 @@ def test_evaluation_of_another_dataset_finds_the_students_of_the_training_data(e
     assert cfg.evaluation.out_dir != in_domain and Path(str(cfg.evaluation.out_dir)).name.startswith("mipnerf360-")
 
 
+def test_a_capture_is_restored_by_the_restorers_of_the_training_data(entry_config, tmp_path):
+    """``tracegs-restore capture.path=...``: its data section describes the capture, yet it loads the A and student
+    trained on the training data, and one line names the choice when two such students match."""
+    common = [f"paths.root_dir={tmp_path}", "seed=2"]
+    baseline = trained(entry_config, tmp_path, [*common, "stage=baseline"], "baseline_transformer")
+    student = trained(entry_config, tmp_path, [*common, "stage=stage2"], "student_adapter")
+    cfg = entry_config("restore", common)
+    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    assert (Path(cfg.artifacts.baseline_weights), Path(cfg.artifacts.student_adapter)) == (baseline, student)
+    trained(entry_config, tmp_path, [*common, "stage=stage2", "data.synthetic.train_seeds=[0,2]"], "student_adapter")
+    with pytest.raises(ConfigError, match=r"'artifacts.student_adapter': 2 stage2 runs on synthetic match"):
+        locate_artifacts(entry_config("restore", common), ["student_adapter"])
+
+
 def test_training_data_names_where_the_students_are_looked_up(entry_config, tmp_path):
     """Restorers trained on a dataset of one's own are found by naming it as the training data."""
     common = [f"paths.root_dir={tmp_path}", "experiment=paper", "training_data=custom"]

@@ -50,3 +50,12 @@ def test_a_report_finds_every_variants_evaluation_and_student(scale):
         student = upstream_config(as_variant(report, variant), "stage2")
         assert str(student.run_dir) == folder("train", [*scale, "stage=stage2", f"ablation={variant}"]), variant
         assert student.teacher.views == compose(config_name="train", overrides=[f"ablation={variant}"]).teacher.views
+
+
+@pytest.mark.parametrize("command", ["prepare", "evaluate", "deploy", "report", "demo"])
+def test_every_command_on_the_training_data_finds_the_trained_products(command):
+    """A command's own config file (its task, folders, evaluation settings) never changes which restorers it
+    loads. (tracegs-restore, whose data section describes a capture, finds them by their run records.)"""
+    cfg = compose(config_name=command)
+    for kind in ("baseline", "stage1", "stage2"):
+        assert product_folder(cfg, kind) == Path(folder("train", [f"stage={kind}"])), kind

@@ -14,9 +14,10 @@ declares:
   (``ablation``, ``teacher``, ``policy``, ``loss``: conf/ablation/<variant>.yaml and the options it selects, composed
   alone once per process; no command line is read).
 - **its data.** A product of this run's dataset shares its data section. The restorers trained on another one
-  (``training_data``, when this run evaluates another dataset) and an evaluation of another dataset (Table 3's
-  out-of-domain columns) are found by the run records beside the products (tracegs.pipeline.records): the one
-  finished product there made on that dataset with this run's every other setting.
+  (``training_data``, when this run evaluates another dataset or restores a capture of the user's own) and an
+  evaluation of another dataset (Table 3's out-of-domain columns) are found by the run records beside the
+  products (tracegs.pipeline.records): the one finished product there made on that dataset with this run's every
+  other setting.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import scoped_values
 from tracegs.config.location import CONF_DIR
-from tracegs.config.schema import AUTO
+from tracegs.config.schema import AUTO, Task
 from tracegs.errors import ConfigError
 from tracegs.pipeline.records import RUN_RECORD
 from tracegs.training.run import PRODUCTS
@@ -116,7 +117,8 @@ def product_folder(cfg: DictConfig, kind: str, variant: str | None = None, data:
     data = data or (cfg.training_data if kind in TRAINED else cfg.data.name)
     projected = upstream_config(cfg, kind, variant)
     folder = Path(str(projected.run_dir if kind in TRAINED else projected.evaluation.out_dir))
-    if data == cfg.data.name:
+    # tracegs-restore's data section describes the user's capture, whatever data option it starts from.
+    if data == cfg.data.name and not (kind in TRAINED and cfg.task == Task.restore):
         return folder
     return recorded_folder(projected, kind, data, folder.parent)
 

@@ -205,6 +205,9 @@ def test_a_capture_is_restored_by_the_restorers_of_the_training_data(entry_confi
     common = [f"paths.root_dir={tmp_path}", "seed=2"]
     baseline = trained(entry_config, tmp_path, [*common, "stage=baseline"], "baseline_transformer")
     student = trained(entry_config, tmp_path, [*common, "stage=stage2"], "student_adapter")
+    damaged = student.parent.with_name("seed2-00000000")  # a record cut short: its folder is passed over
+    damaged.mkdir()
+    (damaged / RUN_RECORD).write_text('{"data.name": "synth')
     cfg = entry_config("restore", common)
     locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
     assert (Path(cfg.artifacts.baseline_weights), Path(cfg.artifacts.student_adapter)) == (baseline, student)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 from collections.abc import Iterable, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -39,6 +40,8 @@ from tracegs.config.schema import AUTO, Task
 from tracegs.errors import ConfigError
 from tracegs.pipeline.records import RUN_RECORD
 from tracegs.training.run import PRODUCTS
+
+log = logging.getLogger("tracegs")
 
 
 def section(node: DictConfig) -> Any:
@@ -139,7 +142,11 @@ def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -
     expected = _compared(scoped_values(projected, kind))
     matches = []
     for record in sorted(parent.glob(f"*/{RUN_RECORD}")):
-        values = json.loads(record.read_text())
+        try:
+            values = json.loads(record.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            log.warning("%s: unreadable run record, its folder is not considered (%s)", record, error)
+            continue
         if values.get("data.name") == data and _compared(values) == expected:
             matches.append(record.parent)
     if len(matches) > 1:

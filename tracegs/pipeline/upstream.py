@@ -11,8 +11,7 @@ declares:
   looked up at its option's values; an evaluation's describe the student it loads (its default stage).
 - **its variant.** A and the Stage-1 adapter are shared by every Table 3 variant: they are looked up with the
   default variant's sections. A student or evaluation of another variant takes that variant's sections
-  (``ablation``, ``teacher``, ``policy``, ``loss``: conf/ablation/<variant>.yaml and the options it selects, composed
-  alone once per process; no command line is read).
+  (``ablation``, ``teacher``, ``policy``, ``loss``: the variant's declaration, tracegs.pipeline.variants).
 - **its data.** A product of this run's dataset shares its data section. The restorers trained on another one
   (``training_data``, when this run evaluates another dataset or restores a capture of the user's own) and an
   evaluation of another dataset (Table 3's out-of-domain columns) are found by the run records beside the
@@ -26,12 +25,9 @@ import copy
 import json
 import logging
 from collections.abc import Iterable, Sequence
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from hydra import compose
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import scoped_values
@@ -39,6 +35,7 @@ from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AUTO, Task
 from tracegs.errors import ConfigError
 from tracegs.pipeline.records import RUN_RECORD
+from tracegs.pipeline.variants import VARIANT_SECTIONS, variant_sections
 from tracegs.training.run import PRODUCTS
 
 log = logging.getLogger("tracegs")
@@ -53,8 +50,6 @@ def section(node: DictConfig) -> Any:
 TRAINED = ("baseline", "stage1", "stage2")
 # The sections a training stage's own settings live in; the stage group's options also set these keys elsewhere.
 STAGE_SECTIONS = ("stage", "optimizer")
-# The sections a Table 3 variant sets (conf/ablation/<name>.yaml and the teacher/policy/loss options it selects).
-VARIANT_SECTIONS = ("ablation", "teacher", "policy", "loss")
 # What A and Stage 1 read of a variant is the default variant's (every variant clones their products); its loss
 # differs between variants only in what Stage 2 reads, and stays the command's own.
 SHARED_BY_VARIANTS = ("ablation", "teacher", "policy")
@@ -63,23 +58,6 @@ SHARED_BY_VARIANTS = ("ablation", "teacher", "policy")
 def stage_option(stage: str) -> dict[str, Any]:
     """The ``stage`` group's option ``stage`` (conf/stage/<stage>.yaml) as written: interpolations unresolved."""
     return OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "stage" / f"{stage}.yaml"), resolve=False)
-
-
-def _search_path() -> tuple[str, ...]:
-    return tuple(str(source.path) for source in GlobalHydra.instance().config_loader().get_sources())
-
-
-@lru_cache(maxsize=32)
-def _variant_sections(variant: str | None, search_path: tuple[str, ...]) -> DictConfig:
-    overrides = [] if variant is None else [f"ablation={variant}"]
-    cfg = compose(config_name="train", overrides=overrides)
-    return OmegaConf.masked_copy(cfg, list(VARIANT_SECTIONS))
-
-
-def variant_sections(variant: str | None) -> DictConfig:
-    """The sections a Table 3 variant sets (None: the default variant's), from its declaration alone; cached per
-    config search path."""
-    return _variant_sections(variant, _search_path())
 
 
 def _set_sections(cfg: DictConfig, source: DictConfig, names: Iterable[str]) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Iterable, Sequence
+from functools import lru_cache
 from typing import Any
 
 from hydra import compose, initialize_config_dir
@@ -23,6 +24,8 @@ from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 
 GROUP = "ablation"
+# The sections a variant sets: its conf/ablation/<name>.yaml and the teacher, policy and loss options it selects.
+VARIANT_SECTIONS = ("ablation", "teacher", "policy", "loss")
 # conf/ablation/default.yaml: which variant a command runs unless given ``ablation=<name>``, not a variant itself.
 DEFAULT_CHOICE = "default"
 
@@ -32,6 +35,23 @@ def table3_names() -> list[str]:
     in no particular order."""
     options = GlobalHydra.instance().config_loader().get_group_options(GROUP)
     return [option for option in options if option != DEFAULT_CHOICE]
+
+
+def _search_path() -> tuple[str, ...]:
+    return tuple(str(source.path) for source in GlobalHydra.instance().config_loader().get_sources())
+
+
+@lru_cache(maxsize=32)
+def _variant_sections(variant: str | None, search_path: tuple[str, ...]) -> DictConfig:
+    overrides = [] if variant is None else [f"ablation={variant}"]
+    cfg = compose(config_name="train", overrides=overrides)
+    return OmegaConf.masked_copy(cfg, list(VARIANT_SECTIONS))
+
+
+def variant_sections(variant: str | None) -> DictConfig:
+    """The sections Table 3 variant ``variant`` sets (None: the default variant's), read from its declaration alone
+    (composed with no command line, once per process and config search path)."""
+    return _variant_sections(variant, _search_path())
 
 
 def table3_configs(names: Iterable[str] | None = None) -> list[DictConfig]:

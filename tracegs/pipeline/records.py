@@ -9,6 +9,7 @@ import logging
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from filelock import FileLock
 from lightning.fabric.utilities.rank_zero import rank_zero_only
@@ -32,6 +33,11 @@ def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
     paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
     return {f"content.{name}": content_digest(path) for name, path in paths.items()
             if path is not None and Path(path).exists()}
+
+
+def _recorded(folder: Path) -> dict[str, Any] | None:
+    record = folder / RUN_RECORD
+    return json.loads(record.read_text()) if record.is_file() else None
 
 
 def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
@@ -119,7 +125,12 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
     """Keep beside a finished product the settings that determine it, the contents of the inputs it was made from,
     and the whole resolved config, paths relative to the root: a copy of the root elsewhere keeps the same bytes."""
     folder = Path(folder)
-    write_json_atomic({**scoped_values(cfg, kind), **input_digests(cfg, kind)}, folder / RUN_RECORD)
+    record = {**scoped_values(cfg, kind), **input_digests(cfg, kind)}
+    if _recorded(folder) == json.loads(json.dumps(record)):
+        # A product finished again (a rerun, a shard's) keeps the account of the run that made it: its resolved
+        # config may hold fields added since, which change nothing it is (a root copied read-only reruns too).
+        return
+    write_json_atomic(record, folder / RUN_RECORD)
     # Hydra's own node and the command line that happened to make it are no part of what the product is.
     kept = [key for key in cfg if key not in ("hydra", "command_line")]
     resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, kept), resolve=True)

@@ -312,6 +312,17 @@ def test_a_folder_recorded_under_other_settings_is_refused_naming_the_keys(tmp_p
                                "stage2", folder)
 
 
+def test_a_product_finished_again_keeps_the_record_of_the_run_that_made_it(tmp_path):
+    """A rerun or a later shard of a finished product writes no record: the resolved config kept beside it stays
+    the first run's, even where the schema gained fields since (so a root an older version made reruns read-only)."""
+    folder = tmp_path / "run"
+    cfg = compose(config_name="train", overrides=["stage=stage2"])
+    write_run_record(cfg, "stage2", folder)
+    (folder / "config.yaml").write_text("written by an older version\n")
+    write_run_record(cfg, "stage2", folder)
+    assert (folder / "config.yaml").read_text() == "written by an older version\n"
+
+
 def test_one_root_seed_derives_a_distinct_stream_for_every_part():
     per_seed = []
     for seed in (0, 1):

@@ -141,11 +141,11 @@ PRODUCERS = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "studen
 def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
     """Replace each needed "auto" artifact by the product of the earlier run :func:`product_folder` finds.
 
-    The run's own folders are resolved first and kept, so they stay named by the configuration as given."""
-    source = copy.deepcopy(cfg)
+    Every product is found from the configuration as given, and the run's own folders are resolved and kept
+    before any artifact is filled in, so they stay named by it too."""
+    found = {artifact: product_folder(cfg, PRODUCERS[artifact]) / PRODUCTS[PRODUCERS[artifact]]
+             for artifact in needed if cfg.artifacts[artifact] == AUTO}
     for key in ("run_dir", "evaluation.out_dir"):
         OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
-    for artifact in needed:
-        if cfg.artifacts[artifact] == AUTO:
-            producer = PRODUCERS[artifact]
-            cfg.artifacts[artifact] = str(product_folder(source, producer) / PRODUCTS[producer])
+    for artifact, path in found.items():
+        cfg.artifacts[artifact] = str(path)

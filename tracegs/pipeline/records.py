@@ -48,9 +48,9 @@ def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
     since its product was made is cleared for recomputation (its checkpoints would resume the stale run).
     """
     record = Path(folder) / RUN_RECORD
-    if not record.is_file():
+    recorded = _recorded(Path(folder))
+    if recorded is None:
         return False
-    recorded = json.loads(record.read_text())
     inputs = input_digests(cfg, kind)
     # Records made before paths were stored relative to the root name them absolutely.
     root = OmegaConf.select(cfg, "paths.root_dir") or "."

@@ -48,6 +48,9 @@ def section(node: DictConfig) -> Any:
 
 # The products a training stage makes: they are looked up on the training data (``training_data``).
 TRAINED = ("baseline", "stage1", "stage2")
+# The earlier stage whose product each artifact is, and the artifact each stage's product is.
+PRODUCERS = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
+ARTIFACT_OF = {stage: artifact for artifact, stage in PRODUCERS.items()}
 # The sections a training stage's own settings live in; the stage group's options also set these keys elsewhere.
 STAGE_SECTIONS = ("stage", "optimizer")
 # What A and Stage 1 read of a variant is the default variant's (every variant clones their products); its loss
@@ -128,14 +131,12 @@ def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -
         if values.get("data.name") == data and _compared(values) == expected:
             matches.append(record.parent)
     if len(matches) > 1:
-        field = "artifacts." + next(k for k, v in PRODUCERS.items() if v == kind) if kind in TRAINED else "data"
+        field = f"artifacts.{ARTIFACT_OF[kind]}" if kind in TRAINED else "data"
         raise ConfigError(field, f"{len(matches)} {kind} runs on {data} match this run's settings "
                                  f"({', '.join(m.name for m in matches)} under {parent}); name the one to use")
     return matches[0] if matches else parent / f"none-on-{data}-with-these-settings"
 
 
-# The earlier stage whose product each artifact is.
-PRODUCERS = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
 
 
 def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:

@@ -366,3 +366,41 @@ def test_shared_trajectories_need_nested_view_sets(tmp_path, prepared, backbone)
                                            r"and data.prepare.shared_trajectories"):
         run_prepare(shared, replace(source, view_rule="linspace"), backbone, synthetic, progress=False)
     assert not (tmp_path / "cache").exists() and not (tmp_path / "work").exists()
+
+
+def test_training_clips_reach_the_stages_only_through_the_frozen_restorer(tmp_path, prepared):
+    """The paper's data protocol (the embedded default): a training cache holds no ground-truth tensor, its targets
+    are the frozen restorer's output from R_d (other generator weights, other targets; the same student conditions),
+    and a sample the stages read carries R_s, R_d, the references, the text and that target only."""
+    from tracegs.data.config import DataModuleConfig
+    from tracegs.data.datamodule import PairedClipDataModule
+    from tracegs.restorer.build import build_backbone
+    from tracegs.restorer.config import BackboneConfig
+
+    _, synthetic, source, fitted, _ = prepared
+    generator = build_backbone(BackboneConfig())
+    other = build_backbone(BackboneConfig())
+    with torch.no_grad():
+        for parameter in other.transformer.parameters():
+            parameter.add_(0.05 * torch.randn_like(parameter))
+    shards = {}
+    for name, backbone in (("A", generator), ("other", other)):
+        prepare = replace(fitted, cache_dir=str(tmp_path / name), pseudo_target="restorer", store_frames=None)
+        manifest = json.loads(run_prepare(prepare, source, backbone, synthetic, progress=False).read_text())
+        assert manifest["pseudo_target"] == "restorer"
+        clips = manifest["scenes"]["scene_000"]["clips"]
+        shards[name] = tmp_path / name / clips[0]
+        with safe_open(str(shards[name]), framework="pt") as f:
+            assert not [key for key in f.keys() if key.rsplit("/", 1)[-1] == "gt"], "ground truth in a training cache"
+    a, b = load_file(str(shards["A"])), load_file(str(shards["other"]))
+    assert torch.equal(a["latent/s3_it8"], b["latent/s3_it8"]) and torch.equal(a["latent/dall"], b["latent/dall"])
+    assert not torch.equal(a["latent/target"], b["latent/target"])
+    data = PairedClipDataModule(DataModuleConfig(cache_dir=str(tmp_path / "A"), student_views=[3],
+                                                 student_snapshots=[8], batch_size=1), teacher_views=None)
+    data.setup("fit")
+    sample = next(iter(data.train_dataloader()))
+    def targets(name: str) -> list[torch.Tensor]:
+        return [load_file(str(tmp_path / name / clip))["latent/target"].float() for clip in clips]
+
+    assert any(torch.equal(sample["target"][0], target) for target in targets("A"))
+    assert not any(torch.equal(sample["target"][0], target) for target in targets("other"))

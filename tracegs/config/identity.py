@@ -37,8 +37,15 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from tracegs.content import capture_digest, content_digest, root_relative
-from tracegs.data.config import fits_variant_teacher, with_variant_teacher
-from tracegs.products import PREPARE, Declaration, Product, declarations
+from tracegs.data.config import (
+    PseudoTarget,
+    Split,
+    clip_target,
+    fits_variant_teacher,
+    is_procedural,
+    with_variant_teacher,
+)
+from tracegs.products import BASELINE, PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
 
 log = logging.getLogger("tracegs")
@@ -96,12 +103,33 @@ def read_fields(cfg: DictConfig, kind: str, split: str | None = None, unmade: Se
         and not any(path == section or path.startswith(f"{section}.") for section in unmade))
 
 
+# The sections a command's stage option sets (conf/stage/<stage>.yaml) from the experiment's values: variant A's
+# are those values, which the experiment section holds whatever stage the command runs.
+_STAGE_OPTION_SECTIONS = ("stage", "optimizer", "data.datamodule")
+
+
 def _read(cfg: DictConfig, kind: str, split: str | None = None) -> frozenset[str]:
     """``read_fields`` of a ``kind`` run under ``cfg``: a cache is made with the backbone sections its
-    pseudo-targets need only."""
+    pseudo-targets need only. A train split's cache whose pseudo-targets come from variant A as this framework
+    trains it (``data.prepare.pseudo_target_weights`` interpolating the located A) reads A's settings too, so a
+    changed A is a new cache, never stale targets: every field A reads except the sections each command's stage
+    option sets, whose values for A come from the experiment section it reads."""
     if kind != "prepare":
         return read_fields(cfg, kind)
-    return read_fields(cfg, kind, split, sections_not_in_cache(OmegaConf.select(cfg, "data.prepare.pseudo_target")))
+    target = clip_target(split, OmegaConf.select(cfg, "data.prepare.pseudo_target"), is_procedural(cfg.data.source))
+    fields = read_fields(cfg, kind, split, sections_not_in_cache(target))
+    if Split(split) != Split.train or target != PseudoTarget.restorer or not _generator_is_located(cfg):
+        return fields
+    own_stage = tuple(f"{section}." for section in _STAGE_OPTION_SECTIONS)
+    return fields | frozenset(path for path in read_fields(cfg, BASELINE.value)
+                              if path not in _STAGE_OPTION_SECTIONS and not path.startswith(own_stage))
+
+
+def _generator_is_located(cfg: DictConfig) -> bool:
+    """Whether the pseudo-target generator is the product of an earlier run located by its identity (an
+    interpolation of ``artifacts.baseline_weights``) rather than handed in by path or the backbone's own weights."""
+    node = cfg.data.prepare._get_node("pseudo_target_weights")
+    return node is not None and node._is_interpolation()
 
 
 def scoped_values(cfg: DictConfig, kind: str) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from tracegs.config.identity import SCHEMA_NAME, register_resolvers
-from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, SyntheticConfig
+from tracegs.data.config import DataModuleConfig, PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
 from tracegs.deploy.config import CaptureConfig, EvaluationConfig, RefinementConfig
 from tracegs.modes import Mode
 from tracegs.products import (
@@ -160,6 +160,11 @@ class ExperimentConfig:
     # A and Stage 1 read only each scene's first n of them (None: all), so Stage 2 can draw fresh clips from
     # the same cache without changing what A and Stage 1 were trained on.
     baseline_clips_per_scene: int | None = reads(BASELINE, default=None)
+    # The scenes A is trained on (conf/stage/baseline.yaml reads that split's cache): ``pretrain``, scenes of its
+    # own, as GSFixer was trained before TRACE-GS froze it, so that Stage 1 and 2 see the training scenes only
+    # through pseudo-targets (the paper's protocol; the embedded default); ``train``, the training scenes' ground
+    # truth (experiment=embedded_gt_targets: A is then the in-domain ceiling no student of R_s can pass).
+    baseline_split: Split = reads(BASELINE, default=Split.train)
 
 
 @dataclass

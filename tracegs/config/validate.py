@@ -15,7 +15,7 @@ from omegaconf.errors import ConfigKeyError
 
 from tracegs.config.location import CONF_DIR
 from tracegs.data.colmap import require_training_source
-from tracegs.data.config import overlapping_seeds
+from tracegs.data.config import clip_target, overlapping_seeds
 from tracegs.data.sources import is_procedural
 from tracegs.data.synthetic import benchmark_scene_names
 from tracegs.deploy.config import METHODS
@@ -89,7 +89,8 @@ def _validate_data(cfg: DictConfig) -> None:
     synthetic, prepare, datamodule = cfg.data.synthetic, cfg.data.prepare, cfg.data.datamodule
     overlap = overlapping_seeds(synthetic)
     _require(not overlap, "data.synthetic.test_seeds",
-             f"train_seeds, val_seeds and test_seeds must be disjoint, seeds in more than one: {overlap}")
+             f"train_seeds, val_seeds, test_seeds and pretrain_seeds must be disjoint, seeds in more than one: "
+             f"{overlap}")
     _require(
         _is_8k_plus_1(prepare.frames_per_clip),
         "data.prepare.frames_per_clip",
@@ -123,7 +124,8 @@ def _validate_data(cfg: DictConfig) -> None:
              f"{prepare.clips_per_scene} is not a multiple of the {len(prepare.student_views)} student view counts, "
              "which data.prepare.shared_trajectories gives every trajectory to")
     student_sets = _check_increasing(prepare.student_views, "data.prepare.student_views")
-    _require(bool(prepare.dense_views) or prepare.pseudo_target == "gt", "data.prepare.dense_views",
+    target = clip_target(prepare.split, prepare.pseudo_target, is_procedural(cfg.data.source))
+    _require(bool(prepare.dense_views) or target == "gt", "data.prepare.dense_views",
              f"is empty, but data.prepare.pseudo_target={prepare.pseudo_target!r} is made from a dense rendering R_d")
     dense_counts = [v for v in prepare.dense_views if v is not None]
     _check_increasing(dense_counts, "data.prepare.dense_views")

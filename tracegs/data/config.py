@@ -6,7 +6,9 @@ in each field's comment; the lead's Hydra yaml sets them for the cluster runs.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 from tracegs.modes import Mode
 from tracegs.products import BASELINE, DEPLOY, EVALUATE, EVERY, PREPARE, RESTORE, execution, handed_in, reads
@@ -19,6 +21,9 @@ class Split(Mode):
     train = "train"
     val = "val"  # the scenes embedded settings are chosen on
     test = "test"  # held out: no stage trains on them
+    # Variant A's own scenes: the embedded restorer is pretrained on them, as GSFixer was on scenes of its own before
+    # TRACE-GS froze it (supplement, "Pseudo-target generation"). Disjoint from the three lists above.
+    pretrain = "pretrain"
 
 
 class SourcePreset(Mode):
@@ -37,6 +42,16 @@ class ViewRule(Mode):
 
     nested = "nested"  # spread evenly around the capture and nested, V_3 in V_6 in ... in V_18 (paper Sec. 3)
     linspace = "linspace"  # GSFixer's: each set on its own, np.linspace over the training views, both ends included
+
+
+class PretrainPairs(Mode):
+    """Where the pretraining split's clips run (experiment.baseline_split=pretrain): the pairs variant A learns from."""
+
+    # Along deployment's synthesised trajectories, with the procedural scene's ground truth at every frame.
+    trajectory = "trajectory"
+    # Through the captured cameras, with the captured images as ground truth: what a real capture offers, and the
+    # kind of pairs GSFixer was trained on (renders of a sparse fit at held-out captured views).
+    captured = "captured"
 
 
 class PseudoTarget(Mode):
@@ -63,6 +78,10 @@ class SyntheticConfig:
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
     # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
     val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52])
+    # Variant A's pretraining scenes (``prepare.split=pretrain``, read by A where experiment.baseline_split says so):
+    # a seed range of their own, disjoint from the three lists above.
+    pretrain_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.pretrain,
+                                      factory=lambda: list(range(200, 212)))
     num_views: int = reads(PREPARE, BASELINE, default=32)
     height: int = reads(PREPARE, BASELINE, default=48)
     width: int = reads(PREPARE, BASELINE, default=72)
@@ -83,9 +102,10 @@ class SyntheticConfig:
 
 
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
-    """The scene seeds of the ``"train"``, ``"val"`` or ``"test"`` split."""
+    """The scene seeds of the ``"train"``, ``"val"``, ``"test"`` or ``"pretrain"`` split."""
     split = Split.parse(split, "split")
-    return list({Split.train: cfg.train_seeds, Split.val: cfg.val_seeds, Split.test: cfg.test_seeds}[split])
+    return list({Split.train: cfg.train_seeds, Split.val: cfg.val_seeds, Split.test: cfg.test_seeds,
+                 Split.pretrain: cfg.pretrain_seeds}[split])
 
 
 def overlapping_seeds(cfg: SyntheticConfig) -> list[int]:
@@ -179,7 +199,18 @@ class PrepareConfig:
     held_out_repeat_frames: bool = reads(PREPARE, default=False)
     # Clips follow the deployment trajectories: the Hydra configs set this to ``${deploy.trajectory}``.
     trajectory: TrajectoryConfig = reads(PREPARE, BASELINE, factory=TrajectoryConfig)
-    pseudo_target: PseudoTarget = reads(PREPARE, BASELINE, default=PseudoTarget.gt)  # paper: restorer (frozen GSFixer)
+    # The train split's targets (paper: restorer, the frozen GSFixer); a procedural benchmark's other splits (val,
+    # test, pretrain) are scored against, or pretrain A on, their ground truth whatever this says (``clip_target``).
+    pseudo_target: PseudoTarget = reads(PREPARE, BASELINE, default=PseudoTarget.gt)
+    # The pseudo-target generator's transformer (pseudo_target=restorer): None = the backbone's own pretrained
+    # weights (paper scale: GSFixer's released transformer, variant A); the embedded scale sets it to variant A's
+    # product (``${artifacts.baseline_weights}``, located by its identity), which the train split's cache then
+    # reads as its own settings (tracegs.config.identity); a folder given by path is known by its content.
+    pseudo_target_weights: str | None = handed_in(PREPARE, default=None)
+    # The pretraining split's clips (experiment.baseline_split=pretrain): see PretrainPairs; and how many per scene
+    # along trajectories (None: clips_per_scene). Captured-camera clips are every reference pair of every K.
+    pretrain_pairs: PretrainPairs = reads(PREPARE, BASELINE, split=Split.pretrain, default=PretrainPairs.trajectory)
+    pretrain_clips_per_scene: int | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
     # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
     # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
     pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0)
@@ -239,6 +270,33 @@ class SfmConfig:
     min_model_size: int = reads(RESTORE, default=3)  # registered images a disconnected model needs to be reported (COLMAP: 10)
     threads: int = execution(default=-1)  # -1: every core
     seed: int = reads(RESTORE, default=0)  # RANSAC and mapping draws
+
+
+def is_procedural(source: SceneSourceConfig | Any) -> bool:
+    """Whether ``data.source`` is the procedural benchmark (a typed or composed config node)."""
+    return source.preset == SourcePreset.synthetic
+
+
+def clip_target(split: str, pseudo_target: str, procedural: bool) -> PseudoTarget:
+    """The target of the clips a preparation of ``split`` makes: the configured ``pseudo_target`` for the train split
+    (and for any split of a real dataset, whose held-out clips set theirs); the ground truth for the other splits of
+    a procedural benchmark, which is what they are scored against (val, test) or what A is pretrained on
+    (pretrain: a restorer trained elsewhere, with ground truth, as GSFixer was)."""
+    if procedural and Split.parse(split, "data.prepare.split") != Split.train:
+        return PseudoTarget.gt
+    return PseudoTarget.parse(pseudo_target, "data.prepare.pseudo_target")
+
+
+def as_prepared(cfg: PrepareConfig, procedural: bool) -> PrepareConfig:
+    """``cfg`` as a preparation of its split makes it: the split's target (``clip_target``); the pretraining split
+    of a procedural benchmark fits no teacher (A reads R_s and the ground truth only), and its captured-camera clips
+    repeat captured frames where a gap between reference views is short (GSFixer's pairs are captured frames)."""
+    target = clip_target(cfg.split, cfg.pseudo_target, procedural)
+    if not (procedural and cfg.split == Split.pretrain):
+        return dataclasses.replace(cfg, pseudo_target=target)
+    return dataclasses.replace(cfg, pseudo_target=target, dense_views=[], student_final_fits=False,
+                               held_out_repeat_frames=cfg.pretrain_pairs == PretrainPairs.captured,
+                               clips_per_scene=cfg.pretrain_clips_per_scene or cfg.clips_per_scene)
 
 
 def with_variant_teacher(dense_views: list[int | None], teacher_views: int | None,

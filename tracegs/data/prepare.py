@@ -40,7 +40,14 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.captions import clip_caption, require_captioner
 from tracegs.data.colmap import Scene, SceneFormatError, list_scenes, load_scene
-from tracegs.data.config import PrepareConfig, SceneSourceConfig, Split, SyntheticConfig
+from tracegs.data.config import (
+    PrepareConfig,
+    PretrainPairs,
+    SceneSourceConfig,
+    Split,
+    SyntheticConfig,
+    as_prepared,
+)
 from tracegs.data.datamodule import CacheError, clip_record, repeats_frames
 from tracegs.data.held_out import captured_clips
 from tracegs.data.sources import is_procedural
@@ -96,7 +103,10 @@ class ScenePlan:
 
 def captures_held_out(source: SceneSourceConfig, cfg: PrepareConfig) -> bool:
     """Whether a scene's clips run through its captured cameras (the held-out split of a real dataset, whose only
-    ground truth is the capture) rather than along deployment's synthesised trajectory."""
+    ground truth is the capture, or the pretraining split with ``pretrain_pairs=captured``) rather than along
+    deployment's synthesised trajectory."""
+    if cfg.split == Split.pretrain:
+        return cfg.pretrain_pairs == PretrainPairs.captured
     return cfg.split == Split.test and not is_procedural(source)
 
 
@@ -767,6 +777,7 @@ def run_prepare(prepare: PrepareConfig, source: SceneSourceConfig, backbone: Bac
     held-out clips through captured cameras (``data.held_out``). Every scene of the shard is loaded and split before
     anything is written, so bad input fails without side effects.
     """
+    prepare = as_prepared(prepare, synthetic is not None)
     require_inputs(prepare)
     require_writable_dir(prepare.cache_dir, "data.prepare.cache_dir", finished_ok=True)
     require_writable_dir(prepare.work_dir, "data.prepare.work_dir", finished_ok=True)

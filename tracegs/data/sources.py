@@ -14,18 +14,13 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from tracegs.data.colmap import Scene, list_scenes, training_scenes
-from tracegs.data.config import SceneSourceConfig, SourcePreset, SyntheticConfig
+from tracegs.data.config import SceneSourceConfig, SyntheticConfig, is_procedural
 from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark, render_ground_truth
 from tracegs.splat.cameras import Camera
 
 # Ground truth at arbitrary poses, where the scene is known (the procedural benchmark): (scene, cameras) ->
 # [F,3,H,W] in [0,1]. Used for the videos' GT column and the per-step (Fig. 6) curves.
 GroundTruthRenderer = Callable[[Scene, Sequence[Camera]], Tensor]
-
-
-def is_procedural(source: SceneSourceConfig | DictConfig) -> bool:
-    """Whether ``data.source`` is the procedural benchmark (a typed or composed config node)."""
-    return source.preset == SourcePreset.synthetic
 
 
 @dataclass(frozen=True)

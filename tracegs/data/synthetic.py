@@ -323,7 +323,7 @@ def generate_benchmark(cfg: SyntheticConfig, splits: tuple[str, ...] = ("train",
     when given."""
     overlap = overlapping_seeds(cfg)
     if overlap:
-        raise ValueError(f"synthetic.train_seeds, val_seeds and test_seeds overlap: {overlap}")
+        raise ValueError(f"synthetic.train_seeds, val_seeds, test_seeds and pretrain_seeds overlap: {overlap}")
     seeds = [seed for split in splits for seed in split_seeds(cfg, split)]
     root = Path(cfg.root)
     if root.is_dir():  # half-assembled scenes of a killed run (generate_scene builds in ".<name>.*")

@@ -21,7 +21,7 @@ from rich.progress import track
 from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
 from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, restore_clip, trajectory_frames
-from tracegs.eval.intervals import mean_interval, paired_interval
+from tracegs.eval.intervals import Interval, mean_interval, paired_interval
 from tracegs.eval.labels import RESTORER_LABELS
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -83,6 +83,32 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
     }
 
 
+BASELINE = "baseline"
+
+
+def privileged_figures(gap: Mapping) -> dict[str, Interval]:
+    """With variant A among the restorers: A from R_s - input R_s, the privileged gap A from R_d - A from R_s, and
+    each other restorer from R_s - A from R_s and - A from R_d (paired by scene, against ground truth, 95% bootstrap
+    intervals over scenes); empty without A. Keys name the differences."""
+    per_scene = gap["per_scene"]
+    if f"{BASELINE} | {STUDENT}" not in gap["rows"]:
+        return {}
+
+    def truth(row: str) -> dict[str, float]:
+        return {scene: rows[row]["gt"] for scene, rows in per_scene.items()}
+
+    a_sparse, a_dense = truth(f"{BASELINE} | {STUDENT}"), truth(f"{BASELINE} | {TEACHER}")
+    figures = {"A from R_s - input R_s": paired_interval(a_sparse, truth(f"input {STUDENT}")),
+               "A from R_d - A from R_s (privileged gap)": paired_interval(a_dense, a_sparse)}
+    for row in gap["rows"]:
+        label, _, condition = row.partition(" | ")
+        if condition == STUDENT and label != BASELINE:
+            name = RESTORER_LABELS.get(label, label)
+            figures[f"{name} from R_s - A from R_s"] = paired_interval(truth(row), a_sparse)
+            figures[f"{name} from R_s - A from R_d"] = paired_interval(truth(row), a_dense)
+    return figures
+
+
 def privileged_gap_markdown(gap: Mapping) -> str:
     """The gap table: each row against GT and against R_d (95% intervals over scenes), then per restorer the
     paired gap (output from R_d - output from R_s, same scenes) against ground truth."""
@@ -104,6 +130,13 @@ def privileged_gap_markdown(gap: Mapping) -> str:
             mean_interval(list(scores(row, ref).values())).format() if ref in per_scene[first][row] else "—"
             for ref in REFERENCES) + " |")
     restorers = [row.partition(" | ")[0] for row in gap["rows"] if row.endswith(f"| {TEACHER}")]
+    against_baseline = privileged_figures(gap)
+    if against_baseline:
+        lines += ["", "The frozen restorer A and the students (paired by scene, against ground truth): what A adds to "
+                  "its input, the gap A's pseudo-targets carry (A from R_d - A from R_s: what Stage 2 can transfer), "
+                  "and each student from R_s against A from R_s and from R_d:", "", "| difference | PSNR (dB) |",
+                  "|---|---|"]
+        lines += [f"| {label} | {interval.format(signed=True)} |" for label, interval in against_baseline.items()]
     lines += ["", "Privileged gap: the same restorer from R_d minus from R_s, against ground truth (paired by "
               "scene), and the input gap R_d - R_s:", "", "| restorer | gap vs ground truth |", "|---|---|"]
     lines.append("| input (no restoration) | " + paired_interval(

@@ -19,7 +19,14 @@ from tracegs.io import atomic_write, content_digest, write_json_atomic
 from tracegs.pipeline.evaluate import evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.runner import InProcess, Step, run_steps
-from tracegs.pipeline.steps import HELD_OUT_CACHE, HELD_OUT_SPLIT, data_steps, restorer_steps
+from tracegs.pipeline.steps import (
+    HELD_OUT_CACHE,
+    HELD_OUT_SPLIT,
+    baseline_steps,
+    data_steps,
+    in_protocol_order,
+    restorer_steps,
+)
 from tracegs.pipeline.train import train
 from tracegs.provenance import describe, peak_rss_gib
 
@@ -31,13 +38,14 @@ TABLE_SOURCES = ("results.json", "per_scene.json", "intervals.md", "held_out_cli
                  "per_step.json", "per_step_intervals.md")
 
 
-def demo_steps(variant: str, views: Sequence[int], out_dir: Path) -> list[Step]:
-    """The demo's steps. The test scenes are prepared (held-out clips) and deployed at ``views`` input views
-    only (the demo's ``evaluation.views``); the training clips keep every student view count. The evaluation
+def demo_steps(variant: str, views: Sequence[int], out_dir: Path, pretrain: bool = True) -> list[Step]:
+    """The demo's steps (``pretrain``: A on its own pretraining scenes first, experiment.baseline_split). The test
+    scenes are prepared (held-out clips) and deployed at ``views`` input views only (the demo's ``evaluation.views``); the training clips keep every student view count. The evaluation
     writes into ``out_dir`` and reads the held-out cache the test prepare hands on; that cache holds no teacher R_d
     (the held-out clips score restorers from R_s only; ``report.kind=privileged`` needs a cache with one)."""
     views = list(views)
-    return [*data_steps(held_out={"data.prepare.student_views": views, "data.prepare.dense_views": []}),
+    data = data_steps(held_out={"data.prepare.student_views": views, "data.prepare.dense_views": []})
+    return [*in_protocol_order(pretrain, baseline_steps(pretrain), data),
             *restorer_steps(variant, evaluation={**HELD_OUT_SPLIT, "evaluation.views": views,
                                                  "evaluation.save_models": True, "evaluation.out_dir": out_dir},
                             evaluation_takes={"evaluation.held_out_cache": HELD_OUT_CACHE})]
@@ -54,7 +62,7 @@ def demo(cfg: DictConfig) -> Path:
     start = time.perf_counter()
     bookmark = LogBookmark()
     out_dir = Path(cfg.run_dir)
-    steps = demo_steps(cfg.ablation.name, cfg.evaluation.views, out_dir)
+    steps = demo_steps(cfg.ablation.name, cfg.evaluation.views, out_dir, cfg.experiment.baseline_split == "pretrain")
     timings = run_steps(steps, InProcess(cfg, TASKS), "demo")
     products = {name: content_digest(out_dir / name) for name in TABLE_SOURCES if (out_dir / name).is_file()}
     record = out_dir / "run.json"

@@ -25,7 +25,9 @@ log = logging.getLogger("tracegs")
 RUN_RECORD = "run_identity.json"
 LOCK_FILE = ".tracegs.lock"
 # The products of earlier runs each kind loads: their content is part of the record (an edit recomputes).
-INPUT_ARTIFACTS = {"stage1": ("baseline_weights",), "stage2": ("baseline_weights", "stage1_adapter")}
+# A cache whose pseudo-targets variant A makes reads A (tracegs.pipeline.prepare.pseudo_target_generator).
+INPUT_ARTIFACTS = {"prepare": ("baseline_weights",), "stage1": ("baseline_weights",),
+                   "stage2": ("baseline_weights", "stage1_adapter")}
 
 
 def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:

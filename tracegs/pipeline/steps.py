@@ -1,5 +1,7 @@
-"""The pipeline's steps, declared once: prepare (training and held-out clips) -> A -> Stage 1 -> Stage 2 ->
-evaluate -> report. ``tracegs-demo`` runs them in its own process, ``tracegs-replicate`` as child commands (the
+"""The pipeline's steps, declared once: (A's pretraining scenes -> A ->) prepare (training and held-out clips)
+(-> A) -> Stage 1 -> Stage 2 -> evaluate -> report. Under the paper's data protocol (experiment.baseline_split=
+pretrain, the embedded default) A is trained first, on scenes of its own, because the training clips' pseudo-targets
+are A applied to R_d; with A trained on the training scenes' ground truth it comes after their preparation. ``tracegs-demo`` runs them in its own process, ``tracegs-replicate`` as child commands (the
 restorer's steps once per training seed), the Table 3 sweep as one multirun per step over the variants
 (``python -m tracegs.pipeline.steps --sweep [local|slurm] [overrides]``, which ``launch/sweep_ablation.sh`` calls):
 one runner (tracegs.pipeline.runner) for all three. Each caller adds only its own settings.
@@ -29,6 +31,10 @@ from tracegs.pipeline.variants import table3_variants
 HELD_OUT_SPLIT = {"data.prepare.split": "test"}
 # The product a step hands on to a later one: the held-out paired-clip cache, which the demo's evaluation reads.
 HELD_OUT_CACHE = "held-out cache"
+# The cache of variant A's own scenes (experiment.baseline_split=pretrain).
+PRETRAIN_SPLIT = {"data.prepare.split": "pretrain"}
+# Variant A's run folder, handed on where later steps must load that A whatever their own seed (tracegs-replicate).
+BASELINE_RUN = "A's run"
 
 Settings = Mapping[str, Any]
 
@@ -41,14 +47,28 @@ def data_steps(common: Settings = NO_SETTINGS, training: Settings = NO_SETTINGS,
                     hands={HELD_OUT_CACHE: "data.prepare.cache_dir"}).passing(user)]
 
 
+def baseline_steps(pretrain: bool, common: Settings = NO_SETTINGS, user: Sequence[str] = ()) -> list[Step]:
+    """Variant A: with ``pretrain`` (experiment.baseline_split=pretrain) its own scenes prepared first; then A
+    trained, handing its run folder on (:data:`BASELINE_RUN`)."""
+    prepared = [Step.of("prepare", "prepare (A's pretraining scenes)", common, PRETRAIN_SPLIT).passing(user)]
+    return [*(prepared if pretrain else []),
+            Step.of("train", "train A", common, {"stage": "baseline"}, hands={BASELINE_RUN: "run_dir"}).passing(user)]
+
+
+def in_protocol_order(pretrain: bool, baseline: list[Step], data: list[Step]) -> list[Step]:
+    """A's steps and the training data's in the order the data protocol needs: A first where it is pretrained on its
+    own scenes (the training clips' pseudo-targets are A on R_d), after the training data where it trains on it."""
+    return [*baseline, *data] if pretrain else [*data, *baseline]
+
+
 def restorer_steps(variant: str | Sweep, common: Settings = NO_SETTINGS, evaluation: Settings = NO_SETTINGS,
                    evaluated: str | Sweep | None = None, stage2: Settings = NO_SETTINGS, user: Sequence[str] = (),
                    evaluation_takes: Mapping[str, str] | None = None) -> list[Step]:
-    """Train A, the Stage-1 adapter and ``variant``'s Stage-2 student, then deploy and evaluate them. A sweep names
-    several variants (a :class:`Sweep`), evaluates ``evaluated`` (default: ``variant``) and adds ``stage2`` to its
-    Stage-2 step; ``evaluation_takes`` fills evaluation keys from earlier steps' products."""
-    return [Step.of("train", "train A", common, {"stage": "baseline"}).passing(user),
-            Step.of("train", "train Stage 1", common, {"stage": "stage1"}).passing(user),
+    """Train the Stage-1 adapter and ``variant``'s Stage-2 student (on A, :func:`baseline_steps`), then deploy and
+    evaluate them. A sweep names several variants (a :class:`Sweep`), evaluates ``evaluated`` (default:
+    ``variant``) and adds ``stage2`` to its Stage-2 step; ``evaluation_takes`` fills evaluation keys from earlier
+    steps' products."""
+    return [Step.of("train", "train Stage 1", common, {"stage": "stage1"}).passing(user),
             Step.of("train", "train Stage 2", common, {"stage": "stage2", "ablation": variant}, stage2).passing(user),
             Step.of("evaluate", "evaluate", common, {"ablation": evaluated or variant}, evaluation,
                     takes=evaluation_takes or {}).passing(user)]
@@ -111,8 +131,9 @@ PER_STEP = {"report.kind": "per_step", "evaluation.held_out_cache": "${data.prep
 
 
 def sweep_steps(variants: Sequence[str], trained: Sequence[str], user: Sequence[str] = (),
-                other_datasets: Sequence[str] = ()) -> list[Step]:
-    """Table 3 as multiruns: (embedded scale: prepare) -> A -> one shared Stage-1 adapter -> Stage 2 for the
+                other_datasets: Sequence[str] = (), pretrain: bool = False) -> list[Step]:
+    """Table 3 as multiruns: (embedded scale: prepare) -> A (``pretrain``: on its own scenes, before the training
+    data, :func:`in_protocol_order`) -> one shared Stage-1 adapter -> Stage 2 for the
     ``trained`` variants (each cloning the same Stage-1 checkpoint) -> evaluation of every variant by the method
     standing for it, on the training data's test scenes and on each of ``other_datasets`` (Table 3's
     out-of-domain columns) -> Table 3 -> Fig. 6 of the per-step variants on held-out clips (embedded: the
@@ -122,7 +143,8 @@ def sweep_steps(variants: Sequence[str], trained: Sequence[str], user: Sequence[
     A SLURM array carries one name: the swept steps name themselves after their first and last variants."""
     embedded = not any(override_key(o).split("/")[0] in NOT_EMBEDDED for o in user)
     common = SWEEP_TEACHERS if embedded else {}
-    steps = [Step.of("prepare", "prepare (training scenes, every teacher)", common).passing(user)] if embedded else []
+    data = [Step.of("prepare", "prepare (training scenes, every teacher)", common).passing(user)] if embedded else []
+    steps = in_protocol_order(pretrain, baseline_steps(pretrain and embedded, common, user), data)
     # Each variant is scored by the method standing for it (the frozen A or its student).
     evaluation = {"evaluation.methods": ["${ablation.method}"], "job_name": f"evaluate-{variants[0]}-{variants[-1]}"}
     steps += restorer_steps(Sweep(tuple(trained)), common, evaluation, evaluated=Sweep(tuple(variants)),
@@ -149,7 +171,7 @@ def run_sweep(launcher: str, user: Sequence[str], dry_run: bool = False) -> int:
         table = compose(config_name="report", overrides=list(user))
     other_datasets = [name for name in table.report.datasets if name != table.training_data]
     steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], user,
-                        other_datasets)
+                        other_datasets, pretrain=table.experiment.baseline_split == "pretrain")
     try:
         run_steps(steps, Commands(launcher, every_step_multirun=True), "sweep", dry_run)
     except TraceGSError as error:

@@ -105,41 +105,56 @@ def _step(steps, label):
     return next(s for s in steps if s.label == label)
 
 
-def test_replicates_share_data_and_3dgs_but_not_the_restorer(tmp_path, entry_config):
+def _taking_a(steps: list[Step], a_run: str) -> list[Step]:
+    """The steps with what they take of A's run filled in, as the runner fills it after A's step."""
+    return [step.with_settings({key: f"{a_run}/{spec.partition('/')[2]}" for key, spec in step.takes.items()})
+            for step in steps]
+
+
+def test_replicates_share_data_3dgs_and_a_but_not_the_distilled_restorers(tmp_path, entry_config):
     steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
     plain = entry_config("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
+    a_run = str(entry_config("train", list(_step(steps, "train A").overrides)).run_dir)
+    steps = _taking_a(steps, a_run)
     evaluations = [entry_config("evaluate", list(_step(steps, f"seed {s}: evaluate (A,F) F").overrides))
                    for s in (0, 1)]
     # What plain 3DGS depends on is identical to every variant's deployment, so it is evaluated once.
     for cfg in evaluations:
         for key in ("deploy", "data.prepare.fit", "data.source", "data.synthetic", "evaluation.views"):
             assert OmegaConf.select(plain, key) == OmegaConf.select(cfg, key), key
+        # A is made once and frozen, as the paper's A is one released model.
+        assert cfg.artifacts.baseline_weights == f"{a_run}/baseline_transformer"
     assert list(plain.evaluation.methods) == ["3dgs"]
     first, second = evaluations
-    # The restorer is trained from scratch per seed: other model seeds, other folders, one shared cache.
+    # Stage 1 and the students are trained from scratch per seed: other model seeds, other folders, one cache.
     assert first.stage.seed != second.stage.seed
     assert first.data.datamodule.seed != second.data.datamodule.seed
     assert first.data.datamodule.cache_dir == second.data.datamodule.cache_dir == str(tmp_path / "cache" / "train")
     assert first.evaluation.out_dir != second.evaluation.out_dir
+    assert not [s for s in steps if s.label.startswith("seed") and s.label.endswith("train A")]
 
 
 def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
     steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    labels = [step.label for step in steps]
+    # The paper's data protocol: A on its own scenes, then the training clips whose pseudo-targets A makes.
+    assert labels[:3] == ["prepare (A's pretraining scenes)", "train A", "prepare (training scenes)"]
+    a_run = str(entry_config("train", list(_step(steps, "train A").overrides)).run_dir)
+    training_data = entry_config("prepare", list(_step(steps, "prepare (training scenes)").overrides))
+    assert str(upstream_config(training_data, "baseline").run_dir) == a_run
+    steps = _taking_a(steps, a_run)
     for seed in (0, 1):
-        trained = {stage: str(entry_config("train", list(_step(steps, f"seed {seed}: train {label}").overrides))
-                              .run_dir)
-                   for stage, label in (("baseline", "A"), ("stage1", "Stage 1"))}
+        stage1 = entry_config("train", list(_step(steps, f"seed {seed}: train Stage 1").overrides))
+        assert stage1.stage.base_weights == f"{a_run}/baseline_transformer"
         stage2 = entry_config("train", list(_step(steps, f"seed {seed}: train Stage 2 (F) F").overrides))
-        assert str(upstream_config(stage2, "stage1").run_dir) == trained["stage1"]
+        assert str(upstream_config(stage2, "stage1").run_dir) == str(stage1.run_dir)
         evaluation = entry_config("evaluate", list(_step(steps, f"seed {seed}: evaluate (A,F) F").overrides))
         assert str(upstream_config(evaluation, "stage2").run_dir) == str(stage2.run_dir), seed
-        assert str(upstream_config(evaluation, "baseline").run_dir) == trained["baseline"], seed
-        diagnostics = entry_config("report", list(_step(steps, f"seed {seed}: trajectory diagnostics").overrides))
-        for stage in ("baseline", "stage1"):
-            assert str(upstream_config(diagnostics, stage).run_dir) == trained[stage], (seed, stage)
-        assert list(diagnostics.report.inputs) == ["A", "F"]
-    assert len({str(entry_config("train", list(_step(steps, f"seed {s}: train A").overrides)).run_dir)
-                for s in (0, 1)}) == 2
+        for kind in ("privileged gap", "trajectory diagnostics"):
+            report = entry_config("report", list(_step(steps, f"seed {seed}: {kind}").overrides))
+            assert str(upstream_config(report, "stage1").run_dir) == str(stage1.run_dir), (seed, kind)
+            assert report.artifacts.baseline_weights == f"{a_run}/baseline_transformer"
+        assert list(report.report.inputs) == ["A", "F"] and report.ablation.name == "F"
 
 
 def test_seeds_must_be_listed_once(tmp_path):

@@ -196,8 +196,8 @@ class ReportConfig:
     # report.kind=main: take A's and the variant's (F) scores from the ablation sweep's evaluations on this dataset
     # instead of evaluating them again (this command's own evaluation then holds 3DGS only).
     main_from_sweep: bool = execution(default=False)
-    # report.kind=diagnostics: also restore with the Stage-1 adapter alone (the students' starting point, row
-    # "stage1"), and give each student's final sample against it, paired over scenes.
+    # report.kind=diagnostics and privileged: also restore with the Stage-1 adapter alone (the students' starting
+    # point, row "stage1"), and give each student's final sample against it, paired over scenes.
     stage1_row: bool = execution(default=False)
     output_dir: str = execution(default="${paths.experiment_dir}/report")
 

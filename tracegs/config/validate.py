@@ -135,9 +135,11 @@ def _validate_data(cfg: DictConfig) -> None:
         f"dense view sets {dense_counts} must be larger than every student set {student_sets} (V_s in V_d)",
     )
     if prepare.split == "train":  # the datamodule reads the train split's cache, whatever split a run prepares
-        unknown = sorted(set(datamodule.student_views) - set(student_sets))
-        _require(not unknown, "data.datamodule.student_views",
-                 f"{unknown} are not prepared (data.prepare.student_views)")
+        # ... or, for A under the paper's data protocol, its pretraining split's (data.prepare.pretrain_views).
+        pretrained = cfg.stage.name == "baseline" and cfg.experiment.baseline_split == "pretrain"
+        field = "data.prepare.pretrain_views" if pretrained and prepare.pretrain_views else "data.prepare.student_views"
+        unknown = sorted(set(datamodule.student_views) - set(OmegaConf.select(cfg, field)))
+        _require(not unknown, "data.datamodule.student_views", f"{unknown} are not prepared ({field})")
         unknown = sorted(set(datamodule.student_snapshots) - set(prepare.student_snapshots))
         _require(not unknown, "data.datamodule.student_snapshots",
                  f"{unknown} are not prepared (data.prepare.student_snapshots)")

@@ -211,6 +211,10 @@ class PrepareConfig:
     # along trajectories (None: clips_per_scene). Captured-camera clips are every reference pair of every K.
     pretrain_pairs: PretrainPairs = reads(PREPARE, BASELINE, split=Split.pretrain, default=PretrainPairs.trajectory)
     pretrain_clips_per_scene: int | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
+    # The view counts of the pretraining split's sparse fits (None: student_views). A pretrained restorer makes the
+    # pseudo-targets from R_d, so its pairs must reach inputs as good as R_d: a restorer that never saw a near-clean
+    # rendering repaints it (measured: A from R_d 5 dB below R_d itself with pairs at 3, 6 and 9 views only).
+    pretrain_views: list[int] | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
     # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
     # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
     pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0)
@@ -296,7 +300,8 @@ def as_prepared(cfg: PrepareConfig, procedural: bool) -> PrepareConfig:
         return dataclasses.replace(cfg, pseudo_target=target)
     return dataclasses.replace(cfg, pseudo_target=target, dense_views=[], student_final_fits=False,
                                held_out_repeat_frames=cfg.pretrain_pairs == PretrainPairs.captured,
-                               clips_per_scene=cfg.pretrain_clips_per_scene or cfg.clips_per_scene)
+                               clips_per_scene=cfg.pretrain_clips_per_scene or cfg.clips_per_scene,
+                               student_views=list(cfg.pretrain_views or cfg.student_views))
 
 
 def with_variant_teacher(dense_views: list[int | None], teacher_views: int | None,

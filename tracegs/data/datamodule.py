@@ -175,6 +175,10 @@ def read_conditioning(record: ClipRecord) -> dict[str, torch.Tensor]:
     return {cache_keys.REF_2D: torch.cat([first, second]), cache_keys.REF_3D: pair, cache_keys.TEXT: text}
 
 
+# The teacher_views of a stage that reads no teacher condition (variant A).
+NO_TEACHER = "no teacher"
+
+
 class PairedClipDataset(Dataset):
     """Clips of the given scenes whose student view count is listed (with ``clips_per_scene``, only among each
     scene's first that many); items are indices or ``(index, draw_seed)`` pairs from ``EpochSampler``. A sample
@@ -190,12 +194,12 @@ class PairedClipDataset(Dataset):
             raise CacheError(f"{self.cache_dir}: no clip of {student_views} student views in scenes {scenes}")
         self.student_snapshots = list(student_snapshots)
         self.teacher_views = teacher_views
-        self.teacher_key = condition_key(teacher_views)
+        self.teacher_key = None if teacher_views is NO_TEACHER else condition_key(teacher_views)
         self.caption_dropout = caption_dropout
         self.seed = seed
         for clip in self.clips:
             required = [cache_keys.latent(condition_key(clip.views, s)) for s in student_snapshots]
-            required += [cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET)]
+            required += [cache_keys.latent(key) for key in (self.teacher_key, cache_keys.TARGET) if key is not None]
             verify_clip(clip, required)
 
     def __len__(self) -> int:
@@ -207,14 +211,14 @@ class PairedClipDataset(Dataset):
         generator = torch.Generator().manual_seed(draw_seed)
         snapshot = self.student_snapshots[int(torch.randint(len(self.student_snapshots), (), generator=generator))]
         dropped = bool(torch.rand((), generator=generator) < self.caption_dropout)
-        student, teacher, target = (cache_keys.latent(condition_key(clip.views, snapshot)),
-                                    cache_keys.latent(self.teacher_key), cache_keys.latent(cache_keys.TARGET))
-        latents = read_tensors(clip.path, [student, teacher, target])
+        student, target = cache_keys.latent(condition_key(clip.views, snapshot)), cache_keys.latent(cache_keys.TARGET)
+        teacher = None if self.teacher_key is None else cache_keys.latent(self.teacher_key)
+        latents = read_tensors(clip.path, [key for key in (student, teacher, target) if key is not None])
         conditioning = read_conditioning(clip)
         text = conditioning[cache_keys.TEXT].float()
         return {
             "student_cond": latents[student].float(),
-            "teacher_cond": latents[teacher].float(),
+            **({} if teacher is None else {"teacher_cond": latents[teacher].float()}),
             "target": latents[target].float(),
             "ref_2d": conditioning[cache_keys.REF_2D].float(),
             "ref_3d": conditioning[cache_keys.REF_3D].float(),
@@ -225,7 +229,7 @@ class PairedClipDataset(Dataset):
             "scene": clip.scene,
             "clip": clip.index,
             "student_views": clip.views,
-            "teacher_views": -1 if self.teacher_views is None else int(self.teacher_views),
+            "teacher_views": -1 if self.teacher_views in (None, NO_TEACHER) else int(self.teacher_views),
             "snapshot": snapshot,
         }
 
@@ -288,7 +292,8 @@ class PairedClipDataModule(L.LightningDataModule):
     """Train/val split by scene over the prepared cache; see the module docstring for the sample dict.
 
     ``teacher_views`` comes from the ``teacher`` config group (None = all training views, 3 for the
-    non-privileged variant B, 12 / 18 for variants C / D).
+    non-privileged variant B, 12 / 18 for variants C / D); :data:`NO_TEACHER` for variant A, which reads R_s and
+    the target only (its pretraining scenes fit no teacher).
     """
 
     def __init__(self, cfg: DataModuleConfig, teacher_views: int | None = None):
@@ -302,7 +307,7 @@ class PairedClipDataModule(L.LightningDataModule):
         cfg = self.cfg
         manifest = read_manifest(cfg.cache_dir)
         available = manifest.get("teacher_views", [])
-        if view_set_key(self.teacher_views) not in available:
+        if self.teacher_views is not NO_TEACHER and view_set_key(self.teacher_views) not in available:
             raise CacheError(f"{Path(cfg.cache_dir) / MANIFEST}: teacher views {view_set_key(self.teacher_views)} "
                              f"not prepared (have {available})")
         unknown = [s for s in cfg.val_scenes if s not in manifest["scenes"]]

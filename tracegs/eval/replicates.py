@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import statistics
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from tracegs.eval.interval_tables import (
 )
 from tracegs.eval.intervals import Interval, mean_interval, paired_interval, t_interval
 from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS, RESTORER_LABELS, STAGE1
+from tracegs.eval.privileged import privileged_figures, privileged_gap_markdown
 from tracegs.eval.report import plot_per_step_quality
 from tracegs.io import atomic_write
 
@@ -64,6 +65,9 @@ class ReplicateInputs:
     eval_dirs: dict[int, Path]
     three_dgs_dir: Path
     diagnostics_dirs: dict[int, Path]
+    # ``privileged_dirs[seed] / privileged_gap.json`` (tracegs-report report.kind=privileged): A and the student
+    # restoring the held-out clips from R_d and from R_s; none: no privileged-gap figures.
+    privileged_dirs: dict[int, Path] = field(default_factory=dict)
 
 
 def mean_tree(trees: Sequence[Any]) -> Any:
@@ -328,6 +332,20 @@ def diagnostics_markdown(diagnostics: Mapping, variants: Sequence[str], start: s
     return "\n".join(lines) + "\n\n" + json.dumps(figures) + "\n"
 
 
+def privileged_section(gaps: Sequence[Mapping]) -> tuple[list[str], dict]:
+    """The privileged gap over training seeds (each scene averaged over the seeds first): its markdown section and
+    the run record's ``privileged_gap_db`` (A from R_d - A from R_s: what the pseudo-targets carry beyond A's own
+    restoration of R_s), ``f_minus_a_clips_db`` (the student from R_s - A from R_s) and ``f_minus_a_dense_db``
+    (the student from R_s - A from R_d), each [mean, 95% low, high] over scenes."""
+    gap = {**gaps[0], "per_scene": mean_tree([g["per_scene"] for g in gaps])}
+    figures = privileged_figures(gap)
+    student = RESTORER_LABELS["tracegs"]
+    record = {"privileged_gap_db": _triple(figures["A from R_d - A from R_s (privileged gap)"]),
+              "f_minus_a_clips_db": _triple(figures[f"{student} from R_s - A from R_s"]),
+              "f_minus_a_dense_db": _triple(figures[f"{student} from R_s - A from R_d"])}
+    return ["## The privileged gap (held-out clips)", "", privileged_gap_markdown(gap)], record
+
+
 # ------------------------------------------------------------------------------------------------ report
 
 
@@ -391,6 +409,11 @@ def write_replicate_report(out_dir: str | Path, inputs: ReplicateInputs, header:
                      "", advantage_table, _extreme(advantage_bands), ""]
     figures["exposure_gap_largest_db"] = round(max(abs(i.mean) for b in gap_bands.values() for i in b), 4)
     figures.update(mechanism_figures(held_out, per_seed, inputs.variants, views, gap_late))
+    if inputs.privileged_dirs:
+        section, privileged = privileged_section([_read(inputs.privileged_dirs[s] / "privileged_gap.json")
+                                                  for s in inputs.seeds])
+        sections += section
+        figures.update(privileged)
     path = out_dir / "replicate.md"
     with atomic_write(path) as tmp:
         tmp.write_text("\n".join(sections))

@@ -35,11 +35,15 @@ from tracegs.eval.html_report import write_report_page
 from tracegs.eval.replicates import ReplicateInputs, write_replicate_report
 from tracegs.io import write_json_atomic
 from tracegs.pipeline.runner import Commands, Step, Sweep, run_steps
-from tracegs.pipeline.steps import data_steps
+from tracegs.pipeline.steps import BASELINE_RUN, baseline_steps, data_steps, in_protocol_order
 from tracegs.pipeline.variants import table3_configs, table3_names, teacher_settings
 from tracegs.provenance import describe, peak_rss_gib
+from tracegs.training.run import PRODUCTS
 
 log = logging.getLogger("tracegs")
+
+# The student whose privileged gap the run record gives (TRACE-GS), with A's.
+PRIVILEGED_VARIANT = "F"
 
 # Rates behind the wall-time estimate printed before the run, on an idle 2-core machine of the README's kind
 # (AMD EPYC, torch 2.13 CPU, the compiled rasterizer), fitted to the parts of a measured clean-clone run (the
@@ -93,10 +97,12 @@ def variant_teachers(variants: Sequence[Variant], student_views: Sequence[int]) 
 
 def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds: Sequence[int], out_dir: Path,
                     user: Sequence[str] = (), held_out_clips_per_scene: int = 2,
-                    views: Sequence[int] = (3,), student_views: Sequence[int] = (3, 6, 9)) -> list[Step]:
-    """The steps of one tracegs-replicate run, in order: the data once, plain 3DGS once, then per training seed A,
-    Stage 1, every student, every variant's deployment and the trajectory diagnostics (see the module
-    docstring for what is shared). ``user``: the command line's overrides, passed to every step."""
+                    views: Sequence[int] = (3,), student_views: Sequence[int] = (3, 6, 9),
+                    pretrain: bool = True) -> list[Step]:
+    """The steps of one tracegs-replicate run, in order: the data and A once (``pretrain``: A on its own scenes
+    first, experiment.baseline_split), plain 3DGS once, then per training seed Stage 1, every student, every
+    variant's deployment, the trajectory diagnostics and the privileged gap (see the module docstring for what is
+    shared). ``user``: the command line's overrides, passed to every step."""
     if not training_seeds:
         raise ValueError("replicate.training_seeds: list at least one training seed")
     if len(set(training_seeds)) != len(training_seeds):
@@ -110,36 +116,46 @@ def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
               **variant_teachers(variants, student_views)}
     names = Sweep(tuple(v.name for v in variants))
     trained = Sweep(tuple(v.name for v in variants if v.trained))
-    steps = data_steps(
-        common={**shared, "seed": root_seed}, training={"data.prepare.cache_dir": train_cache},
+    # A is made once, from this run's root seed, and frozen (the paper's A is one released model); with the paper's
+    # data protocol it is trained before the training clips, whose pseudo-targets it makes.
+    root = {**shared, "seed": root_seed}
+    data = data_steps(
+        common=root, training={"data.prepare.cache_dir": train_cache},
         held_out={"data.prepare.clips_per_scene": held_out_clips_per_scene, "data.prepare.cache_dir": test_cache,
                   # The diagnostics restore the held-out clips at the deployed view counts only.
                   "data.prepare.student_views": list(views)})
+    steps = in_protocol_order(pretrain, baseline_steps(pretrain, root), data)
     # Fig. 6 comes from the held-out clips (the diagnostics), so deployment computes no per-step curves.
     deployment = {"evaluation.per_step": False}
     steps.append(Step.of("evaluate", "evaluate plain 3DGS", shared, {"seed": root_seed},
                          {"evaluation.methods": ["3dgs"]}, deployment,
                          {"evaluation.out_dir": three_dgs_dir(out_dir)}))
+    frozen_a = {"artifacts.baseline_weights": f"{BASELINE_RUN}/{PRODUCTS['baseline']}"}
     for seed in training_seeds:
         common = {**shared, "seed": seed, "data.datamodule.cache_dir": train_cache}
 
         def multirun(kind: str, seed: int = seed) -> dict[str, Path]:
             return {"hydra.sweep.dir": out_dir / "multirun" / f"seed{seed}" / kind}
 
-        steps += [Step.of("train", f"seed {seed}: train A", common, {"stage": "baseline"}),
-                  Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": "stage1"})]
+        steps.append(Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": "stage1"}, takes=frozen_a))
         if trained.values:
             steps.append(Step.of("train", f"seed {seed}: train Stage 2 ({','.join(trained.values)})",
-                                 multirun("stage2"), common, {"stage": "stage2", "ablation": trained}))
+                                 multirun("stage2"), common, {"stage": "stage2", "ablation": trained},
+                                 takes=frozen_a))
         # Each variant is deployed by the method standing for it (A: the baseline restorer; else its student), into
         # the seed's folder of its name.
         steps.append(Step.of("evaluate", f"seed {seed}: evaluate ({','.join(names.values)})", multirun("evaluate"),
                              common, {"ablation": names, "evaluation.methods": ["${ablation.method}"]}, deployment,
-                             {"evaluation.out_dir": f"{eval_dir(out_dir, seed)}/${{ablation.name}}"}))
+                             {"evaluation.out_dir": f"{eval_dir(out_dir, seed)}/${{ablation.name}}"}, takes=frozen_a))
         steps.append(Step.of("report", f"seed {seed}: trajectory diagnostics", common,
                              {"report.kind": "diagnostics", "report.inputs": list(names.values),
                               "evaluation.held_out_cache": test_cache,
-                              "report.output_dir": diagnostics_dir(out_dir, seed)}))
+                              "report.output_dir": diagnostics_dir(out_dir, seed)}, takes=frozen_a))
+        if PRIVILEGED_VARIANT in trained.values:
+            steps.append(Step.of("report", f"seed {seed}: privileged gap", common,
+                                 {"report.kind": "privileged", "ablation": PRIVILEGED_VARIANT,
+                                  "evaluation.held_out_cache": test_cache,
+                                  "report.output_dir": privileged_dir(out_dir, seed)}, takes=frozen_a))
     return [step.passing(user) for step in steps]
 
 
@@ -150,6 +166,10 @@ def eval_dir(out_dir: Path, seed: int) -> Path:
 
 def three_dgs_dir(out_dir: Path) -> Path:
     return out_dir / "eval" / "3dgs"
+
+
+def privileged_dir(out_dir: Path, seed: int) -> Path:
+    return out_dir / "privileged" / f"seed{seed}"
 
 
 def diagnostics_dir(out_dir: Path, seed: int) -> Path:
@@ -170,18 +190,24 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     sparse_iterations = fit.iterations if final else max(prepare.student_snapshots)
     snapshots = len(prepare.student_snapshots)
 
-    def prepare_s(scenes: int, student_views: int, clips: int) -> float:
-        fits = scenes * (student_views * sparse_iterations + dense * fit.iterations) * FIT_ITERATION_S / CORES
+    def prepare_s(scenes: int, student_views: int, clips: int, teachers: int = dense) -> float:
+        fits = scenes * (student_views * sparse_iterations + teachers * fit.iterations) * FIT_ITERATION_S / CORES
         # Each clip: the student conditions, the teachers (and the final snapshots), the target.
-        conditions = student_views * snapshots + dense + (student_views if final else 0) + 1
+        conditions = student_views * snapshots + teachers + (student_views if final else 0) + 1
         return fits + scenes * clips * conditions * PREPARED_CONDITION_S
 
+    reverse_steps = deploy.steps or cfg.backbone.schedule.deploy_steps
     data = (prepare_s(train_scenes, len(prepare.student_views), exp.clips_per_scene)
             + prepare_s(test_scenes, len(views), cfg.replicate.held_out_clips_per_scene))
-    training = seeds * (exp.batch_size * (exp.baseline_steps * BASELINE_SAMPLE_S + exp.stage1_steps * STAGE1_SAMPLE_S)
+    if exp.baseline_split == "pretrain":  # A's own scenes (sparse fits only), and A restoring every R_d
+        data += prepare_s(len(cfg.data.synthetic.pretrain_seeds), len(prepare.student_views),
+                          prepare.pretrain_clips_per_scene or exp.clips_per_scene, teachers=0)
+    if prepare.pseudo_target == "restorer":
+        data += train_scenes * exp.clips_per_scene * reverse_steps * RESTORER_FORWARD_S / CORES
+    baseline = exp.batch_size * exp.baseline_steps * BASELINE_SAMPLE_S  # once: A is frozen for every seed
+    training = seeds * (exp.batch_size * exp.stage1_steps * STAGE1_SAMPLE_S
                         + exp.stage2_batch_size * trained * exp.stage2_steps * cfg.stage.rollout_steps
                         * STAGE2_SAMPLE_STATE_S)
-    reverse_steps = deploy.steps or cfg.backbone.schedule.deploy_steps
     units = test_scenes * len(views)
     cold_start = deploy.repair_iters[0] * FIT_ITERATION_S
     after_cold = deploy.total_iters - deploy.repair_iters[0]
@@ -195,11 +221,14 @@ def estimate_minutes(cfg: DictConfig, variants: Sequence[Variant], steps: Sequen
     # teacher's for a distilled variant), each over the clip's student conditions at the deployed view counts.
     clip_conditions = len(views) * snapshots
     forwards = reverse_steps * clip_conditions * (2 * len(variants) + trained)
+    # The privileged gap: A, the Stage-1 adapter and F restore each clip from R_d and from its student conditions.
+    if any(v.name == PRIVILEGED_VARIANT and v.trained for v in variants):
+        forwards += 3 * reverse_steps * (1 + clip_conditions)
     diagnostics = seeds * test_scenes * cfg.replicate.held_out_clips_per_scene * forwards * RESTORER_FORWARD_S / workers
     # The multiruns' further jobs, and the diagnostics' composition of each variant's config and its upstream.
     jobs = seeds * (trained + 2 * len(variants))
     starts = len(steps) * PROCESS_START_S + jobs * JOB_START_S
-    parts = {"data": data, "training": training, "deployment": deployment, "diagnostics": diagnostics,
+    parts = {"data": data, "A": baseline, "training": training, "deployment": deployment, "diagnostics": diagnostics,
              "process starts": starts}
     return {part: seconds / 60 for part, seconds in parts.items()}
 
@@ -214,7 +243,7 @@ def replicate(cfg: DictConfig) -> Path:
             if override_key(o).split(".")[0] not in ("replicate", "seed", "ablation")]
     clips = cfg.replicate.held_out_clips_per_scene
     steps = replicate_steps(variants, cfg.seed, seeds, out_dir, user, clips, list(cfg.evaluation.views),
-                            list(cfg.data.prepare.student_views))
+                            list(cfg.data.prepare.student_views), cfg.experiment.baseline_split == "pretrain")
     parts = estimate_minutes(cfg, variants, steps)
     estimate = sum(parts.values())
     show(f"tracegs-replicate: Table 3 ({', '.join(v.name for v in variants)}) x training seeds {seeds} on "
@@ -234,13 +263,15 @@ def replicate(cfg: DictConfig) -> Path:
     header = (f"# Table 3 replicated over training seeds (embedded scale)\n\nCommit {run['commit']}, {machine['cpu']} ({machine['cores']} "
               f"cores, torch {machine['torch']}): wall time {run['table3_minutes']:.1f} min (estimated "
               f"{estimate:.0f}), peak RSS {run['peak_rss_gib']:.2f} GiB (largest step). Data, 3DGS fits and "
-              f"deployment noise from seed {cfg.seed}; every restorer trained from scratch for each training "
-              "seed.\n")
+              f"deployment noise from seed {cfg.seed}; A trained once from it and frozen, Stage 1 and every "
+              "student trained from scratch for each training seed.\n")
     inputs = ReplicateInputs(seeds=seeds, variants=[v.name for v in variants],
                              descriptions={v.name: v.description for v in variants},
                              methods={v.name: v.method for v in variants},
                              eval_dirs={s: eval_dir(out_dir, s) for s in seeds}, three_dgs_dir=three_dgs_dir(out_dir),
-                             diagnostics_dirs={s: diagnostics_dir(out_dir, s) for s in seeds})
+                             diagnostics_dirs={s: diagnostics_dir(out_dir, s) for s in seeds},
+                             privileged_dirs={s: privileged_dir(out_dir, s) for s in seeds
+                                              if PRIVILEGED_VARIANT in [v.name for v in variants if v.trained]})
     report, figures = write_replicate_report(out_dir, inputs, header)
     write_json_atomic({**run, **figures}, out_dir / "run.json")
     page = write_report_page(out_dir)

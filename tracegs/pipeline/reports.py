@@ -97,8 +97,8 @@ def require_held_out_cache(cfg: DictConfig) -> None:
 
 def privileged_report(cfg: DictConfig) -> Path:
     """The privileged gap (eval/privileged.py): the frozen restorer A (the pseudo-target generator under the
-    paper's data protocol), the Stage-1 adapter and the Stage-2 student (this config's variant) restore the held-out
-    clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
+    paper's data protocol), the Stage-2 student (this config's variant) and, with ``report.stage1_row``, the
+    Stage-1 adapter restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
     require_held_out_cache(cfg)
     locate_artifacts(cfg, ["baseline_weights", "stage1_adapter", "student_adapter"])
     if not Path(cfg.artifacts.stage1_adapter).exists():
@@ -107,7 +107,8 @@ def privileged_report(cfg: DictConfig) -> Path:
     pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
         section(cfg.backbone), cfg.artifacts.baseline_weights,
         {"baseline": None,
-         "stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1", "stage1"),
+         **({"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1",
+                                   "stage1")} if cfg.report.stage1_row else {}),
          "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
         batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
     # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.

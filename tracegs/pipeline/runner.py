@@ -78,7 +78,7 @@ class Step:
     typed ``settings`` (key -> value, in order), the raw overrides it passes on from the user's command line
     (``passed``; the step's own settings win over them), and what the logs call it. ``hands`` names products for
     later steps (product name -> key of this step's composed config); ``takes`` fills keys from earlier steps'
-    products (key -> product name)."""
+    products (key -> product name, or ``name/relative`` for a path inside a handed folder)."""
 
     app: str
     settings: tuple[tuple[str, Any], ...]
@@ -192,18 +192,29 @@ class Commands:
         return OmegaConf.select(composed(step.app, step.overrides), key)
 
 
+def _product_name(spec: str) -> str:
+    return spec.partition("/")[0]
+
+
+def _taken(products: Mapping[str, Any], spec: str) -> Any:
+    """The value a ``takes`` entry names: a handed product (``name``), or a path inside it (``name/relative``)."""
+    name, _, inside = spec.partition("/")
+    value = products.get(name, f"<{name}>")
+    return f"{value}/{inside}" if inside else value
+
+
 def run_steps(steps: Sequence[Step], executor: InProcess | Commands, runner: str,
               dry_run: bool = False) -> dict[str, float]:
     """Run ``steps`` in order with ``executor``, handing each product on to the steps that take it; the seconds
     each step took, by label. Stops at the first step that fails (its error says how to rerun it)."""
-    taken = {name for step in steps for name in step.takes.values()}
+    taken = {_product_name(spec) for step in steps for spec in step.takes.values()}
     products: dict[str, Any] = {}
     timings: dict[str, float] = {}
     for index, step in enumerate(steps, 1):
-        missing = sorted(set(step.takes.values()) - set(products))
+        missing = sorted({_product_name(spec) for spec in step.takes.values()} - set(products))
         if missing and not dry_run:
             raise ValueError(f"step '{step.label}' takes {missing}, which no earlier step hands on")
-        step = step.with_settings({key: products.get(name, f"<{name}>") for key, name in step.takes.items()})
+        step = step.with_settings({key: _taken(products, spec) for key, spec in step.takes.items()})
         log.info("[%s %d/%d] %s: %s", runner, index, len(steps), step.label, shlex.join(executor.command(step)))
         if dry_run:
             continue

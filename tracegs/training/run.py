@@ -26,7 +26,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.console import interactive
-from tracegs.data.datamodule import MANIFEST, PairedClipDataModule
+from tracegs.data.datamodule import MANIFEST, NO_TEACHER, PairedClipDataModule
 from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
@@ -268,7 +268,9 @@ def train_stage(cfg) -> Path:
         cfg.data.batch_size = cfg.stage.batch_size
     backbone = build_backbone(cfg.backbone, encoders=False)  # the cache holds every encoder's output
     module = build_module(cfg, backbone)
-    datamodule = PairedClipDataModule(cfg.data, teacher_views=cfg.teacher.views)
+    # A reads R_s and its target only: its own pretraining scenes fit no teacher.
+    teacher = NO_TEACHER if cfg.stage.name == "baseline" else cfg.teacher.views
+    datamodule = PairedClipDataModule(cfg.data, teacher_views=teacher)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
     with one_job_of_processes():

@@ -26,7 +26,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
+from tracegs.cli.failures import exit_with_one_line, report_one_line, user_error
 from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
@@ -157,7 +157,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                                              "finished product")
                 remove_attempt_records(cfg)
                 sys.exit(130)
-            except (*USER_ERRORS, OSError) as raised:
+            except Exception as raised:  # noqa: BLE001 - user_error tells the user's problems from bugs
                 error = user_error(raised, cfg)
                 if error is None or os.environ.get("TRACEGS_TRACEBACK"):
                     raise

@@ -42,24 +42,33 @@ def user_error(error: BaseException, cfg: DictConfig) -> BaseException | None:
 
 def memory_failure(error: BaseException) -> OutOfMemoryError:
     """The one-line error for ``error``, in whose chain an allocation or a library's mapping failed
-    (:func:`tracegs.errors.out_of_memory`): the step that ran out (the innermost function of this package that was
-    running, and the module being imported), what failed, and the address-space limit where one is set.
+    (:func:`tracegs.errors.out_of_memory`): the step that ran out (:func:`_step`), what failed, and the
+    address-space limit where one is set.
 
     A library under a memory limit tends to say something else: pycolmap, whose C++ module could not be mapped,
     asks to reinstall the package; the words here send the user to the memory instead."""
     memory = out_of_memory(error)
-    step = next((f"{frame.f_globals.get('__name__')}.{frame.f_code.co_qualname}"
-                 for frame, _ in reversed(list(traceback.walk_tb(error.__traceback__)))
-                 if PACKAGE in Path(frame.f_code.co_filename).resolve().parents
-                 and not str(frame.f_globals.get("__name__", "")).startswith("tracegs.cli")), "start-up")
-    importing = next((f"importing {e.name}: " for e in (memory, memory.__context__) if isinstance(e, ImportError)
-                      and e.name), "")
+    importing = "importing " if any(isinstance(e, ImportError) for e in (memory, memory.__context__)) else ""
     limit, _ = resource.getrlimit(resource.RLIMIT_AS)
     under = "" if limit == resource.RLIM_INFINITY else f" under the address-space limit of {limit / 2**30:.2f} GiB " \
                                                         "(ulimit -v)"
-    return OutOfMemoryError(step, f"out of memory ({importing}{one_line(memory, 200) or type(memory).__name__})"
-                                  f"{under}", "free memory or raise the limit, then run the same command again "
-                                              "(finished products are kept)")
+    return OutOfMemoryError(_step(error), f"out of memory ({importing}{one_line(memory, 200) or 'MemoryError'})"
+                                          f"{under}", "free memory or raise the limit, then run the same command "
+                                                      "again (finished products are kept)")
+
+
+def _step(error: BaseException) -> str:
+    """Where ``error`` rose, as ``module.function``: the innermost function of this package outside the entry-point
+    wrapper (the step that ran), else the library function the wrapper called (Hydra composing the config)."""
+    frames = [(str(frame.f_globals.get("__name__")), frame.f_code.co_qualname.split(".<locals>.")[-1],
+               PACKAGE in Path(frame.f_code.co_filename).resolve().parents)
+              for frame, _ in traceback.walk_tb(error.__traceback__)]
+    ours = [f"{module}.{name}" for module, name, inside in frames if inside and not module.startswith("tracegs.cli")]
+    if ours:
+        return ours[-1]
+    called = [f"{module}.{name}" for (_, _, caller), (module, name, inside) in zip(frames, frames[1:])
+              if caller and not inside]
+    return called[-1] if called else "start-up"
 
 
 def report_one_line(app: str, error: BaseException | str) -> str:

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from tracegs.splat.cameras import Camera
 from tracegs.errors import ConfigError
+from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig, RenderBackend
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
 from tracegs.splat.preprocess_compiled import preprocess_compiled

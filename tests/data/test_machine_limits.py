@@ -4,9 +4,10 @@ folder) and memory (one line naming memory and the step, exit 2, no run folder l
 
 from __future__ import annotations
 
-import importlib
 import os
 import resource
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -89,22 +90,33 @@ def test_without_a_compiler_auto_is_refused_in_one_line_and_torch_gets_its_own_f
     assert caches["auto"] != caches["torch"]
 
 
-def address_space_a_little_above_now() -> None:
-    """Limit the child's address space to what it maps now plus 16 MiB, as ``ulimit -v`` would: too little to run
-    the preparation. The entry point's module is imported first, as the console script does before any of the
-    project's code runs (a library that cannot be mapped at that point fails before the entry point exists)."""
-    importlib.import_module("tracegs.cli.prepare")
-    with open("/proc/self/status") as status:
-        mapped = next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmSize:"))
-    resource.setrlimit(resource.RLIMIT_AS, (mapped + 16 * 2**20, resource.getrlimit(resource.RLIMIT_AS)[1]))
+MAPPED_AFTER_IMPORT = ("import tracegs.cli.prepare\n"
+                       "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmSize:')))")
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the mapped size from /proc")
-def test_running_out_of_memory_is_one_line_naming_memory_and_the_step(tmp_path, entry_point):
-    run = entry_point("prepare", tiny_prepare(tmp_path), tmp_path, address_space_a_little_above_now)
-    assert_refused(run, "prepare", ": out of memory (", written(tmp_path))
-    line = run.stderr_lines()[0]
+def test_running_out_of_memory_is_one_line_naming_memory_and_the_step(tmp_path):
+    """A fresh interpreter (a forked child would reuse the memory its parent's earlier tests freed) limited, as
+    ``ulimit -v`` would, to what the entry point's imports map plus 16 MiB: the run starts, then runs out."""
+    # One OpenMP thread, as the test suite runs: libgomp ends the process itself (exit 1, its own words) when it
+    # cannot map a thread's stack, which leaves nothing for the entry point to report.
+    environment = {**{key: value for key, value in os.environ.items()
+                      if key not in ("TRACEGS_TRACEBACK", "HYDRA_FULL_ERROR")}, "OMP_NUM_THREADS": "1"}
+    mapped = int(subprocess.run([sys.executable, "-c", MAPPED_AFTER_IMPORT], capture_output=True, text=True,
+                                env=environment, check=True).stdout) * 1024
+    limit = mapped + 16 * 2**20
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+
+    run = subprocess.run([sys.executable, "-m", "tracegs.cli.prepare", *tiny_prepare(tmp_path)], cwd=tmp_path,
+                         env=environment, preexec_fn=limited, capture_output=True, text=True)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1, run.stderr[-3000:]
+    line = lines[0]
+    assert line.startswith("tracegs-prepare: error: ") and ": out of memory (" in line, line
+    assert written(tmp_path) == set()
     step = line.removeprefix("tracegs-prepare: error: ").split(":")[0]
     assert step.startswith(("tracegs.", "hydra.")), line  # the step that ran out, as module.function
-    assert "GiB (ulimit -v); free memory or raise the limit" in line
+    assert f"under the address-space limit of {limit / 2**30:.2f} GiB (ulimit -v); free memory or raise" in line
     assert not (tmp_path / "outputs").exists(), "the run folder was left behind"

@@ -143,3 +143,23 @@ def write_failure(path: str | os.PathLike, error: OSError) -> OutputPathError | 
         return None
     return OutputPathError(path, f"cannot write ({error.strerror or os.strerror(error.errno)})",
                            WRITE_FAILURES[error.errno])
+
+
+# How libraries say an allocation or a mapping failed: CPython's MemoryError aside, torch's CPU allocator ("can't
+# allocate memory"), CUDA's ("out of memory"), and the dynamic loader, which maps a shared library's segments
+# when it is imported ("failed to map segment from shared object", "cannot allocate memory"); a package may wrap
+# that ImportError in its own "cannot import" error, so the whole chain is read.
+_MEMORY_WORDS = ("failed to map segment", "cannot allocate memory", "can't allocate memory", "out of memory")
+
+
+def out_of_memory(error: BaseException) -> BaseException | None:
+    """The exception in ``error``'s chain (itself, its causes and contexts) that says an allocation or the mapping
+    of a shared library failed, or None."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if (isinstance(error, MemoryError) or (isinstance(error, OSError) and error.errno == errno.ENOMEM)
+                or any(words in str(error).lower() for words in _MEMORY_WORDS)):
+            return error
+        error = error.__cause__ or error.__context__
+    return None

@@ -8,13 +8,14 @@ import pytest
 import torch
 from support.scenes import PARAMETER_NAMES, psnr, random_scene, ring_cameras
 
+from tracegs.errors import ConfigError
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.rasterize_compiled import compiled_available, rasterize_compiled
-from tracegs.splat.render import render, resolve_backend
+from tracegs.splat.rasterize_compiled import compiled_unavailable, rasterize_compiled
+from tracegs.splat.render import render, require_available, resolve_backend
 
-pytestmark = pytest.mark.skipif(not compiled_available(), reason="no C++ compiler: the compiled backend is off")
+pytestmark = pytest.mark.skipif(compiled_unavailable() is not None, reason="no C++ compiler: the compiled backend is off")
 
 
 def hard_scene(seed: int) -> GaussianModel:
@@ -170,7 +171,10 @@ def test_fit_on_compiled_backend_matches_reference_backend_psnr():
     assert abs(scores["compiled"] - scores["torch"]) <= 0.05, scores
 
 
-def test_auto_falls_back_to_torch_with_one_warning_when_the_build_fails(tmp_path, monkeypatch, caplog):
+def test_auto_refuses_to_fall_back_to_torch_when_the_build_fails(tmp_path, monkeypatch):
+    """The two backends' numbers differ: where the library cannot be built, ``auto`` is refused naming the build's
+    own complaint and the fix, never silently rendered by the pure-PyTorch rasterizer; ``torch`` asked for still
+    renders."""
     from tracegs.splat import rasterize_compiled
 
     broken = tmp_path / "rasterize_compiled.cpp"
@@ -178,14 +182,17 @@ def test_auto_falls_back_to_torch_with_one_warning_when_the_build_fails(tmp_path
     monkeypatch.setattr(rasterize_compiled, "SOURCES", (broken,))
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
     rasterize_compiled.library.cache_clear()
-    rasterize_compiled.compiled_available.cache_clear()
+    rasterize_compiled.compiled_unavailable.cache_clear()
     try:
-        with caplog.at_level("WARNING", logger=rasterize_compiled.__name__):
-            assert resolve_backend("auto", torch.device("cpu")) == "torch"
-            assert resolve_backend("auto", torch.device("cpu")) == "torch"
-        assert len(caplog.records) == 1 and "pure-PyTorch" in caplog.records[0].getMessage()
-        model = random_scene(20, seed=1)
-        assert render(model, ring_cameras(1)[0]).image.shape == (3, 48, 72)  # auto still renders
+        with pytest.raises(ConfigError) as refused:
+            require_available("auto", "data.prepare.fit.backend")
+        message = str(refused.value)
+        assert "\n" not in message and message.startswith("config field 'data.prepare.fit.backend': 'auto' ")
+        assert "cannot be built here (RuntimeError: " in message and "error" in message.split("(RuntimeError: ")[1]
+        assert "set data.prepare.fit.backend=torch" in message
+        with pytest.raises(ConfigError, match="cannot be built here"):
+            render(random_scene(20, seed=1), ring_cameras(1)[0])
+        assert render(random_scene(20, seed=1), ring_cameras(1)[0], backend="torch").image.shape == (3, 48, 72)
     finally:
         rasterize_compiled.library.cache_clear()
-        rasterize_compiled.compiled_available.cache_clear()
+        rasterize_compiled.compiled_unavailable.cache_clear()

@@ -26,14 +26,14 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_line, user_error
+from tracegs.cli.failures import exit_with_one_line, memory_failure, report_one_line, user_error
 from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
-from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
+from tracegs.errors import ConfigError, TraceGSError, out_of_memory, require_writable_dir, writable
 
 
 def log_libraries_through_hydra() -> None:
@@ -157,7 +157,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
                                              "finished product")
                 remove_attempt_records(cfg)
                 sys.exit(130)
-            except (*USER_ERRORS, OSError) as raised:
+            except Exception as raised:  # user_error tells what the user can fix (memory included) from a bug
                 error = user_error(raised, cfg)
                 if error is None or os.environ.get("TRACEGS_TRACEBACK"):
                     raise
@@ -177,7 +177,12 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
             if print_configs(CONF_DIR, config_name, sys.argv[1:]):
                 return None
             sys.argv[1:] = one_job_argv(sys.argv[1:])  # a rank launched for one job of a multirun
-            return hydra_main()
+            try:
+                return hydra_main()
+            except Exception as error:  # memory that ran out before the task, or in Hydra reporting an error
+                if out_of_memory(error) is None or os.environ.get("TRACEGS_TRACEBACK"):
+                    raise
+                exit_with_one_line(config_name, memory_failure(error))
 
         return main
 

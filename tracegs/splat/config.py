@@ -15,7 +15,7 @@ from tracegs.products import EVERY, reads
 class RenderBackend(Mode):
     """The rasterizer (tracegs.splat.render)."""
 
-    auto = "auto"  # gsplat where CUDA and the package are present, else compiled, else torch (no compiler)
+    auto = "auto"  # gsplat where CUDA and the package are present, else compiled (refused where it cannot build)
     compiled = "compiled"  # the tiled rasterizer compiled to one C++ loop per pixel (CPU)
     torch = "torch"  # tiled pure-PyTorch rasterizer (readable reference; any device)
     dense = "dense"  # every Gaussian on every pixel (small images; the reference for the tiled one)

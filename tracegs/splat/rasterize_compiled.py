@@ -19,12 +19,14 @@ ABI called through ctypes: with ``torch/extension.h`` and pybind11 the one-time 
 machine, without them a few seconds. numba was the alternative; it is not a dependency here and would
 JIT-compile in every fresh worker process. The build directory is named by a hash of the sources and of the
 torch installation, so checkouts or venvs with different sources never rebuild a library another process has
-loaded.
+loaded. Where that cache cannot be written (HOME is read-only on many clusters and containers), the library is
+built in a folder of this user's in the system's temporary folder instead (`writable_extension_cache`), said in one log
+line: the same sources and flags make the same library, so a run's numbers do not depend on where it was built.
 
 The kernels are single-threaded: the embedded pipeline already runs one single-threaded fit per core. It is
 compiled for tiles of 4, 8 and 16 pixels (`TILE_SIZES`); `rasterize_tiles` uses 4.
-Where no compiler is available, `compiled_available()` is False after one logged warning and the `auto`
-backend falls back to the pure-PyTorch rasterizer.
+Where the library cannot be built (no compiler, no writable folder), `compiled_unavailable()` says why, and
+`render.require_available` refuses the backends that need it (`auto` on the CPU included) in one line.
 """
 
 from __future__ import annotations
@@ -34,12 +36,16 @@ import functools
 import hashlib
 import logging
 import os
+import re
 import shutil
+import stat
+import tempfile
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from tracegs.errors import one_line, out_of_memory, writable
 from tracegs.splat.rasterize import OCCLUSION_EPS
 
 SOURCES = tuple(Path(__file__).with_name(name) for name in ("rasterize_compiled.cpp", "preprocess_compiled.cpp"))
@@ -63,16 +69,54 @@ def _ninja_on_path() -> None:
         os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
 
 
+def writable_extension_cache() -> None:
+    """Make sure torch builds extensions in a writable folder: its own cache (``$TORCH_EXTENSIONS_DIR``, else
+    ``~/.cache/torch_extensions``) where that is or can be made one, else a folder of this user's in the system's
+    temporary folder, said in one log line and exported as ``$TORCH_EXTENSIONS_DIR``, so the worker processes
+    started afterwards build and load there without probing and saying it again.
+
+    The temporary folder is shared by every user of the machine, and a library is code this process runs: the
+    folder is made private (0700) and refused when someone else owns it or others can write to it."""
+    from torch.utils.cpp_extension import get_default_build_root
+
+    default = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root())
+    try:
+        default.mkdir(parents=True, exist_ok=True)
+        problem = None if writable(default) else "no file can be created there"
+    except OSError as error:
+        problem = error.strerror or one_line(error)
+    if problem is None:
+        return
+    fallback = Path(tempfile.gettempdir()) / f"tracegs-torch-extensions-{os.getuid()}"
+    fallback.mkdir(mode=0o700, exist_ok=True)
+    found = fallback.lstat()
+    if not stat.S_ISDIR(found.st_mode) or found.st_uid != os.getuid() or found.st_mode & 0o022:
+        raise OSError(f"the torch extensions cache {default} is not writable ({problem}) and {fallback} is not a "
+                      "private folder of this user's; set TORCH_EXTENSIONS_DIR to a writable folder")
+    log.warning("torch extensions cache %s not writable (%s): building the compiled rasterizer in %s", default,
+                problem, fallback)
+    os.environ["TORCH_EXTENSIONS_DIR"] = str(fallback)
+
+
 @functools.cache
 def library() -> ctypes.CDLL:
     """The compiled library (rasterizer and preprocessing), built at first use."""
     from torch.utils.cpp_extension import load
 
     _ninja_on_path()
+    writable_extension_cache()
     key = hashlib.sha256(b"".join(source.read_bytes() for source in SOURCES) + torch.__version__.encode()
                          + torch.__file__.encode() + " ".join(COMPILE_FLAGS).encode()).hexdigest()[:16]
-    path = load(f"tracegs_rasterize_{key}", [str(source) for source in SOURCES], extra_cflags=COMPILE_FLAGS,
-                is_python_module=False)
+    # torch warns in a box of many lines about a compiler other than the one it was built with; where the build
+    # fails, compiled_unavailable() names the compiler's own complaint in one line instead.
+    torch_log = logging.getLogger("torch.utils.cpp_extension")
+    level = torch_log.level
+    torch_log.setLevel(logging.ERROR)
+    try:
+        path = load(f"tracegs_rasterize_{key}", [str(source) for source in SOURCES], extra_cflags=COMPILE_FLAGS,
+                    is_python_module=False)
+    finally:
+        torch_log.setLevel(level)
     compiled = ctypes.CDLL(path)
     int64, floats = ctypes.c_int64, [_float_p]
     compiled.rasterize_forward.restype = ctypes.c_int
@@ -90,15 +134,20 @@ def library() -> ctypes.CDLL:
 
 
 @functools.cache
-def compiled_available() -> bool:
-    """Whether the compiled rasterizer builds and loads here (compiled once per machine, then cached)."""
+def compiled_unavailable() -> str | None:
+    """Why the compiled library cannot be built or loaded here, or None when it is (compiled once per machine,
+    then cached): the first line of a failed build's output where the compiler or the shell complains (ninja's
+    output is mostly the commands it ran), else the error's last line."""
     try:
         library()
-    except Exception as error:  # no compiler, no ninja, a failed build: the torch backend still works
-        log.warning("compiled rasterizer unavailable (%s: %s); using the pure-PyTorch rasterizer",
-                    type(error).__name__, str(error).strip().splitlines()[-1] if str(error).strip() else "")
-        return False
-    return True
+    except Exception as error:  # no compiler, no ninja, a failed build
+        if out_of_memory(error):  # no property of the machine's tools: the entry point says it as such
+            raise
+        lines = [line.strip() for line in str(error).strip().splitlines()[1:]]
+        said = next((line for line in lines if re.search(r"error|not found", line, re.IGNORECASE)),
+                    lines[-1] if lines else one_line(error))
+        return f"{type(error).__name__}: {said}"
+    return None
 
 
 _POINTER_TYPES = {torch.float32: _float_p, torch.int64: _int64_p, torch.int32: ctypes.POINTER(ctypes.c_int32),

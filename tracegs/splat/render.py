@@ -9,13 +9,14 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from tracegs.errors import ConfigError
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig, RenderBackend
 from tracegs.splat.gaussians import MAX_SH_DEGREE, GaussianModel
 from tracegs.splat.preprocess_compiled import preprocess_compiled
 from tracegs.splat.projection import project_gaussians, radii_from_extents, visible_mask
 from tracegs.splat.rasterize import rasterize_dense, rasterize_tiles
-from tracegs.splat.rasterize_compiled import compiled_available, rasterize_compiled
+from tracegs.splat.rasterize_compiled import compiled_unavailable, rasterize_compiled
 from tracegs.splat.sh import sh_to_rgb
 
 
@@ -36,23 +37,48 @@ def gsplat_available() -> bool:
 
 
 def require_available(backend: str, field: str) -> None:
-    """Fail before any work when ``backend`` cannot run on this machine (gsplat needs CUDA and its package)."""
+    """Fail before any work when ``backend`` cannot run on this machine: gsplat needs CUDA and its package, the
+    compiled backend (``auto`` on the CPU) a library this machine can build (:func:`require_compiled`)."""
     if backend == "gsplat" and not gsplat_available():
         raise ValueError(f"{field}='gsplat' needs CUDA and the gsplat package; use 'torch' (CPU) or 'auto' here")
+    if backend == "compiled" or (backend == "auto" and not gsplat_available()):
+        require_compiled(backend, field)
+
+
+def require_compiled(backend: str, field: str) -> None:
+    """Refuse ``backend`` (``auto`` or ``compiled`` at ``field``) where the compiled rasterizer cannot be built.
+
+    ``auto`` does not fall back to the pure-PyTorch rasterizer: the two differ by ~3e-7 per render, which a 3DGS
+    fit amplifies to tenths of a dB, and the run's folder is named by the configured value (tracegs.config.identity)
+    -- a silent fallback would put other numbers under the same name. Recording the resolution in the identity
+    instead would make a folder's name depend on the machine and on a C++ build at composition time, so a later
+    stage on another machine would not find an earlier stage's product; asking for ``torch`` names its own folder
+    with no such dependence."""
+    problem = compiled_unavailable()
+    if problem is not None:
+        raise ConfigError(field, f"'{backend}' renders with the compiled CPU rasterizer, which cannot be built here "
+                                 f"({problem}); install a C++ compiler (and ninja), or set {field}=torch for the "
+                                 "pure-PyTorch rasterizer (slower, numbers slightly different: its products get "
+                                 "their own folders)")
 
 
 def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
     """The backend `render` uses; "auto" keeps float64 models (gradient checks) on the exact torch backend, the
-    compiled one computes in float32."""
+    compiled one computes in float32; it never falls back from the compiled one (:func:`require_compiled`)."""
     backend = RenderBackend.parse(backend, "render backend").value
     if backend == "auto":
         if device.type == "cuda":
             return "gsplat" if gsplat_available() else "torch"
-        return "compiled" if dtype == torch.float32 and compiled_available() else "torch"
+        if dtype != torch.float32:
+            return "torch"
+        require_compiled("auto", "render backend")
+        return "compiled"
     if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
         raise ValueError("render backend 'gsplat' needs the gsplat package and the model on a CUDA device")
     if backend == "compiled" and device.type != "cpu":
         raise ValueError(f"render backend 'compiled' runs on the CPU, the model is on {device}")
+    if backend == "compiled":
+        require_compiled("compiled", "render backend")
     return backend
 
 
@@ -85,7 +111,7 @@ def render(model: GaussianModel, camera: Camera, background: Tensor | None = Non
 
     backend: "compiled" (projection, SH and the tile rasterizer as compiled C++, CPU), "torch" (tile-culled pure
     PyTorch, any device), "dense" (every Gaussian at every pixel; slow reference), "gsplat" (CUDA), "auto" (gsplat
-    for CUDA tensors when importable, compiled for float32 on the CPU when a compiler is present, else torch).
+    for CUDA tensors when importable, compiled for float32 on the CPU, refused where it cannot be built).
     """
     degree = MAX_SH_DEGREE if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_SH_DEGREE:

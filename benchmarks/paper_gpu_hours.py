@@ -40,7 +40,6 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
@@ -51,6 +50,7 @@ from tracegs.data.prepare import (
     teacher_view_counts,
     trajectory_count,
 )
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import Step, override
 from tracegs.pipeline.steps import main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, variants_teachers

@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.reports import ablation_inputs, ablation_report
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 

@@ -30,11 +30,11 @@ from tracegs.cli.failures import USER_ERRORS, exit_with_one_line, report_one_lin
 from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
 from tracegs.console import quiet_library_notices
 from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
+from tracegs.location import CONF_DIR
 
 
 def log_libraries_through_hydra() -> None:

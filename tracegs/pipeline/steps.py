@@ -18,10 +18,10 @@ from typing import Any
 
 from hydra import compose, initialize_config_dir
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.overrides import describes_the_dataset, override_key
 from tracegs.config.schema import register_configs
 from tracegs.errors import TraceGSError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import NO_SETTINGS, Commands, Step, Sweep, run_steps
 from tracegs.pipeline.variants import table3_variants
 

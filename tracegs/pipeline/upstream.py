@@ -31,9 +31,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import scoped_values
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AUTO, Task
 from tracegs.errors import ConfigError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.records import RUN_RECORD
 from tracegs.pipeline.variants import VARIANT_SECTIONS, variant_sections
 from tracegs.training.run import PRODUCTS

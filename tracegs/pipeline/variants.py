@@ -17,11 +17,11 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
 from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
+from tracegs.location import CONF_DIR
 
 GROUP = "ablation"
 # The sections a variant sets: its conf/ablation/<name>.yaml and the teacher, policy and loss options it selects.

@@ -36,7 +36,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from tracegs.content import capture_digest, content_digest, root_relative
+from tracegs.content import capture_digest, names_and_bytes_digest, root_relative
 from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.products import PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
@@ -121,7 +121,7 @@ def _scoped_values(cfg: DictConfig, kind: str, read: frozenset[str]) -> dict[str
     for key in CAPTURE_KEYS:
         handed = Path(values[key]).expanduser() if values.get(key) is not None else None
         if handed is not None and handed.exists():
-            values[key] = f"content:{capture_digest(handed) if handed.is_dir() else content_digest(handed)}"
+            values[key] = f"content:{capture_digest(handed) if handed.is_dir() else names_and_bytes_digest(handed)}"
     values.update(_handed_in(cfg, kind))
     root = OmegaConf.select(cfg, "paths.root_dir")
     if root is not None:
@@ -145,7 +145,7 @@ def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
         if node is None or node._is_interpolation() or node._is_none():
             continue
         path = Path(str(node._value())).expanduser()
-        found[key] = f"content:{content_digest(path, declared.content)}" if path.exists() else str(node._value())
+        found[key] = f"content:{names_and_bytes_digest(path, declared.content)}" if path.exists() else str(node._value())
     return found
 
 

@@ -16,7 +16,7 @@ from lightning.fabric.utilities.rank_zero import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import differing_keys, scoped_values
-from tracegs.content import content_digest, root_relative
+from tracegs.content import names_and_bytes_digest, root_relative
 from tracegs.errors import ConfigError, require_writable_dir, writable
 from tracegs.io import atomic_write, write_json_atomic
 
@@ -31,7 +31,7 @@ INPUT_ARTIFACTS = {"stage1": ("baseline_weights",), "stage2": ("baseline_weights
 def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
     """Content digests of the earlier products a ``kind`` run reads (tracegs.content)."""
     paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
-    return {f"content.{name}": content_digest(path) for name, path in paths.items()
+    return {f"content.{name}": names_and_bytes_digest(path) for name, path in paths.items()
             if path is not None and Path(path).exists()}
 
 

@@ -21,8 +21,12 @@ from tracegs.eval.html_report import write_report_page
 from tracegs.eval.interval_tables import write_per_step_intervals
 from tracegs.eval.merge import merge_results
 from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
-from tracegs.eval.report import plot_per_step_quality, write_ablation_report, write_held_out_report
 from tracegs.eval.seeds import seed_spread_markdown
+from tracegs.eval.tables_and_figures import (
+    plot_per_step_quality,
+    write_ablation_report,
+    write_held_out_report,
+)
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run

@@ -27,7 +27,7 @@ from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
 
 from tracegs.errors import ConfigMismatchError, InputFileError
-from tracegs.io import atomic_directory, content_digest, read_safetensors, save_safetensors_atomic
+from tracegs.io import atomic_directory, bytes_digest, read_safetensors, save_safetensors_atomic
 from tracegs.restorer.config import LoraConfig
 
 # diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
@@ -160,7 +160,7 @@ def base_identity(model: torch.nn.Module) -> str:
     depend on the dtype they are loaded in either, so one base at two precisions is one base."""
     source = dict(getattr(model, "config", {}) or {}).get("_name_or_path")
     if source and Path(source).is_dir():
-        return f"weights {content_digest(source)}"
+        return f"weights {bytes_digest(source)}"
     sha = hashlib.sha256()
     for name, tensor in model.state_dict().items():
         if ".lora_" not in name:

@@ -133,13 +133,6 @@ def adapter_parameters(model: torch.nn.Module, name: str) -> list[torch.nn.Param
     return [p for _, p in _lora_parameters(model, name)]
 
 
-def set_trainable(model: torch.nn.Module, name: str, trainable: bool) -> None:
-    _require(model, name)
-    _trainable_flags(model)[name] = trainable
-    for param in adapter_parameters(model, name):
-        param.requires_grad_(trainable)
-
-
 def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -> None:
     """phi_dst <- Clone(phi_src) (Eq. supp-adapter-clone): same config, deep-copied tensors, no shared storage."""
     _require(model, src)

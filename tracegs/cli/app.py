@@ -35,6 +35,7 @@ from tracegs.config.validate import validate, validate_names
 from tracegs.console import quiet_library_notices
 from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
 from tracegs.location import CONF_DIR
+from tracegs.pipeline.records import migrate_older_folders
 
 
 def log_libraries_through_hydra() -> None:
@@ -50,6 +51,18 @@ def log_libraries_through_hydra() -> None:
         for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
             logger.removeHandler(handler)
         logger.propagate = True
+
+
+class MigrateOlderFolders(Callback):
+    """Hydra callback: the one step of a command that renames the product folders an older version named
+    (tracegs.pipeline.records.migrate_older_folders), before Hydra or the task resolves a folder; once for a
+    multirun, whose jobs share the root. ``--cfg`` never runs it: printing a config writes nothing."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        migrate_older_folders(config)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        migrate_older_folders(config)
 
 
 class OutputsWritable(Callback):

@@ -12,7 +12,9 @@ from hydra import compose
 from omegaconf import OmegaConf
 
 from tracegs.config.identity import derive_seed, scoped_values
+from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import ConfigError, validate
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, migrate_older_folders, write_run_record
 from tracegs.pipeline.reports import ablation_inputs, swept_method_evaluations
 from tracegs.pipeline.upstream import locate_artifacts
@@ -414,7 +416,7 @@ def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(entry_con
         ablation_inputs(entry_config("report", report))
     written = {}
     for dataset in ("dl3dv", "mipnerf360"):
-        for variant in table3_variants():
+        for variant in table3_variants(ConfigTree.at(CONF_DIR)):
             chosen = [] if dataset == "dl3dv" else [f"data={dataset}"]
             evaluation = entry_config("evaluate", [*common, f"ablation={variant.name}", *chosen])
             folder = Path(str(evaluation.evaluation.out_dir))

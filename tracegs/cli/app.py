@@ -22,6 +22,7 @@ from typing import Any
 import hydra
 import lightning
 from diffusers.utils import logging as diffusers_logging
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -31,6 +32,7 @@ from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.config.schema import register_configs
+from tracegs.config.tree import search_path_of
 from tracegs.config.validate import validate, validate_names
 from tracegs.console import quiet_library_notices
 from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
@@ -147,6 +149,7 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     if HydraConfig.initialized():
         # The one place the command line is read: an in-process runner composes its steps from the typed copy.
         cfg.command_line = list(HydraConfig.get().overrides.task)
+        cfg.config_search_path = search_path_of(GlobalHydra.instance().config_loader())
     validate(cfg)
     log_libraries_through_hydra()
     quiet_library_notices()

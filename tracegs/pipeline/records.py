@@ -135,8 +135,9 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
         # config may hold fields added since, which change nothing it is (a root copied read-only reruns too).
         return
     write_json_atomic(record, folder / RUN_RECORD)
-    # Hydra's own node and the command line that happened to make it are no part of what the product is.
-    kept = [key for key in cfg if key not in ("hydra", "command_line")]
+    # Hydra's own node, the command line that happened to make it and the config folders it was composed from
+    # are no part of what the product is.
+    kept = [key for key in cfg if key not in ("hydra", "command_line", "config_search_path")]
     resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, kept), resolve=True)
     with atomic_write(folder / "config.yaml") as tmp:
         tmp.write_text(OmegaConf.to_yaml(relative_to_root(resolved, cfg.paths.root_dir)))

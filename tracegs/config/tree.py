@@ -2,8 +2,8 @@
 state, so code that reads other configs of the tree (a Table 3 variant's sections, a stage option's file) runs
 the same inside a command, in a test, or from Python with no Hydra context open.
 
-A command records its search path in its config (``config_search_path``: the entry point from Hydra's runtime, an
-in-process composition from the context it composes in); :meth:`ConfigTree.of` reads it back, so a lookup sees the
+A command records its search path in its config (``config_search_path``: the entry point from the Hydra app it
+runs in, an in-process composition from the Hydra context it composes in); :meth:`ConfigTree.of` reads it back, so a lookup sees the
 config files the command saw (a variant added in another config folder included). A config that records none
 (built in Python) reads the package's tree (tracegs.location).
 """
@@ -34,7 +34,7 @@ class ConfigTree:
     @classmethod
     def at(cls, config_dir: str) -> ConfigTree:
         """The search path a Hydra app on ``config_dir`` reads (Hydra's own configs and its plugins' included)."""
-        return cls(tuple(search_path_of(ConfigLoaderImpl(create_config_search_path(config_dir)))))
+        return cls(_app_search_path(config_dir))
 
     @classmethod
     def of(cls, cfg: DictConfig) -> ConfigTree:
@@ -68,6 +68,11 @@ def search_path_of(loader: Any) -> list[str]:
     """The search path a Hydra config loader reads (``GlobalHydra.instance().config_loader()`` where a command
     composes), as :class:`ConfigTree` entries."""
     return [f"{source.provider}={source.full_path()}" for source in loader.get_sources()]
+
+
+@functools.lru_cache(maxsize=8)
+def _app_search_path(config_dir: str) -> tuple[str, ...]:
+    return tuple(search_path_of(ConfigLoaderImpl(create_config_search_path(config_dir))))
 
 
 @functools.lru_cache(maxsize=8)

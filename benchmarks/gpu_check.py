@@ -80,8 +80,8 @@ def compose(scale: str, overrides: tuple[str, ...] = ()):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from tracegs.config.location import CONF_DIR
     from tracegs.config.schema import register_configs
+    from tracegs.location import CONF_DIR
 
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):

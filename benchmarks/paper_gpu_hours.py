@@ -40,8 +40,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.config.tree import ConfigTree
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
 from tracegs.data.prepare import (
@@ -51,6 +51,7 @@ from tracegs.data.prepare import (
     teacher_view_counts,
     trajectory_count,
 )
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import Step, override
 from tracegs.pipeline.steps import main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, variants_teachers
@@ -215,7 +216,7 @@ def per_step_work(cfg: DictConfig, scenes: int) -> Work:
     prepare: PrepareConfig = OmegaConf.to_object(cfg.data.prepare)
     steps = cfg.backbone.schedule.deploy_steps
     clips = len(clip_views(cfg)) * scenes
-    rollouts = clips * len(prepare.student_snapshots) * len(per_step_variants())
+    rollouts = clips * len(prepare.student_snapshots) * len(per_step_variants(ConfigTree.at(CONF_DIR)))
     forwards = steps * guided(cfg.backbone.sampler.guidance_scale)
     return Work(encodes=rollouts, forwards=2 * rollouts * forwards, decodes=rollouts * (steps + 1))
 
@@ -231,7 +232,7 @@ def test_scenes(cfg: DictConfig, dl3dv: int) -> int:
 def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[list[tuple[str, str, Work]], int]:
     """(label, command, work) of every command, in order, and how many variants train a Stage-2 student."""
     common = [*PAPER_JOB, *overrides]
-    variants = table3_variants()
+    variants = table3_variants(ConfigTree.at(CONF_DIR))
     steps = [Step.of("prepare", "prepare DL3DV training cache (every teacher)").passing(common)]
     report = compose(config_name="report", overrides=common)
     others = [d for d in report.report.datasets if d != report.training_data]
@@ -260,7 +261,7 @@ def plan(overrides: list[str], train_scenes: int, dl3dv_scenes: int) -> tuple[li
 def scope_prepare_work(overrides: list[str], train_scenes: int) -> Work:
     """The training cache of the paper's own scope, one student (F): only the teacher F distils from
     (``variants_teachers``), so the sparse fits stop at their last student snapshot."""
-    teachers = [override(key, value) for key, value in variants_teachers(table3_configs(["F"])).items()]
+    teachers = [override(key, value) for key, value in variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["F"])).items()]
     cfg = compose(config_name="prepare", overrides=[*PAPER_JOB, *overrides, *teachers])
     return prepare_work(cfg, train_scenes)
 

@@ -20,8 +20,8 @@ import pytest
 import torch
 from hydra import initialize_config_dir
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import composed
 from tracegs.training.strategy import LAUNCH_ENV
 

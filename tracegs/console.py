@@ -6,6 +6,7 @@ import logging
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 log = logging.getLogger("tracegs")
@@ -44,6 +45,42 @@ def show(text: str = "") -> None:
     print(text)
     sys.stdout.flush()
     to_log_files(text)
+
+
+# Library notices that say nothing a user of this project can act on, each with why it is safe to drop. Every
+# other warning still shows (a Lightning hint about the user's own settings, the project's own warnings).
+KNOWN_WARNINGS = (
+    # Validation runs as callbacks on the deployed restorer (tracegs/eval/callback.py), never as a Lightning val
+    # loop: the DataModule's ``val_dataloader`` serves those scenes, and the Trainer's loop is off by design.
+    ("You passed in a `val_dataloader` but have no `validation_step`", UserWarning),
+    # Lightning's own use of a torch class that torch deprecates: fixed by a Lightning release, not by a user.
+    (r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning),
+    # Manual-optimisation checkpoints hold the weights after the step, which is what exact resume needs: the
+    # checkpoint of step k is the state step k + 1 starts from (Lightning adds a page of example code).
+    ("Using ModelCheckpoint with manual optimization", UserWarning),
+    # The weight average copies the module after ``configure_model``; only a sharded run would make that a copy
+    # of a shard, and the baseline (the one stage that averages) never shards.
+    ("You're using the WeightAveraging callback with a model that overrides", UserWarning),
+)
+# Lightning's advertisements for its other products (litlogger, litmodels), logged at INFO by its rank-zero
+# logger on every Trainer.
+ADVERTISEMENT = "\N{ELECTRIC LIGHT BULB} Tip:"
+LIGHTNING_NOTICES = "lightning.pytorch.utilities.rank_zero"
+
+
+class _DropAdvertisements(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(ADVERTISEMENT)
+
+
+def quiet_library_notices() -> None:
+    """Drop the library notices above from the console and the log files (idempotent: an entry point calls it
+    before the libraries speak; a filter added twice replaces the first)."""
+    for message, category in KNOWN_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category)
+    logger = logging.getLogger(LIGHTNING_NOTICES)
+    if not any(isinstance(f, _DropAdvertisements) for f in logger.filters):
+        logger.addFilter(_DropAdvertisements())
 
 
 # A plain-text progress line at most this often: a progress bar's redraws are unreadable in log files and

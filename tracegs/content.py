@@ -47,8 +47,10 @@ def _digest_of(base: Path, stamp: tuple) -> str:
     return sha.hexdigest()[:DIGEST_CHARS]
 
 
-def content_digest(path: str | Path, parts: Iterable[str] = ()) -> str:
-    """Digest of the names and bytes of a file or a folder's files (only its sub-folders ``parts``, if given)."""
+def names_and_bytes_digest(path: str | Path, parts: Iterable[str] = ()) -> str:
+    """Digest (``DIGEST_CHARS`` hex digits of SHA-256) of the names and bytes of a file or a folder's files (only its
+    sub-folders ``parts``, if given): each file's path relative to ``path``, a NUL, then its bytes. Renaming a file
+    inside the folder changes it (contrast :func:`tracegs.io.bytes_digest`, which reads bytes alone)."""
     base = Path(path).expanduser().resolve()
     files = [f for part in parts for f in _files(base / part)] if parts else _files(base)
     return _digest_of(base, _stamp(files))
@@ -56,7 +58,7 @@ def content_digest(path: str | Path, parts: Iterable[str] = ()) -> str:
 
 def scene_digest(scene_dir: str | Path) -> str:
     """Digest of a COLMAP scene folder's images and ``sparse/`` reconstruction."""
-    return content_digest(scene_dir, SCENE_PARTS)
+    return names_and_bytes_digest(scene_dir, SCENE_PARTS)
 
 
 def photo_folder(capture: str | Path) -> Path:

@@ -259,9 +259,11 @@ def read_safetensors(path: str | os.PathLike, fix: str) -> tuple[dict[str, torch
 _digests: dict[tuple, str] = {}
 
 
-def content_digest(path: str | os.PathLike) -> str:
-    """SHA-256 (16 hex digits) of a file's bytes, or of a folder's files in name order: the identity of a
-    restorer's weights. Computed once per process while the files' sizes and modification times stay put."""
+def bytes_digest(path: str | os.PathLike) -> str:
+    """SHA-256 (16 hex digits) of a file's bytes, or of a folder's files' bytes end to end in name order, the names
+    themselves not hashed: the identity of a restorer's weights and of the demo's tables (contrast
+    :func:`tracegs.content.names_and_bytes_digest`). Computed once per process while the files' sizes and
+    modification times stay put."""
     path = Path(path)
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     key = tuple((str(f.resolve()), f.stat().st_size, f.stat().st_mtime_ns) for f in files)

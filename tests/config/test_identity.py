@@ -12,8 +12,10 @@ from hydra import compose
 from omegaconf import OmegaConf
 
 from tracegs.config.identity import derive_seed, scoped_values
+from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import ConfigError, validate
-from tracegs.pipeline.records import RUN_RECORD, check_run_record, write_run_record
+from tracegs.location import CONF_DIR
+from tracegs.pipeline.records import RUN_RECORD, check_run_record, migrate_older_folders, write_run_record
 from tracegs.pipeline.reports import ablation_inputs, swept_method_evaluations
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
@@ -414,7 +416,7 @@ def test_table_3_reads_the_evaluation_of_every_variant_on_each_dataset(entry_con
         ablation_inputs(entry_config("report", report))
     written = {}
     for dataset in ("dl3dv", "mipnerf360"):
-        for variant in table3_variants():
+        for variant in table3_variants(ConfigTree.at(CONF_DIR)):
             chosen = [] if dataset == "dl3dv" else [f"data={dataset}"]
             evaluation = entry_config("evaluate", [*common, f"ablation={variant.name}", *chosen])
             folder = Path(str(evaluation.evaluation.out_dir))
@@ -456,17 +458,54 @@ def test_one_product_spelled_two_ways_is_one_folder(entry_config, tmp_path):
     assert not Path(stage1.run_dir).exists()
 
 
-def test_a_folder_named_by_an_older_version_is_renamed_and_kept(entry_config, tmp_path):
-    """A root made when names repeated the typed overrides (``seed0_<overrides>-<digest>``) keeps its products:
-    the folder of the same digest is renamed to the name the typed values give, contents and all."""
-    cfg = entry_config("train", [f"paths.root_dir={tmp_path}", "stage=stage1", "loss.lambda_ret=0.3"])
-    expected = Path(str(cfg.run_dir))
-    older = expected.with_name(f"seed0_lambda_ret-0.3-{expected.name.rsplit('-', 1)[1]}")
+def older_root(entry_config, root: Path, overrides: list[str]) -> tuple[Path, Path]:
+    """(today's folder, the older version's folder) of a ``tracegs-train`` command line under ``root``: a root
+    made when names repeated the typed overrides (``seed0_<overrides>-<digest>``), holding a product."""
+    expected = Path(str(entry_config("train", [f"paths.root_dir={root}", *overrides]).run_dir))
+    older = expected.with_name(f"seed0_typed-{expected.name.rsplit('-', 1)[1]}")
     (older / "stage1_adapter").mkdir(parents=True)
     (older / "stage1_adapter" / "weights").write_bytes(b"trained")
-    again = entry_config("train", [f"paths.root_dir={tmp_path}", "stage=stage1", "loss.lambda_ret=0.3"])
-    assert Path(str(again.run_dir)) == expected and not older.exists()
+    return expected, older
+
+
+def test_a_folder_named_by_an_older_version_is_found_then_renamed_and_kept(entry_config, tmp_path):
+    """A root made by an older version keeps its products: resolving a config finds the older folder where it
+    lies and renames nothing; the command's migration step renames it to the name the typed values give,
+    contents and all, and a twin of another spelling is left alone (and named in the log)."""
+    overrides = [f"paths.root_dir={tmp_path}", "stage=stage1", "loss.lambda_ret=0.3"]
+    expected, older = older_root(entry_config, tmp_path, overrides)
+    twin = older.with_name(f"seed0_typed_again-{expected.name.rsplit('-', 1)[1]}")
+    twin.mkdir()
+    cfg = entry_config("train", overrides)
+    assert Path(str(cfg.run_dir)) == older and older.is_dir() and not expected.exists()
+    migrate_older_folders(cfg)
+    assert Path(str(cfg.run_dir)) == expected and not older.exists() and twin.is_dir()
     assert (expected / "stage1_adapter" / "weights").read_bytes() == b"trained"
+
+
+def test_printing_the_resolved_config_writes_nothing(entry_config, entry_point, tmp_path):
+    overrides = [f"paths.root_dir={tmp_path}", "stage=stage1", "loss.lambda_ret=0.3"]
+    _, older = older_root(entry_config, tmp_path, overrides)
+    before = sorted(tmp_path.rglob("*"))
+    run = entry_point("train", [*overrides, "--cfg", "job", "--resolve"], tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert OmegaConf.create(run.stdout).run_dir == str(older)  # found where it lies
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_a_command_on_an_older_root_renames_the_folder_and_reuses_its_product(entry_config, entry_point, tmp_path):
+    """The rerun promise on a root an older version made: the same command renames the product's folder and
+    finds the product finished."""
+    overrides = [f"paths.root_dir={tmp_path}", "stage=baseline"]
+    cfg = entry_config("train", overrides)
+    expected = Path(str(cfg.run_dir))
+    older = expected.with_name(f"seed0_typed-{expected.name.rsplit('-', 1)[1]}")
+    (older / "baseline_transformer").mkdir(parents=True)
+    write_run_record(cfg, "baseline", older)
+    run = entry_point("train", overrides, tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert not older.exists() and (expected / "baseline_transformer").is_dir()
+    assert "renamed to" in run.stdout and "nothing to do" in run.stdout
 
 
 @pytest.mark.parametrize(("variant", "dense_views", "final_fits"), [("C", [12, None], False), ("B", [None], True)])

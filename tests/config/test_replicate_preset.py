@@ -10,8 +10,10 @@ import pytest
 from hydra import compose
 from omegaconf import OmegaConf
 
+from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.replicate import (
     estimate_minutes,
@@ -24,6 +26,8 @@ from tracegs.pipeline.upstream import upstream_config
 from tracegs.pipeline.variants import table3_variants
 
 APP_CONFIG = {"prepare": "prepare", "train": "train", "evaluate": "evaluate", "report": "report"}
+
+TREE = ConfigTree.at(CONF_DIR)  # the package's config tree
 
 
 pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
@@ -45,7 +49,7 @@ def test_preset_has_enough_scenes_and_seeds():
 
 def test_the_default_run_estimate_is_bounded_and_follows_the_config():
     cfg = compose(config_name="replicate")
-    variants = replicate_variants()
+    variants = replicate_variants(TREE)
     steps = replicate_steps(variants, cfg.seed, list(cfg.replicate.training_seeds), Path("/tmp/bench"))
     parts = estimate_minutes(cfg, variants, steps)
     # The multi-step default trains 200 Stage-2 steps per student and seed (estimate ~74 min): the bound keeps the
@@ -64,18 +68,18 @@ def test_the_default_run_estimate_is_bounded_and_follows_the_config():
 
 
 def test_every_variant_is_run_and_the_caches_hold_every_teacher():
-    variants = replicate_variants()
-    assert [v.name for v in variants] == [v.name for v in table3_variants()]  # conf/ablation/, Table 3's rows
+    variants = replicate_variants(TREE)
+    assert [v.name for v in variants] == [v.name for v in table3_variants(TREE)]  # conf/ablation/, Table 3's rows
     # C and D need the 12- and 18-view teachers, B the sparse fits' final snapshots (as the sweep prepares).
     assert variant_teachers(variants, [3, 6, 9]) == {"data.prepare.dense_views": [12, 18, None],
                                                      "data.prepare.student_final_fits": True}
-    chosen = replicate_variants(["F", "A"])
+    chosen = replicate_variants(TREE, ["F", "A"])
     assert [v.name for v in chosen] == ["A", "F"] and not chosen[0].trained
     assert variant_teachers(chosen, [3, 6, 9]) == {"data.prepare.dense_views": [None],
                                                    "data.prepare.student_final_fits": False}
     for names, problem in ((["A", "G"], r"\['G'\] are not variants"), (["A", "A"], "repeats"), ([], "at least one")):
         with pytest.raises(ConfigError, match=f"replicate.variants.*{problem}"):
-            replicate_variants(names)
+            replicate_variants(TREE, names)
 
 
 def _single(steps) -> list[Step]:
@@ -88,7 +92,7 @@ def _single(steps) -> list[Step]:
 def test_every_step_composes_and_validates(tmp_path, entry_config):
     # Run folders are named like this one: commas, brackets and '=' must reach the children as one value.
     out_dir = tmp_path / "seed0,iterations=40,test_seeds=_100,101_-cecb1709"
-    steps = replicate_steps(replicate_variants(["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
+    steps = replicate_steps(replicate_variants(TREE, ["A", "F"]), 0, [0], out_dir, ["paths.root_dir=/tmp/elsewhere"])
     for step in _single(steps):
         cfg = entry_config(APP_CONFIG[step.app], list(step.overrides))
         validate(cfg)
@@ -112,7 +116,7 @@ def _taking_a(steps: list[Step], a_run: str) -> list[Step]:
 
 
 def test_replicates_share_data_3dgs_and_a_but_not_the_distilled_restorers(tmp_path, entry_config):
-    steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    steps = _single(replicate_steps(replicate_variants(TREE, ["A", "F"]), 0, [0, 1], tmp_path))
     plain = entry_config("evaluate", list(_step(steps, "evaluate plain 3DGS").overrides))
     a_run = str(entry_config("train", list(_step(steps, "train A").overrides)).run_dir)
     steps = _taking_a(steps, a_run)
@@ -135,7 +139,7 @@ def test_replicates_share_data_3dgs_and_a_but_not_the_distilled_restorers(tmp_pa
 
 
 def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
-    steps = _single(replicate_steps(replicate_variants(["A", "F"]), 0, [0, 1], tmp_path))
+    steps = _single(replicate_steps(replicate_variants(TREE, ["A", "F"]), 0, [0, 1], tmp_path))
     labels = [step.label for step in steps]
     # The paper's data protocol: A on its own scenes, then the training clips whose pseudo-targets A makes.
     assert labels[:3] == ["prepare (A's pretraining scenes)", "train A", "prepare (training scenes)"]
@@ -158,7 +162,7 @@ def test_each_replicate_finds_its_own_upstream_products(tmp_path, entry_config):
 
 
 def test_seeds_must_be_listed_once(tmp_path):
-    variants = replicate_variants(["A", "F"])
+    variants = replicate_variants(TREE, ["A", "F"])
     with pytest.raises(ValueError, match="repeats"):
         replicate_steps(variants, 0, [1, 1], tmp_path)
     with pytest.raises(ValueError, match="at least one"):

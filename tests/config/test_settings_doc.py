@@ -11,8 +11,8 @@ import pytest
 from hydra import compose
 from omegaconf import OmegaConf
 
-from tracegs.config.location import CONF_DIR
 from tracegs.errors import InputFileError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.settings_doc import HISTORY, SETTINGS, main, write_settings_document
 from tracegs.provenance import describe
 

@@ -13,6 +13,8 @@ from unittest import mock
 import pytest
 import yaml
 
+from tracegs.config.tree import ConfigTree
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import Commands, override
 from tracegs.pipeline.steps import SWEEP_TEACHERS, sweep_steps
 
@@ -132,9 +134,9 @@ def test_the_teachers_prepared_are_those_the_variants_distil_from(hydra_context)
     all-view set, whose R_d also feeds the pseudo-targets, and no sparse final fits; B: the 3-view final fit)."""
     from tracegs.pipeline.variants import table3_configs, variants_teachers
 
-    assert variants_teachers(table3_configs()) == SWEEP_TEACHERS
-    assert variants_teachers(table3_configs(["F"])) == {"data.prepare.dense_views": [None],
+    assert variants_teachers(table3_configs(ConfigTree.at(CONF_DIR))) == SWEEP_TEACHERS
+    assert variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["F"])) == {"data.prepare.dense_views": [None],
                                                         "data.prepare.student_final_fits": False}
-    assert variants_teachers(table3_configs(["A", "B"])) == {"data.prepare.dense_views": [None],
+    assert variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["A", "B"])) == {"data.prepare.dense_views": [None],
                                                              "data.prepare.student_final_fits": True}
-    assert variants_teachers(table3_configs(["C", "F"]))["data.prepare.dense_views"] == [12, None]
+    assert variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["C", "F"]))["data.prepare.dense_views"] == [12, None]

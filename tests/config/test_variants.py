@@ -14,10 +14,11 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.reports import ablation_inputs, ablation_report
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 
@@ -64,13 +65,19 @@ def hydra_in(request):
         context.__exit__(None, None, None)
 
 
-def test_the_shipped_variants_are_table_3_in_row_order(hydra_in):
-    hydra_in(Path(CONF_DIR))
-    variants = table3_variants()
+@pytest.fixture
+def schema_registered():
+    """The root schema in Hydra's ConfigStore, which every primary config lists first."""
+    register_configs()
+
+
+def test_the_shipped_variants_are_table_3_in_row_order(schema_registered):
+    tree = ConfigTree.at(CONF_DIR)
+    variants = table3_variants(tree)
     assert [v.row for v in variants] == list(range(1, len(variants) + 1))
     assert [v.name for v in variants] == ["A", "B", "C", "D", "E", "F-", "F"]
     assert [v.name for v in variants if not v.train_stage2] == ["A"]
-    assert per_step_variants() == ["A", "E", "F"]  # Fig. 6: A, off-policy E, on-policy F
+    assert per_step_variants(tree) == ["A", "E", "F"]  # Fig. 6: A, off-policy E, on-policy F
 
 
 @pytest.mark.slow  # runs the ablation report on a copied config tree (~18 s)
@@ -82,7 +89,7 @@ def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(c
     validate(cfg)
     assert cfg.ablation.name == "G" and cfg.loss.lambda_ret == pytest.approx(0.3)
     # identified: its own Stage-2 and evaluation folders, named by it
-    names = [v.name for v in table3_variants()]
+    names = [v.name for v in table3_variants(ConfigTree.at(str(conf_with_new_variant)))]
     assert names[-1] == "G" and len(names) == 8
     stage2 = {v: str(compose(config_name="train", overrides=["stage=stage2", f"ablation={v}"]).run_dir)
               for v in names}
@@ -110,12 +117,12 @@ def test_a_variant_added_as_one_file_is_composed_identified_swept_and_reported(c
 
 @pytest.mark.parametrize(("edit", "field"), [(("name: \"G\"", "name: \"F\""), "ablation.name"),
                                              (("row: 8", "row: 7"), "ablation.row")])
-def test_a_variant_that_would_share_a_folder_or_a_row_is_refused(conf_with_new_variant, hydra_in, edit, field):
+def test_a_variant_that_would_share_a_folder_or_a_row_is_refused(conf_with_new_variant, schema_registered, edit,
+                                                                  field):
     new = conf_with_new_variant / "ablation" / "G.yaml"
     new.write_text(new.read_text().replace(*edit))
-    hydra_in(conf_with_new_variant)
     with pytest.raises(ConfigError, match=r"ablation/G\.yaml") as error:
-        table3_variants()
+        table3_variants(ConfigTree.at(str(conf_with_new_variant)))
     assert error.value.field == field
 
 

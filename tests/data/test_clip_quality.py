@@ -8,7 +8,13 @@ import pytest
 
 from tracegs.data.datamodule import CacheError
 from tracegs.data.prepare import read_shard_psnr
-from tracegs.eval.clips import INPUT, clip_restoration_psnr, held_out_per_step_curves
+from tracegs.eval.clips import (
+    INPUT,
+    clip_restoration_psnr,
+    held_out_clip_curves,
+    unit_curves,
+    view_averaged_curves,
+)
 from tracegs.io import read_safetensors, save_safetensors_atomic
 from tracegs.restorer.sampler import RestorationPipeline
 
@@ -45,7 +51,9 @@ def test_needs_ground_truth_frames_and_names_the_shard(prepared, backbone, tmp_p
 
 def test_per_step_curves_cover_every_reverse_step_for_each_pipeline(prepared, backbone):
     pipeline = RestorationPipeline(backbone)
-    curves = held_out_per_step_curves({"E": pipeline, "F": pipeline}, prepared[0] / "cache", progress=False)
+    # Fig. 6 as the report draws it: each clip's curves, the mean per (scene, K), then the mean over K.
+    clip_curves = held_out_clip_curves({"E": pipeline, "F": pipeline}, prepared[0] / "cache", progress=False)
+    curves = view_averaged_curves(unit_curves(clip_curves))
     assert list(curves) == ["E", "F"]
     assert len(curves["E"]) == backbone.cfg.schedule.deploy_steps
     assert curves["E"] == curves["F"]  # same clips, conditions and noise for every variant

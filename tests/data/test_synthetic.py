@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -13,10 +14,10 @@ from tracegs.data.config import SyntheticConfig
 from tracegs.data.synthetic import (
     BACKDROP_TEXTURES,
     GROUND_TEXTURES,
+    draw_surroundings,
     generate_benchmark,
     generate_scene,
     render_ground_truth,
-    scene_surroundings,
 )
 
 
@@ -59,12 +60,12 @@ def test_the_default_training_scenes_show_every_ground_and_backdrop():
     distribution, not a measurement of restoration), so the default training seeds cover every ground and
     backdrop texture a validation or test scene can have."""
     seeds = SyntheticConfig().train_seeds
-    grounds, backdrops = zip(*(scene_surroundings(seed) for seed in seeds))
+    grounds, backdrops = zip(*(draw_surroundings(np.random.default_rng(seed)) for seed in seeds))
     assert set(grounds) == set(GROUND_TEXTURES) and set(backdrops) == set(BACKDROP_TEXTURES)
 
 
-def test_scene_surroundings_are_the_textures_the_scene_is_built_with(prepared):
+def test_the_first_draws_of_a_scene_seed_are_the_textures_it_is_built_with(prepared):
     _, synthetic, _, _, _ = prepared
-    ground, backdrop = scene_surroundings(0)
+    ground, backdrop = draw_surroundings(np.random.default_rng(0))
     caption = (Path(synthetic.root) / "scene_000" / "caption.txt").read_text()
     assert f"on {ground} " in caption and caption.rstrip().endswith(backdrop.replace("_", " "))

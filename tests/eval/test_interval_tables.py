@@ -8,7 +8,7 @@ from pathlib import Path
 
 from tracegs.eval.interval_tables import held_out_intervals_markdown
 from tracegs.eval.merge import merge_results, unit_path
-from tracegs.eval.report import held_out_table_markdown, write_ablation_report
+from tracegs.eval.tables_and_figures import held_out_table_markdown, write_ablation_report
 from tracegs.io import write_json_atomic
 
 SCENES = [f"scene_{100 + i}" for i in range(6)]

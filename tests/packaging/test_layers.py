@@ -1,5 +1,6 @@
 """The package's import graph, read from the modules' source: no module imports itself through others (no
-cycle), and no engine or helper module imports the layers above it (the console scripts and the pipeline)."""
+cycle), no subpackage imports itself through others (``config`` and ``data`` each above or below the other, never
+both), and no engine or helper module imports the layers above it (the console scripts and the pipeline)."""
 
 from __future__ import annotations
 
@@ -42,6 +43,20 @@ def imported_modules(name: str, path: Path, known: set[str]) -> set[str]:
 def import_graph() -> dict[str, set[str]]:
     found = modules()
     return {name: imported_modules(name, path, set(found)) for name, path in found.items()}
+
+
+def package(module: str) -> str:
+    """The subpackage a module belongs to (``tracegs.data.colmap`` -> ``tracegs.data``); a module of the top level
+    (``tracegs.io``) is its own."""
+    return ".".join(module.split(".")[:2])
+
+
+def package_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The module graph with each subpackage's modules merged into one node."""
+    merged: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        merged.setdefault(package(module), set()).update(package(t) for t in targets if package(t) != package(module))
+    return merged
 
 
 def layer(module: str) -> int:
@@ -90,12 +105,23 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_the_graph_is_read_from_the_source():
     graph = import_graph()
     assert "tracegs.pipeline.upstream" in graph["tracegs.pipeline.train"]
-    assert "tracegs.config.location" in graph["tracegs.data.colmap"]
+    assert "tracegs.location" in graph["tracegs.data.colmap"]
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    # Two modules of different subpackages importing each other's package make a cycle of packages.
+    assert cycles(package_graph({"t.a.x": {"t.b.y"}, "t.b.y": set(), "t.b.z": {"t.a.w"}, "t.a.w": set()})) == [
+        ["t.a", "t.b"]]
+
+
+def test_the_config_location_is_on_the_ground_floor():
+    assert import_graph()["tracegs.location"] == set()
 
 
 def test_no_import_cycle():
     assert cycles(import_graph()) == []
+
+
+def test_no_import_cycle_between_packages():
+    assert cycles(package_graph(import_graph())) == []
 
 
 def test_no_arrow_up_to_the_cli_or_the_pipeline():

@@ -15,8 +15,7 @@ from support.rehearsal import BUDGET, fresh_root, rehearsal_config, rehearsal_ru
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.images import read_rgb, resize
-from tracegs.data.prepare import to_uint8
+from tracegs.data.images import read_rgb, resize, to_uint8
 from tracegs.eval.clips import held_out_clips, load_clip
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.reports import report

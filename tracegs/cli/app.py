@@ -22,6 +22,7 @@ from typing import Any
 import hydra
 import lightning
 from diffusers.utils import logging as diffusers_logging
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -30,10 +31,13 @@ from tracegs.cli.failures import exit_with_one_line, memory_failure, report_one_
 from tracegs.cli.multirun import JobFailed, in_multirun, print_configs
 from tracegs.cli.precheck import refuse_bad_command_line
 from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
+from tracegs.config.tree import search_path_of
 from tracegs.config.validate import validate, validate_names
+from tracegs.console import quiet_library_notices
 from tracegs.errors import ConfigError, TraceGSError, out_of_memory, require_writable_dir, writable
+from tracegs.location import CONF_DIR
+from tracegs.pipeline.records import migrate_older_folders
 
 
 def log_libraries_through_hydra() -> None:
@@ -49,6 +53,18 @@ def log_libraries_through_hydra() -> None:
         for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
             logger.removeHandler(handler)
         logger.propagate = True
+
+
+class MigrateOlderFolders(Callback):
+    """Hydra callback: the one step of a command that renames the product folders an older version named
+    (tracegs.pipeline.records.migrate_older_folders), before Hydra or the task resolves a folder; once for a
+    multirun, whose jobs share the root. ``--cfg`` never runs it: printing a config writes nothing."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        migrate_older_folders(config)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        migrate_older_folders(config)
 
 
 class OutputsWritable(Callback):
@@ -133,8 +149,10 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     if HydraConfig.initialized():
         # The one place the command line is read: an in-process runner composes its steps from the typed copy.
         cfg.command_line = list(HydraConfig.get().overrides.task)
+        cfg.config_search_path = search_path_of(GlobalHydra.instance().config_loader())
     validate(cfg)
     log_libraries_through_hydra()
+    quiet_library_notices()
     lightning.seed_everything(cfg.seed, workers=True, verbose=False)
     return task(cfg)
 

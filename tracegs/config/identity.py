@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import logging
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,7 +36,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from tracegs.content import capture_digest, content_digest, root_relative
+from tracegs.content import capture_digest, names_and_bytes_digest, root_relative
 from tracegs.data.config import (
     PseudoTarget,
     Split,
@@ -47,8 +47,6 @@ from tracegs.data.config import (
 )
 from tracegs.products import BASELINE, PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
-
-log = logging.getLogger("tracegs")
 
 DIGEST_CHARS = 8
 
@@ -149,7 +147,7 @@ def _scoped_values(cfg: DictConfig, kind: str, read: frozenset[str]) -> dict[str
     for key in CAPTURE_KEYS:
         handed = Path(values[key]).expanduser() if values.get(key) is not None else None
         if handed is not None and handed.exists():
-            values[key] = f"content:{capture_digest(handed) if handed.is_dir() else content_digest(handed)}"
+            values[key] = f"content:{capture_digest(handed) if handed.is_dir() else names_and_bytes_digest(handed)}"
     values.update(_handed_in(cfg, kind))
     root = OmegaConf.select(cfg, "paths.root_dir")
     if root is not None:
@@ -173,7 +171,7 @@ def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
         if node is None or node._is_interpolation() or node._is_none():
             continue
         path = Path(str(node._value())).expanduser()
-        found[key] = f"content:{content_digest(path, declared.content)}" if path.exists() else str(node._value())
+        found[key] = f"content:{names_and_bytes_digest(path, declared.content)}" if path.exists() else str(node._value())
     return found
 
 
@@ -209,7 +207,7 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind), replace=True)
     OmegaConf.register_new_resolver("tracegs.cache", lambda split, _root_: cache_name(_root_, split), replace=True)
-    OmegaConf.register_new_resolver("tracegs.product", product_folder, replace=True)
+    OmegaConf.register_new_resolver("tracegs.product", folder_or_older, replace=True)
     OmegaConf.register_new_resolver(
         "tracegs.seed", lambda stream, _root_: derive_seed(_root_.seed, stream), replace=True)
     OmegaConf.register_new_resolver("tracegs.gpus_per_node", gpus_per_node, replace=True)
@@ -218,28 +216,36 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("tracegs.fits_variant_teacher", fits_variant_teacher, replace=True)
 
 
-def product_folder(path: str) -> str:
-    """``path``, a product folder named ``seed<k>-<digest>``; a folder beside it of the same digest made before
-    names were derived from the typed config alone (``seed<k>_<overrides typed>-<digest>``) is renamed to it
-    first, so a root made by an older version keeps its products. On a root nothing can rename in (a read-only
-    copy), the older folder is used where it lies."""
+# The name an older version gave a product folder, before names were derived from the typed config alone: the
+# typed overrides after the seed (``seed<k>_<overrides typed>-<digest>``, behind the same prefix as today's).
+_OLDER_NAME = re.compile(rf"(?P<head>.*?seed\d+)_.*-(?P<digest>[0-9a-f]{{{DIGEST_CHARS}}})")
+
+
+def current_name(name: str) -> str | None:
+    """Today's name (``<prefix>seed<k>-<digest>``) of the product folder an older version named ``name``; None
+    for a name no older version gave."""
+    older = _OLDER_NAME.fullmatch(name)
+    return None if older is None else f"{older['head']}-{older['digest']}"
+
+
+def older_folders(folder: Path) -> list[Path]:
+    """The folders beside ``folder`` that an older version made for the same product, in name order (one per
+    spelling of the command line that made it)."""
+    if not folder.parent.is_dir():
+        return []
+    return sorted(p for p in folder.parent.iterdir() if p.is_dir() and current_name(p.name) == folder.name)
+
+
+def folder_or_older(path: str) -> str:
+    """``path``, a product folder; where it does not exist and an older version's folder of the same product lies
+    beside it (one no command renamed yet, e.g. on a read-only copy of an old root), that folder, used where it
+    lies. A resolver reads and never writes: renaming older folders is a step of the command
+    (tracegs.pipeline.records.migrate_older_folders)."""
     folder = Path(path)
-    if folder.exists() or not folder.parent.is_dir():
+    if folder.exists():
         return path
-    older = sorted(p for p in folder.parent.glob(f"*-{folder.name.rsplit('-', 1)[-1]}") if p.is_dir())
-    if not older:
-        return path
-    try:
-        older[0].rename(folder)
-    except FileNotFoundError:  # another process of the same command renamed it first
-        return path
-    except OSError:
-        return str(older[0])
-    log.info("%s: renamed to %s (product folders are named by seed and digest only)", older[0], folder.name)
-    for twin in older[1:]:
-        log.warning("%s holds a second copy of %s, made under another spelling of the command line; nothing reads "
-                    "it, remove it to reclaim the space", twin, folder)
-    return path
+    older = older_folders(folder)
+    return str(older[0]) if older else path
 
 
 def first_set(*values: Any) -> Any:

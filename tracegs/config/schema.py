@@ -244,6 +244,9 @@ class TraceGSConfig:
     # gets its own): an in-process runner composes each of its steps from them (tracegs.pipeline.runner). What a
     # product is, and where an earlier one lies (tracegs.pipeline.upstream), never depends on them.
     command_line: list[str] = execution(factory=list)
+    # The config search path this command composed on (tracegs.config.tree): the lookups of other configs of the
+    # tree (a variant's sections, a stage option) read the same files with no Hydra context open.
+    config_search_path: list[str] = execution(factory=list)
     # What a cluster job of this command is called (SLURM job name): the command, stage and variant.
     job_name: str = execution(default="${task}-${stage.name}-${ablation.name}")
     processes: ProcessesConfig = execution(factory=ProcessesConfig)

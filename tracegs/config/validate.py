@@ -13,7 +13,6 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
-from tracegs.config.location import CONF_DIR
 from tracegs.data.colmap import require_training_source
 from tracegs.data.config import clip_target, overlapping_seeds
 from tracegs.data.sources import is_procedural
@@ -21,6 +20,7 @@ from tracegs.data.synthetic import benchmark_scene_names
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
+from tracegs.location import CONF_DIR
 
 __all__ = ["ConfigError", "validate", "validate_names"]
 

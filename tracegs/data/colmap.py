@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tracegs.config.location import CONF_DIR
 from tracegs.data.config import SceneSourceConfig, SourcePreset
 from tracegs.data.images import read_rgb, resize
 from tracegs.errors import ConfigError, InputFileError, plain_name_problem
 from tracegs.io import atomic_directory
+from tracegs.location import CONF_DIR
 from tracegs.splat.cameras import Camera
 
 log = logging.getLogger(__name__)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image, ImageOps
 
 from tracegs.errors import InputFileError, one_line
@@ -61,3 +62,9 @@ def resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
     channels = [np.asarray(Image.fromarray(image[..., c], mode="F").resize((width, height), Image.Resampling.LANCZOS))
                 for c in range(image.shape[2])]
     return np.clip(np.stack(channels, axis=2), 0.0, 1.0)
+
+
+def to_uint8(frames: torch.Tensor) -> torch.Tensor:
+    """Float pixels in [0, 1] (any shape) as 8-bit values: clamped and rounded, never a raw cast (which would
+    truncate 0.999 to 254)."""
+    return (frames.clamp(0, 1) * 255.0).round().to(torch.uint8)

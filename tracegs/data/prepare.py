@@ -50,6 +50,7 @@ from tracegs.data.config import (
 )
 from tracegs.data.datamodule import CacheError, clip_record, repeats_frames
 from tracegs.data.held_out import captured_clips
+from tracegs.data.images import to_uint8
 from tracegs.data.sources import is_procedural
 from tracegs.data.splits import SceneSplit, require_sparse_in_dense, split_scene, view_set_key
 from tracegs.data.synthetic import (
@@ -270,10 +271,6 @@ def frames_stored(cfg: PrepareConfig) -> bool:
     """Whether shards keep uint8 frames: ``store_frames``, or by default only a held-out split's cache, whose
     clips evaluation scores in pixels (training reads latents only)."""
     return cfg.split != Split.train if cfg.store_frames is None else cfg.store_frames
-
-
-def to_uint8(frames: torch.Tensor) -> torch.Tensor:
-    return (frames.clamp(0, 1) * 255.0).round().to(torch.uint8)
 
 
 def psnr_on_path(frames: torch.Tensor, reference: torch.Tensor) -> float:

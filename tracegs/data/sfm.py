@@ -35,7 +35,7 @@ from tracegs.content import (
     PHOTO_SUFFIXES,
     capture_digest,
     capture_files,
-    content_digest,
+    names_and_bytes_digest,
     photo_folder,
 )
 from tracegs.data.config import Matcher, SfmConfig
@@ -110,7 +110,7 @@ def reconstruct_video(video: Path, frames: int, cfg: SfmConfig, views: int, test
     if not video.is_file():
         raise InputFileError(video, "no such file" if not video.exists() else "is not a file",
                              "give capture.video a video file")
-    key = _product_key(content_digest(video), cfg, frames=frames, name=video.stem)
+    key = _product_key(names_and_bytes_digest(video), cfg, frames=frames, name=video.stem)
     target = Path(cfg.dir) / key / video.stem
     if not _reused(target, views, test_every):
         with atomic_directory(target.parent) as staging:

@@ -156,11 +156,6 @@ def draw_surroundings(rng: np.random.Generator) -> tuple[str, str]:
     return GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))], BACKDROP_TEXTURES[rng.integers(len(BACKDROP_TEXTURES))]
 
 
-def scene_surroundings(seed: int) -> tuple[str, str]:
-    """The (ground, backdrop) textures scene ``seed`` is built with, without building it."""
-    return draw_surroundings(np.random.default_rng(seed))
-
-
 def build_scene(seed: int, cfg: SyntheticConfig, style: str) -> tuple[GaussianModel, str]:
     """The ground-truth Gaussians of scene ``seed`` and its caption."""
     rng = np.random.default_rng(seed)

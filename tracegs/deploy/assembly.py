@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from tracegs.content import content_digest
+from tracegs.content import names_and_bytes_digest
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
@@ -61,7 +61,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
                                     "(run tracegs-train stage=baseline)")
         cfg = replace(cfg, transformer=replace(cfg.transformer, pretrained_path=baseline_weights))
     base = cfg.transformer.pretrained_path
-    identity = f"base={content_digest(base)}" if base else "base=random-init"
+    identity = f"base={names_and_bytes_digest(base)}" if base else "base=random-init"
     backbone = build_backbone(cfg, device=device or accelerator())
     restorers = {}
     for name, file in adapter_files.items():
@@ -70,7 +70,7 @@ def shared_restorers(cfg: BackboneConfig, baseline_weights: str | None, adapter_
                                   field=file.field, stage=file.stage)
         restorers[name] = DiffusionRestorer(
             RestorationPipeline(backbone, adapter=None if file is None else name), batch=batch,
-            identity=identity if file is None else f"{identity} {file.label}={content_digest(file.path)}", steps=steps)
+            identity=identity if file is None else f"{identity} {file.label}={names_and_bytes_digest(file.path)}", steps=steps)
     return restorers
 
 

@@ -28,8 +28,7 @@ from tracegs.deploy.restorers import ClipRestorer
 from tracegs.io import atomic_write
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
-from tracegs.splat.fit import GaussianFitter, View
-from tracegs.splat.fit import initial_model as random_initial_model
+from tracegs.splat.fit import GaussianFitter, View, random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
 from tracegs.splat.render import require_available

@@ -145,14 +145,6 @@ def clip_restoration_psnr(pipelines: Mapping[str, RestorationPipeline], cache_di
     }
 
 
-@torch.no_grad()
-def held_out_per_step_curves(pipelines: Mapping[str, RestorationPipeline], cache_dir: str | Path,
-                             seed: int = 0, progress: bool = True) -> dict[str, list[float]]:
-    """Fig. 6 on the held-out clips: each pipeline's per-step PSNR curve (``eval.per_step``), averaged across
-    view settings (``view_averaged_curves``). The same clips, conditions and noise seeds go to every pipeline."""
-    return view_averaged_curves(unit_curves(held_out_clip_curves(pipelines, cache_dir, seed, progress)))
-
-
 class ClipCurves(NamedTuple):
     """One held-out clip's per-step curves (one per pipeline, averaged over its student conditions)."""
 

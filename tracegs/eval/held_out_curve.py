@@ -22,7 +22,7 @@ import torch
 
 from tracegs.eval.clips import INPUT, clip_restoration_psnr
 from tracegs.eval.intervals import mean_interval
-from tracegs.eval.report import plot_per_step_quality
+from tracegs.eval.tables_and_figures import plot_per_step_quality
 from tracegs.io import write_json_atomic
 from tracegs.restorer.build import with_encoders
 from tracegs.restorer.sampler import RestorationPipeline

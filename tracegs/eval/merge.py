@@ -15,7 +15,12 @@ from tracegs.deploy.config import METHODS
 from tracegs.eval.interval_tables import write_main_intervals, write_per_step_intervals
 from tracegs.eval.metrics import mean_metrics
 from tracegs.eval.per_step import mean_curves
-from tracegs.eval.report import META_KEY, METHOD_LABELS, plot_per_step_quality, write_results_tables
+from tracegs.eval.tables_and_figures import (
+    META_KEY,
+    METHOD_LABELS,
+    plot_per_step_quality,
+    write_results_tables,
+)
 from tracegs.io import write_json_atomic
 
 

@@ -34,7 +34,7 @@ from tracegs.eval.interval_tables import (
 from tracegs.eval.intervals import Interval, mean_interval, paired_interval, t_interval
 from tracegs.eval.labels import HIGHER_IS_BETTER, METRIC_DECIMALS, METRIC_LABELS, RESTORER_LABELS, STAGE1
 from tracegs.eval.privileged import privileged_figures, privileged_gap_markdown
-from tracegs.eval.report import plot_per_step_quality
+from tracegs.eval.tables_and_figures import plot_per_step_quality
 from tracegs.io import atomic_write
 
 # The instrument's target: the 95% interval of F - A at 3 views no wider than +-0.2 dB PSNR.

@@ -25,7 +25,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.console import PlainProgress
-from tracegs.content import content_digest
+from tracegs.content import names_and_bytes_digest
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
@@ -38,7 +38,7 @@ from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
 from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips, require_lpips_convention
 from tracegs.eval.per_step import per_step_psnr
-from tracegs.eval.report import (
+from tracegs.eval.tables_and_figures import (
     METHOD_LABELS,
     save_comparison_video,
     save_frames,
@@ -245,7 +245,7 @@ class _UnitJob:
 
     def unit_fingerprint(self, key: tuple[str, int]) -> str:
         """The job's settings and restorers with the content of the unit's scene folder (not its path)."""
-        return _fingerprint(self.fingerprint, content_digest(Path(self.source.root) / key[0]))
+        return _fingerprint(self.fingerprint, names_and_bytes_digest(Path(self.source.root) / key[0]))
 
     def run(self, key: tuple[str, int], progress: Progress | None = None) -> dict:
         """The whole unit in this process."""

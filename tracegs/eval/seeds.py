@@ -13,7 +13,7 @@ import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from tracegs.eval.report import METHOD_LABELS, methods_in
+from tracegs.eval.tables_and_figures import METHOD_LABELS, methods_in
 
 PER_STEP_POINTS = ("first", "min", "final")
 

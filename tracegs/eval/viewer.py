@@ -29,7 +29,7 @@ import viser
 from tracegs.errors import InputFileError, TraceGSError
 from tracegs.eval.labels import METHOD_LABELS
 from tracegs.eval.merge import unit_records
-from tracegs.eval.report import qualitative_grid
+from tracegs.eval.tables_and_figures import qualitative_grid
 from tracegs.splat.cameras import Camera
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.gaussians import SH_C0, GaussianModel

@@ -13,9 +13,9 @@ from omegaconf import DictConfig
 
 from tracegs.console import LogBookmark, show
 from tracegs.eval.html_report import write_report_page
-from tracegs.eval.report import results_table_markdown
 from tracegs.eval.seeds import per_step_points
-from tracegs.io import atomic_write, content_digest, write_json_atomic
+from tracegs.eval.tables_and_figures import results_table_markdown
+from tracegs.io import atomic_write, bytes_digest, write_json_atomic
 from tracegs.pipeline.evaluate import evaluate
 from tracegs.pipeline.prepare import prepare
 from tracegs.pipeline.runner import InProcess, Step, run_steps
@@ -64,7 +64,7 @@ def demo(cfg: DictConfig) -> Path:
     out_dir = Path(cfg.run_dir)
     steps = demo_steps(cfg.ablation.name, cfg.evaluation.views, out_dir, cfg.experiment.baseline_split == "pretrain")
     timings = run_steps(steps, InProcess(cfg, TASKS), "demo")
-    products = {name: content_digest(out_dir / name) for name in TABLE_SOURCES if (out_dir / name).is_file()}
+    products = {name: bytes_digest(out_dir / name) for name in TABLE_SOURCES if (out_dir / name).is_file()}
     record = out_dir / "run.json"
     earlier = json.loads(record.read_text()) if record.is_file() else None
     if earlier is not None and earlier.get("products") == products:

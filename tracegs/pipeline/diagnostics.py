@@ -19,6 +19,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from tracegs.config.tree import ConfigTree
 from tracegs.console import show
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
 from tracegs.errors import ConfigError
@@ -37,7 +38,8 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     if cfg.evaluation.held_out_cache is None:
         raise ConfigError("evaluation.held_out_cache", "report.kind=diagnostics needs a prepared held-out cache "
                                                        "(tracegs-prepare data.prepare.split=test)")
-    names = in_table_order(cfg.report.inputs) if cfg.report.inputs else [v.name for v in table3_variants()]
+    tree = ConfigTree.of(cfg)
+    names = in_table_order(cfg.report.inputs, tree) if cfg.report.inputs else [v.name for v in table3_variants(tree)]
     unknown = sorted(set(cfg.report.inputs) - set(names))
     if unknown:
         raise ConfigError("report.inputs", f"{unknown} are not variants of conf/ablation/")

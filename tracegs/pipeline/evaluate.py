@@ -12,9 +12,9 @@ from tracegs.data.cache_keys import MANIFEST
 from tracegs.deploy.scenes import deploy_scenes
 from tracegs.eval.clips import clip_restoration_psnr
 from tracegs.eval.html_report import write_report_page
-from tracegs.eval.report import write_held_out_report
 from tracegs.eval.scoring import score_units
-from tracegs.io import content_digest
+from tracegs.eval.tables_and_figures import write_held_out_report
+from tracegs.io import bytes_digest
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
 from tracegs.pipeline.restorers import (
     generate_test_scenes,
@@ -66,7 +66,7 @@ def held_out_quality(cfg: DictConfig, restorers: dict, finished: bool = False) -
     restorers' contents) the score records the held-out cache's manifest, the seed and the methods it was made
     from, so a rerun with the same ones keeps it (minutes of restoration) and anything else scores again."""
     pipelines = {method: r.pipeline for method, r in restorers.items() if r is not None}
-    made_from = {"held_out_manifest": content_digest(Path(cfg.evaluation.held_out_cache) / MANIFEST),
+    made_from = {"held_out_manifest": bytes_digest(Path(cfg.evaluation.held_out_cache) / MANIFEST),
                  "seed": cfg.deploy.seed, "methods": sorted(pipelines)}
     scored = Path(cfg.evaluation.out_dir) / "held_out_clips.json"
     if finished and scored.is_file() and json.loads(scored.read_text()).get("made_from") == made_from:

@@ -1,5 +1,6 @@
 """Run records and product locks: a finished product is kept with the settings and input contents that made
-it, so an identical run reuses it, a changed input recomputes it and one folder never holds two runs."""
+it, so an identical run reuses it, a changed input recomputes it and one folder never holds two runs. A root an
+older version made keeps its products: a command first renames their folders to today's names."""
 
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ from filelock import FileLock
 from lightning.fabric.utilities.rank_zero import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.identity import differing_keys, scoped_values
-from tracegs.content import content_digest, root_relative
+from tracegs.config.identity import current_name, differing_keys, scoped_values
+from tracegs.content import names_and_bytes_digest, root_relative
 from tracegs.errors import ConfigError, require_writable_dir, writable
 from tracegs.io import atomic_write, write_json_atomic
 
@@ -24,6 +25,9 @@ log = logging.getLogger("tracegs")
 
 RUN_RECORD = "run_identity.json"
 LOCK_FILE = ".tracegs.lock"
+# How far below the experiment's folder and the data folder product folders lie: ``stage2/<variant>/<run>`` and
+# ``eval/<variant>/<data>-<run>`` (conf/stage/stage2.yaml, conf/evaluation/default.yaml), ``cache/<cache>``.
+PRODUCT_DEPTH = 3
 # The products of earlier runs each kind loads: their content is part of the record (an edit recomputes).
 # A cache whose pseudo-targets variant A makes reads A (tracegs.pipeline.prepare.pseudo_target_generator).
 INPUT_ARTIFACTS = {"prepare": ("baseline_weights",), "stage1": ("baseline_weights",),
@@ -33,7 +37,7 @@ INPUT_ARTIFACTS = {"prepare": ("baseline_weights",), "stage1": ("baseline_weight
 def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
     """Content digests of the earlier products a ``kind`` run reads (tracegs.content)."""
     paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
-    return {f"content.{name}": content_digest(path) for name, path in paths.items()
+    return {f"content.{name}": names_and_bytes_digest(path) for name, path in paths.items()
             if path is not None and Path(path).exists()}
 
 
@@ -133,8 +137,46 @@ def write_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> None:
         # config may hold fields added since, which change nothing it is (a root copied read-only reruns too).
         return
     write_json_atomic(record, folder / RUN_RECORD)
-    # Hydra's own node and the command line that happened to make it are no part of what the product is.
-    kept = [key for key in cfg if key not in ("hydra", "command_line")]
+    # Hydra's own node, the command line that happened to make it and the config folders it was composed from
+    # are no part of what the product is.
+    kept = [key for key in cfg if key not in ("hydra", "command_line", "config_search_path")]
     resolved = OmegaConf.to_container(OmegaConf.masked_copy(cfg, kept), resolve=True)
     with atomic_write(folder / "config.yaml") as tmp:
         tmp.write_text(OmegaConf.to_yaml(relative_to_root(resolved, cfg.paths.root_dir)))
+
+
+def migrate_older_folders(cfg: DictConfig) -> None:
+    """Rename each product folder an older version named (``seed<k>_<overrides typed>-<digest>``) under the
+    experiment's folder and the data folder of ``cfg`` to today's name of the same product (``seed<k>-<digest>``),
+    contents and all, so a root made by an older version keeps its products (the earlier stages' included).
+
+    Every command runs this once before its config names a folder (tracegs.cli.app.MigrateOlderFolders):
+    resolving a config never renames anything. Where nothing can be renamed (a read-only copy of an old root),
+    the folders stay where they lie, and the config finds them there (tracegs.config.identity.folder_or_older)."""
+    tops = {Path(OmegaConf.select(cfg, key)).expanduser() for key in ("paths.experiment_dir", "paths.data_dir")}
+    for older in sorted({folder for top in tops for folder in _older_named(top, PRODUCT_DEPTH)}):
+        _rename(older, older.with_name(current_name(older.name)))
+
+
+def _older_named(folder: Path, depth: int) -> list[Path]:
+    """The folders an older version named, up to ``depth`` levels below ``folder`` (their insides not searched)."""
+    if depth == 0 or not folder.is_dir():
+        return []
+    found = []
+    for child in sorted(p for p in folder.iterdir() if p.is_dir()):
+        found += [child] if current_name(child.name) is not None else _older_named(child, depth - 1)
+    return found
+
+
+def _rename(older: Path, folder: Path) -> None:
+    if folder.exists():
+        log.warning("%s holds a second copy of %s, made under another spelling of the command line; nothing reads "
+                    "it, remove it to reclaim the space", older, folder)
+        return
+    try:
+        older.rename(folder)
+    except FileNotFoundError:  # another process of the same command renamed it first
+        return
+    except OSError:  # a root nothing can rename in: the config finds the folder where it lies
+        return
+    log.info("%s: renamed to %s (product folders are named by seed and digest only)", older, folder.name)

@@ -29,6 +29,7 @@ from omegaconf import DictConfig
 
 from tracegs.config.identity import derive_seed
 from tracegs.config.overrides import override_key
+from tracegs.config.tree import ConfigTree
 from tracegs.console import show
 from tracegs.errors import ConfigError
 from tracegs.eval.html_report import write_report_page
@@ -75,10 +76,10 @@ class Variant:
     description: str
 
 
-def replicate_variants(names: Sequence[str] | None = None) -> list[Variant]:
+def replicate_variants(tree: ConfigTree, names: Sequence[str] | None = None) -> list[Variant]:
     """The variants of conf/ablation/ in Table 3's rows (``names``: only those), read from their configs."""
     if names is not None:
-        unknown = sorted(set(names) - set(table3_names()))
+        unknown = sorted(set(names) - set(table3_names(tree)))
         if unknown:
             raise ConfigError("replicate.variants", f"{unknown} are not variants of conf/ablation/")
         if len(set(names)) != len(names):
@@ -86,7 +87,7 @@ def replicate_variants(names: Sequence[str] | None = None) -> list[Variant]:
         if not names:
             raise ConfigError("replicate.variants", "list at least one variant")
     return [Variant(cfg.ablation.name, bool(cfg.ablation.train_stage2), cfg.teacher.views, str(cfg.ablation.method),
-                    cfg.ablation.description) for cfg in table3_configs(names)]
+                    cfg.ablation.description) for cfg in table3_configs(tree, names)]
 
 
 def variant_teachers(variants: Sequence[Variant], student_views: Sequence[int]) -> dict[str, Any]:
@@ -238,7 +239,8 @@ def replicate(cfg: DictConfig) -> Path:
     ``cfg.run_dir``."""
     out_dir = Path(cfg.run_dir).resolve()
     seeds = list(cfg.replicate.training_seeds)
-    variants = replicate_variants(None if cfg.replicate.variants is None else list(cfg.replicate.variants))
+    variants = replicate_variants(ConfigTree.of(cfg),
+                                  None if cfg.replicate.variants is None else list(cfg.replicate.variants))
     user = [o for o in cfg.command_line
             if override_key(o).split(".")[0] not in ("replicate", "seed", "ablation")]
     clips = cfg.replicate.held_out_clips_per_scene

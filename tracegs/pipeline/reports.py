@@ -6,6 +6,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from tracegs.config.tree import ConfigTree
 from tracegs.console import show
 from tracegs.deploy.assembly import AdapterFile, shared_restorers
 from tracegs.eval.clips import (
@@ -21,8 +22,12 @@ from tracegs.eval.html_report import write_report_page
 from tracegs.eval.interval_tables import write_per_step_intervals
 from tracegs.eval.merge import merge_results
 from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
-from tracegs.eval.report import plot_per_step_quality, write_ablation_report, write_held_out_report
 from tracegs.eval.seeds import seed_spread_markdown
+from tracegs.eval.tables_and_figures import (
+    plot_per_step_quality,
+    write_ablation_report,
+    write_held_out_report,
+)
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run
@@ -61,7 +66,7 @@ def swept_method_evaluations(cfg: DictConfig) -> dict[str, Path]:
     ``evaluation.methods`` from the sweep's evaluation, on this dataset, of the variant standing for it: this
     command's variant (default F) for its own method, else the one variant evaluated by that method (A for
     ``baseline``). 3DGS, which no variant stands for, stays this command's own evaluation."""
-    standing = {v.method: v.name for v in reversed(table3_variants())} | {cfg.ablation.method: cfg.ablation.name}
+    standing = {v.method: v.name for v in reversed(table3_variants(ConfigTree.of(cfg)))} | {cfg.ablation.method: cfg.ablation.name}
     unknown = [m for m in cfg.evaluation.methods if m != "3dgs" and m not in standing]
     if unknown:
         raise ValueError(f"report.main_from_sweep: no Table 3 variant is evaluated by {unknown}")
@@ -75,7 +80,7 @@ def ablation_inputs(cfg: DictConfig) -> dict[str, list[Path]]:
     give on it, in Table 3's row order (the restorers trained on the training data, evaluated there)."""
     if cfg.report.inputs:
         return {cfg.data.name: [Path(p) for p in cfg.report.inputs]}
-    return {dataset: [variant_evaluation(cfg, variant.name, dataset, "report.datasets") for variant in table3_variants()]
+    return {dataset: [variant_evaluation(cfg, variant.name, dataset, "report.datasets") for variant in table3_variants(ConfigTree.of(cfg))]
             for dataset in cfg.report.datasets}
 
 
@@ -145,7 +150,7 @@ def per_step_report(cfg: DictConfig) -> Path:
     """
     require_held_out_cache(cfg)
     pipelines = {}
-    for variant in list(cfg.report.inputs) or per_step_variants():
+    for variant in list(cfg.report.inputs) or per_step_variants(ConfigTree.of(cfg)):
         # Each variant's own config says which restorer stands for it and where its student adapter is.
         variant_cfg = as_variant(cfg, variant)
         method = variant_cfg.ablation.method

@@ -16,8 +16,8 @@ from tracegs.data.splits import SplitError
 from tracegs.errors import ConfigError
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.merge import unit_path
-from tracegs.eval.report import results_table_markdown
 from tracegs.eval.scoring import score_units
+from tracegs.eval.tables_and_figures import results_table_markdown
 from tracegs.pipeline.records import product_lock
 from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import section

@@ -25,9 +25,11 @@ from typing import Any
 
 import lightning
 from hydra import compose
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.overrides import with_overrides
+from tracegs.config.tree import search_path_of
 from tracegs.config.validate import validate
 from tracegs.errors import TraceGSError
 
@@ -128,9 +130,11 @@ class Step:
 
 
 def composed(config_name: str, overrides: Sequence[str]) -> DictConfig:
-    """``conf/<config_name>.yaml`` under ``overrides``, which it keeps as its ``command_line``."""
+    """``conf/<config_name>.yaml`` under ``overrides`` in the open Hydra context, which it keeps as its
+    ``command_line``, and the context's search path as its ``config_search_path``."""
     cfg = compose(config_name=config_name, overrides=list(overrides))
     cfg.command_line = list(overrides)
+    cfg.config_search_path = search_path_of(GlobalHydra.instance().config_loader())
     return cfg
 
 

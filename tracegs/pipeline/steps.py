@@ -20,10 +20,11 @@ from typing import Any
 
 from hydra import compose, initialize_config_dir
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.overrides import describes_the_dataset, override_key
 from tracegs.config.schema import register_configs
+from tracegs.config.tree import ConfigTree
 from tracegs.errors import TraceGSError
+from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import NO_SETTINGS, Commands, Step, Sweep, run_steps
 from tracegs.pipeline.variants import table3_variants
 
@@ -167,7 +168,7 @@ def run_sweep(launcher: str, user: Sequence[str], dry_run: bool = False) -> int:
     stops at the first failed step, exit status 1."""
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        variants = table3_variants()
+        variants = table3_variants(ConfigTree.at(CONF_DIR))
         table = compose(config_name="report", overrides=list(user))
     other_datasets = [name for name in table.report.datasets if name != table.training_data]
     steps = sweep_steps([v.name for v in variants], [v.name for v in variants if v.train_stage2], user,

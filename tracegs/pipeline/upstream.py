@@ -31,8 +31,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.config.identity import scoped_values
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AUTO, Task
+from tracegs.config.tree import ConfigTree
 from tracegs.errors import ConfigError
 from tracegs.pipeline.records import RUN_RECORD
 from tracegs.pipeline.variants import VARIANT_SECTIONS, variant_sections
@@ -58,11 +58,6 @@ STAGE_SECTIONS = ("stage", "optimizer")
 SHARED_BY_VARIANTS = ("ablation", "teacher", "policy")
 
 
-def stage_option(stage: str) -> dict[str, Any]:
-    """The ``stage`` group's option ``stage`` (conf/stage/<stage>.yaml) as written: interpolations unresolved."""
-    return OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "stage" / f"{stage}.yaml"), resolve=False)
-
-
 def _set_sections(cfg: DictConfig, source: DictConfig, names: Iterable[str]) -> None:
     for name in names:
         cfg[name] = copy.deepcopy(source[name])
@@ -72,7 +67,7 @@ def as_variant(cfg: DictConfig, variant: str) -> DictConfig:
     """A copy of ``cfg`` run for Table 3 variant ``variant``: its sections in place of this config's."""
     projected = copy.deepcopy(cfg)
     if variant != cfg.ablation.name:
-        _set_sections(projected, variant_sections(variant), VARIANT_SECTIONS)
+        _set_sections(projected, variant_sections(variant, ConfigTree.of(cfg)), VARIANT_SECTIONS)
     return projected
 
 
@@ -82,11 +77,11 @@ def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> D
     ``cfg`` (see the module docstring). ``cfg``'s own folders and artifacts must not be pinned yet."""
     if kind in ("baseline", "stage1"):
         projected = copy.deepcopy(cfg)
-        _set_sections(projected, variant_sections(None), SHARED_BY_VARIANTS)
+        _set_sections(projected, variant_sections(None, ConfigTree.of(cfg)), SHARED_BY_VARIANTS)
     else:
         projected = as_variant(cfg, variant or cfg.ablation.name)
     if kind in TRAINED:
-        option = stage_option(kind)
+        option = ConfigTree.of(cfg).option("stage", kind)  # conf/stage/<kind>.yaml as written
         if cfg.stage.name != kind:  # another stage's overrides of the stage sections are that stage's own
             _set_sections(projected, OmegaConf.structured(OmegaConf.get_type(cfg)), STAGE_SECTIONS)
             projected.merge_with(option)

@@ -1,6 +1,7 @@
 """The Table 3 variants, read from the config tree: one YAML file per variant in its ``ablation`` group
 (conf/ablation/), ordered by the row each declares. Adding a variant is adding its file; the sweep trains and
-evaluates it and the Table 3 report lists it.
+evaluates it and the Table 3 report lists it. Every function reads the tree it is given (the command's:
+``ConfigTree.of(cfg)``, tracegs.config.tree), never a global Hydra context.
 
 ``python -m tracegs.pipeline.variants [--trained]`` prints the names comma-separated (the sweep script's list;
 ``--trained``: only the variants that train a Stage-2 student).
@@ -13,15 +14,14 @@ from collections.abc import Iterable, Sequence
 from functools import lru_cache
 from typing import Any
 
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import AblationConfig, register_configs
+from tracegs.config.tree import ConfigTree
 from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
+from tracegs.location import CONF_DIR
 
 GROUP = "ablation"
 # The sections a variant sets: its conf/ablation/<name>.yaml and the teacher, policy and loss options it selects.
@@ -30,31 +30,21 @@ VARIANT_SECTIONS = ("ablation", "teacher", "policy", "loss")
 DEFAULT_CHOICE = "default"
 
 
-def table3_names() -> list[str]:
-    """The variants' names (the ablation group's files on the active Hydra search path but the default choice),
-    in no particular order."""
-    options = GlobalHydra.instance().config_loader().get_group_options(GROUP)
-    return [option for option in options if option != DEFAULT_CHOICE]
-
-
-def _search_path() -> tuple[str, ...]:
-    return tuple(str(source.path) for source in GlobalHydra.instance().config_loader().get_sources())
+def table3_names(tree: ConfigTree) -> list[str]:
+    """The variants' names (the ablation group's files on the tree's search path but the default choice), in no
+    particular order."""
+    return [option for option in tree.group_options(GROUP) if option != DEFAULT_CHOICE]
 
 
 @lru_cache(maxsize=32)
-def _variant_sections(variant: str | None, search_path: tuple[str, ...]) -> DictConfig:
-    overrides = [] if variant is None else [f"ablation={variant}"]
-    cfg = compose(config_name="train", overrides=overrides)
-    return OmegaConf.masked_copy(cfg, list(VARIANT_SECTIONS))
-
-
-def variant_sections(variant: str | None) -> DictConfig:
+def variant_sections(variant: str | None, tree: ConfigTree) -> DictConfig:
     """The sections Table 3 variant ``variant`` sets (None: the default variant's), read from its declaration alone
-    (composed with no command line, once per process and config search path)."""
-    return _variant_sections(variant, _search_path())
+    (composed with no command line, once per process and config tree)."""
+    overrides = [] if variant is None else [f"{GROUP}={variant}"]
+    return OmegaConf.masked_copy(tree.compose("train", overrides), list(VARIANT_SECTIONS))
 
 
-def table3_configs(names: Iterable[str] | None = None) -> list[DictConfig]:
+def table3_configs(tree: ConfigTree, names: Iterable[str] | None = None) -> list[DictConfig]:
     """The training config of every variant of the ablation group (``names``: of those only), in Table 3's row
     order: its ``ablation`` and the groups the variant sets, e.g. ``teacher``.
 
@@ -62,8 +52,8 @@ def table3_configs(names: Iterable[str] | None = None) -> list[DictConfig]:
     (``ablation=<name>``) use it; two variants on one row would leave the table's order undefined."""
     configs = []
     rows: dict[int, str] = {}
-    for option in table3_names() if names is None else names:
-        cfg = compose(config_name="train", overrides=[f"{GROUP}={option}"])
+    for option in table3_names(tree) if names is None else names:
+        cfg = tree.compose("train", [f"{GROUP}={option}"])
         variant = cfg.ablation
         if variant.name != option:
             raise ConfigError(f"{GROUP}.name", f"{GROUP}/{option}.yaml names its variant {variant.name!r}: "
@@ -76,9 +66,9 @@ def table3_configs(names: Iterable[str] | None = None) -> list[DictConfig]:
     return sorted(configs, key=lambda cfg: cfg.ablation.row)
 
 
-def table3_variants() -> list[AblationConfig]:
+def table3_variants(tree: ConfigTree) -> list[AblationConfig]:
     """Every variant of the ablation group (:func:`table3_configs`), in Table 3's row order."""
-    return [OmegaConf.to_object(cfg.ablation) for cfg in table3_configs()]
+    return [OmegaConf.to_object(cfg.ablation) for cfg in table3_configs(tree)]
 
 
 def teacher_settings(teacher_views: Iterable[int | None], student_views: Sequence[int]) -> dict[str, Any]:
@@ -101,21 +91,20 @@ def variants_teachers(configs: Iterable[DictConfig]) -> dict[str, Any]:
     return teacher_settings([cfg.teacher.views for cfg in trained], student_views)
 
 
-def in_table_order(names: Iterable[str]) -> list[str]:
+def in_table_order(names: Iterable[str], tree: ConfigTree) -> list[str]:
     """``names`` (variants) sorted by their Table 3 rows."""
     wanted = set(names)
-    return [variant.name for variant in table3_variants() if variant.name in wanted]
+    return [variant.name for variant in table3_variants(tree) if variant.name in wanted]
 
 
-def per_step_variants() -> list[str]:
+def per_step_variants(tree: ConfigTree) -> list[str]:
     """The variants Fig. 6 compares (those of the paper's per-step claims), in Table 3's row order."""
-    return in_table_order(name for pair in PER_STEP_PAIRS for name in pair)
+    return in_table_order((name for pair in PER_STEP_PAIRS for name in pair), tree)
 
 
 def main(argv: list[str]) -> None:
     register_configs()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        variants = table3_variants()
+    variants = table3_variants(ConfigTree.at(CONF_DIR))
     print(",".join(v.name for v in variants if v.train_stage2 or "--trained" not in argv))
 
 

@@ -27,7 +27,7 @@ from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
 
 from tracegs.errors import ConfigMismatchError, InputFileError
-from tracegs.io import atomic_directory, content_digest, read_safetensors, save_safetensors_atomic
+from tracegs.io import atomic_directory, bytes_digest, read_safetensors, save_safetensors_atomic
 from tracegs.restorer.config import LoraConfig
 
 # diffusers' key for the adapter config inside safetensors metadata (``save_lora_adapter`` format).
@@ -133,13 +133,6 @@ def adapter_parameters(model: torch.nn.Module, name: str) -> list[torch.nn.Param
     return [p for _, p in _lora_parameters(model, name)]
 
 
-def set_trainable(model: torch.nn.Module, name: str, trainable: bool) -> None:
-    _require(model, name)
-    _trainable_flags(model)[name] = trainable
-    for param in adapter_parameters(model, name):
-        param.requires_grad_(trainable)
-
-
 def clone_adapter(model: torch.nn.Module, src: str, dst: str, trainable: bool) -> None:
     """phi_dst <- Clone(phi_src) (Eq. supp-adapter-clone): same config, deep-copied tensors, no shared storage."""
     _require(model, src)
@@ -160,7 +153,7 @@ def base_identity(model: torch.nn.Module) -> str:
     depend on the dtype they are loaded in either, so one base at two precisions is one base."""
     source = dict(getattr(model, "config", {}) or {}).get("_name_or_path")
     if source and Path(source).is_dir():
-        return f"weights {content_digest(source)}"
+        return f"weights {bytes_digest(source)}"
     sha = hashlib.sha256()
     for name, tensor in model.state_dict().items():
         if ".lora_" not in name:

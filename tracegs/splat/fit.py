@@ -247,7 +247,7 @@ class GaussianFitter:
                 "num_gaussians": float(len(self.model)), "iteration": float(self.iteration)}
 
 
-def initial_model(views: Sequence[View], cfg: GaussianFitConfig) -> GaussianModel:
+def random_initial_model(views: Sequence[View], cfg: GaussianFitConfig) -> GaussianModel:
     """Random Gaussians in the region the cameras look at (when no SfM points are given)."""
     from tracegs.splat.trajectory import focus_point
 
@@ -267,7 +267,7 @@ def fit_gaussians(views: Sequence[View], cfg: GaussianFitConfig, init: GaussianM
     if not wanted or wanted[0] < 1 or wanted[-1] > cfg.iterations:
         raise ValueError(f"snapshot iterations must lie in [1, {cfg.iterations}], got {wanted}")
     run_cfg = replace(cfg, snapshot_iters=wanted)
-    model = (init if init is not None else initial_model(views, cfg)).clone()
+    model = (init if init is not None else random_initial_model(views, cfg)).clone()
     fitter = GaussianFitter(model, run_cfg, camera_extent([view.camera for view in views]))
     results: dict[int, GaussianModel] = {}
     fitter.train_until(wanted[-1], views, on_snapshot=lambda it, m: results.__setitem__(it, m.clone()),

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import signal
-import warnings
 from pathlib import Path
 
 import lightning as L
@@ -25,7 +24,7 @@ from lightning.pytorch.plugins.environments import SLURMEnvironment
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
-from tracegs.console import interactive
+from tracegs.console import interactive, quiet_library_notices
 from tracegs.data.datamodule import MANIFEST, NO_TEACHER, PairedClipDataModule
 from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
@@ -48,13 +47,6 @@ from tracegs.training.progress import PlainTrainingProgress
 from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import STUDENT, Stage2DistillationModule
 from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
-
-# Lightning warns (with a page of example code) that manual-optimisation checkpoints hold the weights after
-# the step. That is what exact resume needs: the checkpoint of step k is the state step k + 1 starts from.
-warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual optimization")
-# The weight average copies the module after ``configure_model``; only a sharded run would make that a copy of
-# a shard, and the baseline (the one stage that averages) never shards.
-warnings.filterwarnings("ignore", message="You're using the WeightAveraging callback with a model that overrides")
 
 PRODUCTS = {
     "baseline": "baseline_transformer",
@@ -246,6 +238,7 @@ def as_train_config(cfg) -> TrainConfig:
 
 def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
+    quiet_library_notices()  # the entry point of every stage, from the command line or from Python
     cfg = copy.deepcopy(as_train_config(cfg))
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")

@@ -1,4 +1,6 @@
-"""Where the Hydra config tree is: every layer that reads a file from it (the CLI, the scene lists) asks here."""
+"""Where the Hydra config tree is: every layer that reads a file from it (the CLI, the scene lists) asks here.
+
+On the ground floor: it imports nothing of the project, so any package may ask it without an import cycle."""
 
 from __future__ import annotations
 

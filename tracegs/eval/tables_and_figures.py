@@ -17,9 +17,9 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
-import torch
 from torch import Tensor
 
+from tracegs.data.images import to_uint8
 from tracegs.eval.interval_tables import (
     ablation_intervals_markdown,
     held_out_intervals_markdown,
@@ -250,11 +250,11 @@ def write_held_out_report(quality: Mapping, out_dir: str | Path) -> Path:
 # ---------------------------------------------------------------- images and video
 
 
-def to_uint8(image: Tensor) -> np.ndarray:
-    """[3,H,W] float in [0,1] -> HxWx3 uint8 (clamped and rounded, never a raw cast)."""
+def image_array(image: Tensor) -> np.ndarray:
+    """[3,H,W] float in [0,1] -> the HxWx3 uint8 array an image file holds (:func:`to_uint8`)."""
     if image.dim() != 3 or image.shape[0] != 3:
         raise ValueError(f"expected an image of shape [3,H,W], got {tuple(image.shape)}")
-    return (image.detach().float().clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    return to_uint8(image.detach().float()).permute(1, 2, 0).cpu().numpy()
 
 
 def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -277,7 +277,7 @@ def _label_strip(labels: Sequence[str], cell_width: int, height: int = 28) -> np
 
 
 def _row(images: Sequence[Tensor], factor: int) -> np.ndarray:
-    return np.concatenate([_upscale(to_uint8(img), factor) for img in images], axis=1)
+    return np.concatenate([_upscale(image_array(img), factor) for img in images], axis=1)
 
 
 def _upscale_factor(height: int, min_height: int) -> int:
@@ -313,7 +313,7 @@ def save_frames(frames: Tensor, directory: str | Path) -> Path:
     directory = Path(directory)
     with atomic_directory(directory) as staging:
         for index, frame in enumerate(frames):
-            iio.imwrite(staging / f"frame_{index:04d}.png", to_uint8(frame), extension=".png")
+            iio.imwrite(staging / f"frame_{index:04d}.png", image_array(frame), extension=".png")
     return directory
 
 
@@ -323,7 +323,7 @@ def save_view_images(images: Mapping[int, Tensor], directory: str | Path) -> dic
     directory = Path(directory)
     with atomic_directory(directory) as staging:
         for view, image in images.items():
-            iio.imwrite(staging / f"view_{view:04d}.png", to_uint8(image), extension=".png")
+            iio.imwrite(staging / f"view_{view:04d}.png", image_array(image), extension=".png")
     return {view: directory / f"view_{view:04d}.png" for view in images}
 
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from tracegs.eval.report import (
+from tracegs.eval.tables_and_figures import (
+    image_array,
     plot_per_step_quality,
     results_table_markdown,
     save_comparison_video,
     save_qualitative_grid,
-    to_uint8,
     write_ablation_report,
     write_results_tables,
 )
@@ -111,7 +111,7 @@ def test_grid_video_and_plot_are_written(tmp_path):
     image = iio.imread(grid)
     # label strip on top, then 2 rows of 4 cells upscaled x2
     assert image.shape[1] == 4 * 72 and image.shape[0] == 28 + 2 * 48
-    assert np.array_equal(image[28:28 + 48:2, 72 * 3:72 * 4:2], to_uint8(frames["GT"][0]))
+    assert np.array_equal(image[28:28 + 48:2, 72 * 3:72 * 4:2], image_array(frames["GT"][0]))
 
     video = save_comparison_video(frames, tmp_path / "traj", min_cell_height=48)
     assert video.suffix in (".mp4", ".gif") and video.stat().st_size > 0

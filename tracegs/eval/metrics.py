@@ -85,6 +85,33 @@ def require_lpips(enabled: bool, required: bool, weights: str | None) -> None:
                                                       "weights (vgg16-397923af.pth) there")
 
 
+def png_bytes(image: Tensor) -> Tensor:
+    """A [0, 1] image as the 8-bit PNG the 3DGS render script writes (``torchvision.utils.save_image``: x 255,
+    + 0.5, clamped, truncated to uint8). GSFixer's release scores such files (metrics.py l. 25-35) and ships no
+    writer of its own, so 3DGS's, whose metrics.py it is, stands in."""
+    return image.mul(255).add(0.5).clamp(0, 255).to(torch.uint8)
+
+
+def gsfixer_ssim(pred: Tensor, target: Tensor) -> Tensor:
+    """SSIM of two 8-bit images [3,H,W] (uint8) as GSFixer's metrics.py computes it (l. 32-33 and 74, its
+    utils/loss_utils.py l. 26-105, 3DGS's): both read back as uint8 / 255 in float32, an 11 x 11 Gaussian window
+    of sigma 1.5 with zero padding at the borders, the map averaged over pixels and channels."""
+    a, b = (image.float()[None] / 255 for image in (pred, target))
+    taps = torch.exp(-((torch.arange(11, dtype=torch.float32) - 5) ** 2) / (2 * 1.5**2))
+    taps = taps / taps.sum()
+    window = (taps[:, None] @ taps[None, :]).expand(a.shape[1], 1, 11, 11)
+
+    def blur(x: Tensor) -> Tensor:
+        return torch.nn.functional.conv2d(x, window, padding=5, groups=a.shape[1])
+
+    mean_a, mean_b = blur(a), blur(b)
+    var_a, var_b = blur(a * a) - mean_a**2, blur(b * b) - mean_b**2
+    covariance = blur(a * b) - mean_a * mean_b
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mean_a * mean_b + c1) * (2 * covariance + c2))
+            / ((mean_a**2 + mean_b**2 + c1) * (var_a + var_b + c2))).mean()
+
+
 def _as_batch(image: Tensor, name: str) -> Tensor:
     if image.dim() == 3:
         image = image.unsqueeze(0)

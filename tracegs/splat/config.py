@@ -87,6 +87,16 @@ class ClipRule(Mode):
     gsfixer_windows = "gsfixer_windows"
 
 
+class EllipseFrame(Mode):
+    """Where GSFixer's ellipse (``clip_rule=gsfixer_windows``) is laid (tracegs.splat.trajectory)."""
+
+    # GSFixer's release (gsfixer/extrapolation/outpaint/sample_utils.py l. 154-183, in its normalised world,
+    # datasets/normalize.py): centred on 1.2 x the focus point's world xy, heights in absolute world z.
+    gsfixer_world = "gsfixer_world"
+    # Corrected: centred on the focus point, on the cameras' principal axes, heights above the focus.
+    focus = "focus"
+
+
 @dataclass
 class TrajectoryConfig:
     """Deployment trajectory of supplement A.5: a 360-degree ellipse around the focus point whose scale and
@@ -98,7 +108,7 @@ class TrajectoryConfig:
     `clip_rule`: with ``reference_pairs`` the scale multiplies the cameras' horizontal spread and the height
     variation is an amplitude in mean camera distances; with ``gsfixer_windows`` the scale multiplies the
     cameras' 90th-percentile horizontal offset and the height variation multiplies their 10th-90th percentile
-    height band (``gsfixer_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
+    height band (``release_ellipse``, ``focus_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
     is ``deploy.trajectory``)."""
 
     frames_per_clip: int = reads(EVERY, default=9)
@@ -108,6 +118,9 @@ class TrajectoryConfig:
     pitch_degrees: list[float] = reads(EVERY, factory=lambda: [0.0])
     ellipse_frames: int = reads(EVERY, default=64)
     clip_rule: ClipRule = reads(EVERY, default=ClipRule.reference_pairs)
+    # GSFixer's ellipse on its world axes as released, or corrected to the cameras' frame (``gsfixer_windows``
+    # only; the embedded ``reference_pairs`` ellipse is its own).
+    ellipse_frame: EllipseFrame = reads(EVERY, default=EllipseFrame.gsfixer_world)
     # Each clip's first and last rendered frames replaced by the captured reference images they are rendered at,
     # as GSFixer's restorer sees them (``with_captured_ends``); the paper scale sets it (conf/deploy/paper.yaml).
     captured_ends: bool = reads(EVERY, default=False)

@@ -36,9 +36,23 @@ class DensificationConfig:
     grow_scale3d: float = reads(EVERY, default=0.01)
     prune_opa: float = reads(EVERY, default=0.005)
     prune_scale3d: float = reads(EVERY, default=0.1)
+    # Prune Gaussians whose screen radius exceeded this many pixels, from the first opacity reset on (the
+    # reference optimiser and GSFixer's release: train.py l. 246, ``size_threshold = 20 if iteration >
+    # opacity_reset_interval``); None = no screen pruning (gsplat's default, the embedded scale's measured one).
+    screen_prune_px: float | None = reads(EVERY, default=None)
     # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
     # per step at the embedded scale); None = no cap (paper scale).
     max_gaussians: int | None = reads(EVERY, default=8000)
+
+
+class PseudoSsim(Mode):
+    """Which SSIM the pseudo-view term L_pseudo of deployment's refinement uses (tracegs.splat.fit)."""
+
+    # GSFixer's release (train.py l. 212): ``ssim(image, gt_image)``, the captured view's render against its
+    # image, reused; the pseudo view contributes only its L1.
+    captured = "captured"
+    # Corrected: D-SSIM of the pseudo view's render against its restored frame.
+    pseudo = "pseudo"
 
 
 @dataclass
@@ -70,6 +84,11 @@ class GaussianFitConfig:
     # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     keep_freed_cpu_memory: bool = reads(EVERY, default=True)
     densification: DensificationConfig = reads(EVERY, factory=DensificationConfig)
+    # Deployment's pseudo-view term (Eq. supp-refinement-objective): its SSIM pair, and whether the pseudo view's
+    # screen-space gradients feed densification (GSFixer's release: no, train.py l. 198-202 and 243 keep the
+    # captured view's ``viewspace_points``). Embedded default: the corrected protocol.
+    pseudo_ssim: PseudoSsim = reads(EVERY, default=PseudoSsim.pseudo)
+    pseudo_densification: bool = reads(EVERY, default=True)
 
     def sh_degree_at(self, iteration: int) -> int:
         """The SH degree in use at ``iteration``: one band more every ``sh_degree_interval``, up to

@@ -426,3 +426,13 @@ def round_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryC
         return random_subset(window_clips(references, round_index, cfg, generator), max_clips, generator)
     pairs = reference_pairs(len(references), max_clips, generator)
     return list(zip(pairs, round_trajectory(references, pairs, round_index, cfg, generator)))
+
+
+def clips_per_round(cfg: TrajectoryConfig, num_views: int, max_clips: int | None) -> int:
+    """How many clips ``round_clips`` makes a round from ``num_views`` reference views: GSFixer's windows (7 for
+    85 poses in windows of 17), or one per reference pair (``reference_pairs``); at most ``max_clips``."""
+    if cfg.clip_rule == ClipRule.gsfixer_windows:
+        count = len(window_starts(cfg.ellipse_frames, clip_layout(cfg.frames_per_clip)[1]))
+    else:
+        count = len(reference_pairs(num_views, None, torch.Generator()))
+    return count if max_clips is None else min(count, max_clips)

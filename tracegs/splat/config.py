@@ -70,6 +70,7 @@ class GaussianFitConfig:
     lr_means_final: float = reads(EVERY, default=1.6e-5)
     lr_quats: float = reads(EVERY, default=5e-3)
     lr_scales: float = reads(EVERY, default=1e-2)
+    # The reference optimiser's opacity rate; GSFixer's release halves it (arguments/__init__.py l. 115: 0.025).
     lr_opacities: float = reads(EVERY, default=5e-2)
     lr_sh_dc: float = reads(EVERY, default=1e-2)
     lr_sh_rest: float = reads(EVERY, default=5e-4)
@@ -81,6 +82,10 @@ class GaussianFitConfig:
     backend: RenderBackend = reads(EVERY, default=RenderBackend.auto)
     seed: int = reads(EVERY, default=0)
     init_num_points: int = reads(EVERY, default=2000)
+    # The SfM points a fit starts from: those seen by at least this many of its views. 2 = what the view set
+    # would triangulate itself (no geometry from views it never saw); GSFixer's release keeps every point any
+    # sparse view observes, 1 (datasets/colmap_debug.py l. 354-369, ``filter_points_sparse``).
+    init_min_views: int = reads(EVERY, default=2)
     # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     keep_freed_cpu_memory: bool = reads(EVERY, default=True)
     densification: DensificationConfig = reads(EVERY, factory=DensificationConfig)

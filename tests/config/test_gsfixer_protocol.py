@@ -117,6 +117,7 @@ PROTOCOL_FIELDS = [
     ("data.prepare.fit.lr_opacities", 0.025, 0.05, "arguments/__init__.py l. 115"),
     ("data.prepare.fit.init_min_views", 1, 2, "datasets/colmap_debug.py l. 354-369"),
     ("backbone.reference_encoder.pixels", "uint8_wrap", "clean", "gsfixer/cogvideo/inference.py l. 106-118"),
+    ("evaluation.ssim_convention", "gsfixer", "torchmetrics", "metrics.py l. 25-35, 74"),
 ]
 
 
@@ -157,6 +158,7 @@ def test_the_embedded_scale_keeps_its_measured_values_under_its_own_protocol():
     assert cfg.data.prepare.fit.densification.screen_prune_px is None
     assert (cfg.data.prepare.fit.lr_opacities, cfg.data.prepare.fit.init_min_views) == (0.05, 2)
     assert cfg.backbone.reference_encoder.pixels == "clean"
+    assert cfg.evaluation.ssim_convention == "torchmetrics"
 
 
 def test_every_protocol_field_is_a_row_of_the_cluster_docs_table():

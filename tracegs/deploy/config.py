@@ -100,6 +100,9 @@ class EvaluationConfig:
     lpips: bool = reads(DEPLOYMENT, default=True)
     # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
     lpips_convention: str = reads(DEPLOYMENT, default="3dgs")
+    # The headline SSIM column's convention, "torchmetrics" (float images) or "gsfixer" (8-bit PNGs, GSFixer's
+    # metrics.py l. 25-35 and 74); the other one fills the second SSIM column (see eval/metrics.py).
+    ssim_convention: str = reads(DEPLOYMENT, default="torchmetrics")
     # torchvision's VGG16 ImageNet weights (vgg16-397923af.pth) for LPIPS; None = the torch hub cache's copy.
     lpips_weights: str | None = reads(DEPLOYMENT, default=None)
     # Stop before any work when LPIPS cannot be computed (the paper's tables report it); else "n/a" in tables.

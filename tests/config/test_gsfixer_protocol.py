@@ -116,7 +116,7 @@ PROTOCOL_FIELDS = [
     ("data.prepare.fit.pseudo_densification", False, True, "train.py l. 198-202, 243"),
     ("data.prepare.fit.lr_opacities", 0.025, 0.05, "arguments/__init__.py l. 115"),
     ("data.prepare.fit.init_min_views", 1, 2, "datasets/colmap_debug.py l. 354-369"),
-    ("backbone.reference_encoder.pixels", "uint8_wrap", "clean", "gsfixer/cogvideo/inference.py l. 106-118"),
+    ("backbone.reference_encoder.pixels", "uint8_wrap", "clean", "gsfixer/cogvideo/inference.py l. 106-119"),
     ("evaluation.ssim_convention", "gsfixer", "torchmetrics", "metrics.py l. 25-35, 74"),
 ]
 

@@ -91,7 +91,7 @@ def test_dinov2_without_registers_is_refused_in_one_line(tmp_path):
 
 
 def test_uint8_wrap_is_gsfixers_cast_of_its_signed_frames():
-    """gsfixer/cogvideo/inference.py l. 106-118: ``control = (frames - 0.5) * 2`` (torch), then
+    """gsfixer/cogvideo/inference.py l. 106-119: ``control = (frames - 0.5) * 2`` (torch), then
     ``(x * 255).astype(np.uint8)`` (numpy) and the encoders read the 8-bit image: dark pixels wrap."""
     import numpy as np
 

@@ -43,7 +43,7 @@ class ReferencePixels(Mode):
     """What DINOv2 and VGGT see of the two reference frames, before their resize (encoders.reference_images)."""
 
     clean = "clean"  # the frames as they are, in [0, 1]
-    # GSFixer's release (gsfixer/cogvideo/inference.py l. 106-118): the frames, mapped to [-1, 1], are cast with
+    # GSFixer's release (gsfixer/cogvideo/inference.py l. 106-119): the frames, mapped to [-1, 1], are cast with
     # ``(x * 255).astype(np.uint8)``, so every pixel below 0.5 wraps modulo 256 (dark turns bright) before the
     # encoders read the 8-bit image back. Its published numbers were made so; its training code is unreleased.
     uint8_wrap = "uint8_wrap"

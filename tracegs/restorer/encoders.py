@@ -121,7 +121,7 @@ def reference_grid(cfg: ReferenceEncoderConfig, height: int, width: int) -> tupl
 
 def wrapped_bytes(images: torch.Tensor) -> torch.Tensor:
     """[0, 1] frames as GSFixer's release hands them to the reference encoders (gsfixer/cogvideo/inference.py
-    l. 106-118): ``(frames - 0.5) * 2``, then ``(x * 255).astype(np.uint8)``, whose cast truncates toward zero and
+    l. 106-119): ``(frames - 0.5) * 2``, then ``(x * 255).astype(np.uint8)``, whose cast truncates toward zero and
     wraps negatives modulo 256 (-0.5 -> 129), read back as bytes / 255."""
     signed = (images.float() - 0.5) * 2
     return (signed * 255).trunc().to(torch.int64).remainder(256).float() / 255

@@ -18,7 +18,6 @@ from tracegs.eval.per_step import mean_curves
 from tracegs.eval.report import META_KEY, METHOD_LABELS, plot_per_step_quality, write_results_tables
 from tracegs.io import write_json_atomic
 
-
 # A unit scored before its record named its SSIM conventions (then SSIM was torchmetrics' alone).
 NOT_RECORDED = "not recorded"
 

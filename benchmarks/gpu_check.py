@@ -167,7 +167,7 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
     indices = [i for i in range(len(scene.cameras)) if i not in test]
     training = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
     held_out = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in sorted(test)]
-    init = GaussianModel.from_points(*scene.points_seen_by(indices))  # as prepare starts a fit
+    init = GaussianModel.from_points(*scene.points_seen_by(indices, fit.init_min_views))  # as prepare starts a fit
     fits = []
     for backend in backends:
         fits.append(fit_and_score(replace(shortened(fit, iterations), backend=backend), training, held_out, init))

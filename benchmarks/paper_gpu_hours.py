@@ -55,7 +55,7 @@ from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import Step, override
 from tracegs.pipeline.steps import main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, variants_teachers
-from tracegs.splat.trajectory import reference_pairs
+from tracegs.splat.trajectory import clips_per_round, reference_pairs
 
 HOUR = 3600.0
 PAPER_JOB = ("experiment=paper", "trainer=ddp")  # what every counted command composes (a cluster job at paper scale)
@@ -202,8 +202,7 @@ def evaluate_work(cfg: DictConfig, scenes: int) -> Work:
             if method == "3dgs":
                 work += Work(fit_iterations=after_cold)
                 continue
-            pairs = reference_pairs(k, deploy.max_clips_per_round, torch.Generator())
-            clips = len(deploy.repair_iters) * len(pairs)
+            clips = len(deploy.repair_iters) * clips_per_round(deploy.trajectory, k, deploy.max_clips_per_round)
             work += Work(refine_iterations=after_cold, rendered_frames=clips * deploy.trajectory.frames_per_clip,
                          captions=clips, encodes=clips, decodes=clips,
                          forwards=clips * steps * guided(cfg.backbone.sampler.guidance_scale))

@@ -24,14 +24,16 @@ def test_stage2_counts_every_rank_and_rollout_state(hydra_context):
     assert gpu.train_work(compose(config_name="train", overrides=[*PAPER, "stage=baseline"])).gpu_hours() == 0
 
 
-def test_evaluation_counts_guided_restorations_of_every_reference_pair(hydra_context):
-    """Mip-NeRF 360's nine published scenes at 3/6/9 views: per scene and K, N_r = 3 rounds of K clips (the closed
-    loop of reference pairs), each M = 50 guided steps (two forwards), and the J = 30k 3DGS iterations."""
+def test_evaluation_counts_guided_restorations_of_every_gsfixer_window(hydra_context):
+    """Mip-NeRF 360's nine published scenes at 3/6/9 views: per scene and K, N_r = 3 rounds of GSFixer's 7 windows
+    (gsfixer/extrapolation/outpaint/sparse.py l. 245, whatever K), each a 49-frame clip restored over M = 50 guided
+    steps (two forwards), and the J = 30k 3DGS iterations."""
     cfg = compose(config_name="evaluate", overrides=[*PAPER, "data=mipnerf360", "evaluation.methods=[baseline]"])
     scenes = gpu.test_scenes(cfg, dl3dv=28)
     assert scenes == 9
     work = gpu.evaluate_work(cfg, scenes)
-    assert work.forwards == 9 * 3 * (3 + 6 + 9) * 50 * 2
+    assert work.forwards == 9 * 3 * 3 * 7 * 50 * 2
+    assert work.rendered_frames == 9 * 3 * 3 * 7 * 49
     assert work.fit_iterations + work.refine_iterations == 9 * 3 * 30_000
 
 

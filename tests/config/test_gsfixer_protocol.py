@@ -105,3 +105,65 @@ def test_the_embedded_trajectory_keeps_its_own_values():
 def test_a_trajectory_gsfixers_rule_cannot_make_is_refused_naming_the_field(overrides, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         validate(composed("prepare", overrides))
+
+
+# Each protocol field: (config key, GSFixer's release value, the corrected value, GSFixer's file and line).
+PROTOCOL_FIELDS = [
+    ("deploy.trajectory.ellipse_frame", "gsfixer_world", "focus",
+     "gsfixer/extrapolation/outpaint/sample_utils.py l. 154-183; datasets/normalize.py l. 4-63"),
+    ("deploy.kept_frames", "every", "between_ends", "gsfixer/extrapolation/outpaint/base.py l. 129-140"),
+    ("data.prepare.fit.pseudo_ssim", "captured", "pseudo", "train.py l. 210-213"),
+    ("data.prepare.fit.pseudo_densification", False, True, "train.py l. 198-202, 243"),
+    ("data.prepare.fit.lr_opacities", 0.025, 0.05, "arguments/__init__.py l. 115"),
+    ("data.prepare.fit.init_min_views", 1, 2, "datasets/colmap_debug.py l. 354-369"),
+    ("backbone.reference_encoder.pixels", "uint8_wrap", "clean", "gsfixer/cogvideo/inference.py l. 106-119"),
+    ("evaluation.ssim_convention", "gsfixer", "torchmetrics", "metrics.py l. 25-35, 74"),
+]
+
+
+def value(cfg, key: str):
+    node = cfg
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+@pytest.mark.parametrize("key, release, corrected, where", PROTOCOL_FIELDS)
+def test_the_paper_scale_deploys_as_gsfixer_released_it_and_corrected_names_each_fix(key, release, corrected, where):
+    """Variant (A) is GSFixer: the paper scale's default protocol is the release's behaviour; ``corrected`` switches
+    every field at once, and each stays overridable by name."""
+    assert value(composed("prepare", ["experiment=paper"]), key) == release, where
+    assert value(composed("prepare", ["experiment=paper", "deploy.protocol=corrected"]), key) == corrected, where
+    assert value(composed("prepare", ["experiment=paper", f"{key}={corrected}"]), key) == corrected
+
+
+def test_screen_pruning_follows_gsfixers_train_script_under_both_protocols():
+    """train.py l. 246: ``size_threshold = 20 if iteration > opacity_reset_interval`` (the reference optimiser's)."""
+    for protocol in ("gsfixer_release", "corrected"):
+        cfg = composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"])
+        assert cfg.data.prepare.fit.densification.screen_prune_px == 20
+
+
+def test_the_rehearsal_runs_gsfixers_release():
+    assert composed("prepare", ["experiment=rehearsal"]).deploy.protocol == "gsfixer_release"
+
+
+def test_the_embedded_scale_keeps_its_measured_values_under_its_own_protocol():
+    """The embedded values are set field by field (``own``): kept frames and the pseudo term as corrected, no
+    screen pruning (gsplat's default)."""
+    cfg = composed("prepare", [])
+    assert cfg.deploy.protocol == "own"
+    assert (cfg.deploy.kept_frames, cfg.data.prepare.fit.pseudo_ssim) == ("between_ends", "pseudo")
+    assert cfg.data.prepare.fit.pseudo_densification is True
+    assert cfg.data.prepare.fit.densification.screen_prune_px is None
+    assert (cfg.data.prepare.fit.lr_opacities, cfg.data.prepare.fit.init_min_views) == (0.05, 2)
+    assert cfg.backbone.reference_encoder.pixels == "clean"
+    assert cfg.evaluation.ssim_convention == "torchmetrics"
+
+
+def test_every_protocol_field_is_a_row_of_the_cluster_docs_table():
+    table = (Path(__file__).resolve().parents[2] / "docs" / "cluster.md").read_text()
+    for key, release, corrected, where in PROTOCOL_FIELDS:
+        (row,) = [line.lower() for line in table.splitlines() if f"| `{key.split('.')[-1]}` |" in line]
+        assert f"`{release}`".lower() in row and f"`{corrected}`".lower() in row, key
+        assert where.split(" l. ")[0].split("/")[-1] in row, key

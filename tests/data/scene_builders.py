@@ -30,14 +30,16 @@ def ring_cameras(n: int, width: int = 36, height: int = 24) -> list[Camera]:
     return cameras
 
 
-def write_scene(root: Path, n: int = 16, image_dir: str = "images", image_scale: int = 1) -> tuple[Path, list[Camera]]:
-    """A scene directory with ``n`` images (in ``image_dir``, sized camera/``image_scale``) and sparse/0."""
+def write_scene(root: Path, n: int = 16, image_dir: str = "images", image_scale: int = 1,
+                points: int = 50) -> tuple[Path, list[Camera]]:
+    """A scene directory with ``n`` images (in ``image_dir``, sized camera/``image_scale``) and sparse/0 with
+    ``points`` SfM points, each seen by images 0, 3, 6, ..."""
     cameras = ring_cameras(n)
     names = [f"img_{i:03d}.png" for i in range(n)]
     rng = np.random.default_rng(0)
-    points = rng.uniform(-1, 1, (50, 3))
-    tracks = [[(i, np.array([1.0 + p % 30, 1.0 + i])) for i in range(0, n, 3)] for p in range(50)]
-    write_colmap_model(root / "sparse" / "0", cameras, names, points, rng.uniform(0, 1, (50, 3)), tracks)
+    xyz = rng.uniform(-1, 1, (points, 3))
+    tracks = [[(i, np.array([1.0 + p % 30, 1.0 + i])) for i in range(0, n, 3)] for p in range(points)]
+    write_colmap_model(root / "sparse" / "0", cameras, names, xyz, rng.uniform(0, 1, (points, 3)), tracks)
     (root / image_dir).mkdir(parents=True)
     for i, name in enumerate(names):
         w, h = cameras[i].width // image_scale, cameras[i].height // image_scale

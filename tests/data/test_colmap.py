@@ -24,8 +24,10 @@ def test_written_model_loads_back_with_identical_intrinsics_and_poses(colmap_sce
     # Tracks survive: the conftest observes every point in images 0, 3, 6, ...
     assert scene.points.shape == (50, 3)
     assert scene.visibility[:, 0].all() and not scene.visibility[:, 1].any()
-    points, _ = scene.points_seen_by([0, 3])
-    assert len(points) == 50 and len(scene.points_seen_by([0, 1])[0]) == 0
+    points, _ = scene.points_seen_by([0, 3], 2)
+    assert len(points) == 50 and len(scene.points_seen_by([0, 1], 2)[0]) == 0
+    # GSFixer's rule (one sparse view suffices) keeps the points image 0 alone sees.
+    assert len(scene.points_seen_by([0, 1], 1)[0]) == 50
 
 
 def test_simple_pinhole_and_downscaled_folder(tmp_path):
@@ -90,3 +92,20 @@ def test_write_colmap_model_replaces_atomically(tmp_path):
 
     assert pycolmap.Reconstruction(str(path)).num_images() == 2
     assert [p.name for p in tmp_path.joinpath("sparse").iterdir()] == ["0"]
+
+
+def test_deployment_starts_from_the_points_its_init_rule_keeps(tmp_path):
+    """``data.prepare.fit.init_min_views``: GSFixer's release starts from every SfM point one sparse view sees
+    (datasets/colmap_debug.py l. 354-369); two views (what V_s triangulates) leave images 0 and 1 too few points,
+    so the fit starts from random Gaussians."""
+    from tracegs.deploy.scenes import initial_model
+    from tracegs.splat.config import GaussianFitConfig
+    from tracegs.splat.fit import View
+
+    root, _ = write_scene(tmp_path / "scenes" / "ring", points=80)  # more than MIN_INIT_POINTS
+    scene = load_scene(source(root.parent), root.name)
+    captured = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in (0, 1)]
+    released = initial_model(scene, [0, 1], captured, GaussianFitConfig(init_min_views=1))
+    torch.testing.assert_close(released.means, scene.points)
+    corrected = initial_model(scene, [0, 1], captured, GaussianFitConfig(init_min_views=2, init_num_points=7))
+    assert len(corrected) == 7

@@ -11,12 +11,12 @@ import math
 import pytest
 import torch
 
-from tracegs.deploy.config import RefinementConfig
-from tracegs.deploy.refine import cold_start, pseudo_weight, refine
+from tracegs.deploy.config import KeptFrames, RefinementConfig
+from tracegs.deploy.refine import cold_start, pseudo_weight, refine, repair_round
 from tracegs.deploy.restorers import GroundTruthRestorer
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import GaussianFitConfig
-from tracegs.splat.fit import GaussianFitter, View
+from tracegs.splat.config import DensificationConfig, GaussianFitConfig, PseudoSsim
+from tracegs.splat.fit import GaussianFitter, View, mean_ssim
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import render_views
 from tracegs.splat.trajectory import TrajectoryConfig
@@ -152,3 +152,80 @@ def test_repair_rounds_replace_pseudo_set_keep_poses_and_help(tiny_scene, monkey
     # repairing with correct restorations lowers the loss on held-out views vs. no repair
     loss_plain, loss_repaired = _held_out_l1(plain, tiny_scene), _held_out_l1(repaired, tiny_scene)
     assert loss_repaired < 0.95 * loss_plain  # measured 0.937 with views between the captured ones
+
+
+# ---------------------------------------------------------------- GSFixer's release against the corrected protocol
+
+
+@pytest.mark.parametrize("kept, ends_kept", [(KeptFrames.every, True), (KeptFrames.between_ends, False)])
+def test_kept_frames_are_every_restored_frame_as_released_or_those_between_the_ends(tiny_scene, kept, ends_kept):
+    """gsfixer/extrapolation/outpaint/base.py l. 129-140: every restored frame of a clip, at the camera it was
+    rendered at, the clip's two captured-view ends included; corrected: frames[1:-1]."""
+    gt, _, _, captured, _, init = tiny_scene
+    fit_cfg, refine_cfg = _configs()
+    refine_cfg.kept_frames = kept
+    cold = cold_start(captured, init, refine_cfg, fit_cfg)
+    rnd = repair_round(cold, captured, GroundTruthRestorer(gt), 0, refine_cfg, fit_cfg, "", torch.Generator())
+    cameras = [c for clip in rnd.clips for c in (clip.cameras if ends_kept else clip.cameras[1:-1])]
+    assert [view.camera for view in rnd.pseudo] == cameras
+    assert len(rnd.pseudo) == len(rnd.clips) * (9 if ends_kept else 7)
+
+
+def _fitter(tiny_scene, **fit) -> tuple[GaussianFitter, View, View]:
+    gt, cams, images, captured, held_out, init = tiny_scene
+    cfg = GaussianFitConfig(iterations=80, snapshot_iters=[], seed=0, **fit,
+                            densification=DensificationConfig(refine_start_iter=1000, refine_stop_iter=2000))
+    fitter = GaussianFitter(init.clone(), cfg, 3.0)
+    # A pseudo view whose image is off the scene: its own SSIM differs from the captured pair's.
+    pseudo = View(image=images[held_out[0]].flip(-1), camera=cams[held_out[0]])
+    return fitter, captured[0], pseudo
+
+
+@pytest.mark.parametrize("pair", [PseudoSsim.captured, PseudoSsim.pseudo])
+def test_the_pseudo_term_uses_the_ssim_pair_its_protocol_names(tiny_scene, pair):
+    """train.py l. 210-213: 0.8 L1(pseudo render, restored frame) + 0.2 (1 - SSIM(captured render, captured
+    image)); corrected: the pseudo view's own D-SSIM."""
+    fitter, captured, pseudo = _fitter(tiny_scene, pseudo_ssim=pair)
+    with torch.no_grad():
+        loss, pseudo_loss, _ = fitter._losses(captured, pseudo, 0)
+        (c_render, c_image, _), (p_render, p_image, _) = fitter._render(captured, 0), fitter._render(pseudo, 0)
+    ssim_view = (c_render, c_image) if pair == PseudoSsim.captured else (p_render, p_image)
+    expected = 0.8 * (p_render - p_image).abs().mean() + 0.2 * (1 - mean_ssim(*ssim_view))
+    assert pseudo_loss.item() == pytest.approx(expected.item(), rel=1e-5)
+    other = (p_render, p_image) if pair == PseudoSsim.captured else (c_render, c_image)
+    assert abs(pseudo_loss.item() - (0.8 * (p_render - p_image).abs().mean() + 0.2 * (1 - mean_ssim(*other))).item()) > 1e-3
+    assert loss.item() == pytest.approx((0.8 * (c_render - c_image).abs().mean()
+                                         + 0.2 * (1 - mean_ssim(c_render, c_image))).item(), rel=1e-5)
+
+
+@pytest.mark.parametrize("pseudo_densification", [False, True])
+def test_densification_counts_the_captured_views_gradients_only_as_released(tiny_scene, pseudo_densification):
+    """train.py l. 198-202 and 243: the densification statistics of a step with a pseudo view come from the
+    captured view's render alone; corrected: from both renders."""
+    fitter, captured, pseudo = _fitter(tiny_scene, pseudo_densification=pseudo_densification)
+    with torch.no_grad():
+        seen = [(fitter._render(view, 0)[2]["radii"] > 0).reshape(len(fitter.model), -1).any(-1)
+                for view in (captured, pseudo)]
+    fitter.step([captured], [pseudo], lambda j: 1.0)
+    expected = seen[0].float() + (seen[1].float() if pseudo_densification else 0.0)
+    assert torch.equal(fitter.strategy_state["count"], expected)
+
+
+def test_screen_pruning_removes_gaussians_wider_than_20_px_after_the_first_reset(tiny_scene):
+    """train.py l. 246 (the reference optimiser's rule): after the first opacity reset, a densification step drops
+    Gaussians whose screen radius exceeded 20 px; before it, and without ``screen_prune_px``, none."""
+    gt, cams, images, captured, _, init = tiny_scene
+    model = init.clone()
+    with torch.no_grad():
+        model.log_scales[:5] = math.log(1.5)  # five Gaussians wider than the 36-px image
+    def pruned_at(step: int, px: float | None) -> int:
+        cfg = GaussianFitConfig(iterations=80, snapshot_iters=[], seed=0, densification=DensificationConfig(
+            refine_start_iter=0, refine_stop_iter=1000, refine_every=step, reset_every=10, grow_grad2d=1e9,
+            prune_opa=0.0, prune_scale3d=1e9, screen_prune_px=px, max_gaussians=None))
+        fitter = GaussianFitter(model.clone(), cfg, 3.0)
+        fitter.iteration = step
+        fitter.step(captured, (), None)
+        return len(model) - len(fitter.model)
+    assert pruned_at(11, 20.0) >= 5
+    assert pruned_at(11, None) == 0
+    assert pruned_at(5, 20.0) == 0

@@ -5,7 +5,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from tracegs.eval.metrics import ImageMetrics, lpips_availability, mean_metrics
+from tracegs.eval.metrics import ImageMetrics, gsfixer_ssim, lpips_availability, mean_metrics, png_bytes
 
 
 def _random_pair(seed: int, h: int = 48, w: int = 72):
@@ -33,6 +33,22 @@ def test_psnr_ssim_agree_with_scikit_image(seed):
     )
     assert ours["psnr"] == pytest.approx(ref_psnr, abs=1e-3)
     assert ours["ssim"] == pytest.approx(ref_ssim, abs=5e-4)
+
+
+def test_both_ssims_are_reported_the_headline_under_its_convention():
+    """``ssim`` follows ``ssim_convention`` and ``ssim_alt`` holds the other: GSFixer's (8-bit PNGs, 3DGS's SSIM,
+    checked against its own function in test_gsfixer_goldens) or torchmetrics' on the float images, unchanged."""
+    pred, gt = _random_pair(5)
+    float_ssim = ImageMetrics(lpips=False).per_view(pred, gt)[0]["ssim"]
+    png_ssim = gsfixer_ssim(png_bytes(pred), png_bytes(gt)).item()
+    assert abs(float_ssim - png_ssim) > 1e-4  # two metrics: a table must say which
+    default = ImageMetrics(lpips=False)
+    assert (default.per_view(pred, gt)[0]["ssim"], default.per_view(pred, gt)[0]["ssim_alt"]) == (float_ssim, png_ssim)
+    gsfixer = ImageMetrics(lpips=False, ssim_convention="gsfixer")
+    assert (gsfixer.per_view(pred, gt)[0]["ssim"], gsfixer.per_view(pred, gt)[0]["ssim_alt"]) == (png_ssim, float_ssim)
+    assert gsfixer.ssim_label.startswith("SSIM of 8-bit PNG images") and "SSIM′" in gsfixer.ssim_label
+    with pytest.raises(ValueError, match="ssim_convention"):
+        ImageMetrics(lpips=False, ssim_convention="8bit")
 
 
 def test_identical_images_give_perfect_ssim_and_degrading_noise_lowers_both():

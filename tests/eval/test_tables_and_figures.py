@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from tracegs.eval.metrics import ssim_label
 from tracegs.eval.tables_and_figures import (
     image_array,
     plot_per_step_quality,
@@ -21,11 +22,12 @@ from tracegs.eval.tables_and_figures import (
 
 def _results(offset: float = 0.0, lpips=None):
     return {
-        method: {v: {"psnr": 10.0 + i + int(v) + offset, "ssim": 0.1 * (i + 1), "lpips": lpips}
+        method: {v: {"psnr": 10.0 + i + int(v) + offset, "ssim": 0.1 * (i + 1), "lpips": lpips,
+                     "ssim_alt": 0.1 * (i + 1) + 0.05}
                  for v in ("3", "6", "9")}
         for i, method in enumerate(("3dgs", "baseline", "tracegs"))
     } | {"meta": {"lpips": "LPIPS n/a: VGG16 ImageNet weights not found at /hub/vgg16-397923af.pth",
-                  "scenes": ["s0", "s1"]}}
+                  "ssim": ssim_label("gsfixer"), "scenes": ["s0", "s1"]}}
 
 
 def test_results_table_has_a_column_per_evaluated_view_count():
@@ -43,6 +45,8 @@ def test_results_table_layout_and_formats(tmp_path):
     assert [line.split("|")[1].strip() for line in lines[2:5]] == ["3DGS", "Baseline (A)", "TRACE-GS"]
     assert "| TRACE-GS | 15.00 | 18.00 | 21.00 | 0.300 | 0.300 | 0.300 | n/a | n/a | n/a |" in md
     assert "LPIPS n/a: VGG16 ImageNet weights not found" in md and "2 scene(s)" in md
+    # The second SSIM column comes last, named in the footnote as LPIPS's convention is.
+    assert lines[0].split("|")[-2].strip() == "SSIM′↑ 9" and "SSIM: SSIM of 8-bit PNG images" in md
 
     paths = write_results_tables(results, tmp_path, stem="table1")
     rows = list(csv.DictReader(paths["csv"].open()))
@@ -50,6 +54,7 @@ def test_results_table_layout_and_formats(tmp_path):
     row = next(r for r in rows if r["method"] == "baseline" and r["views"] == "6")
     assert float(row["psnr"]) == pytest.approx(17.0) and row["lpips"] == ""
     assert row["lpips_convention"].startswith("LPIPS n/a")
+    assert float(row["ssim_alt"]) == pytest.approx(0.25) and row["ssim_convention"].startswith("SSIM of 8-bit")
     assert json.loads(paths["json"].read_text())["tracegs"]["9"]["psnr"] == pytest.approx(21.0)
 
 

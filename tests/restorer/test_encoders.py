@@ -14,7 +14,13 @@ from transformers import (
 )
 
 from tracegs.restorer.build import build_backbone
-from tracegs.restorer.config import QUALITY_SUFFIX, BackboneConfig, ReferenceEncoderConfig, TextEncoderConfig
+from tracegs.restorer.config import (
+    QUALITY_SUFFIX,
+    BackboneConfig,
+    ReferenceEncoderConfig,
+    ReferencePixels,
+    TextEncoderConfig,
+)
 from tracegs.restorer.encoders import (
     Dinov2Encoder,
     EmbeddedReferenceEncoder,
@@ -23,6 +29,7 @@ from tracegs.restorer.encoders import (
     build_reference_encoder,
     reference_grid,
     reference_images,
+    wrapped_bytes,
 )
 from tracegs.restorer.loading import MissingPackageError
 
@@ -81,6 +88,20 @@ def test_dinov2_without_registers_is_refused_in_one_line(tmp_path):
     Dinov2Model(config).save_pretrained(tmp_path / "dino")
     with pytest.raises(ValueError, match="has 0 register tokens; GSFixer's DINOv2 has 4"):
         Dinov2Encoder(ReferenceEncoderConfig(dino_path=str(tmp_path / "dino"), image_size=28))
+
+
+def test_uint8_wrap_is_gsfixers_cast_of_its_signed_frames():
+    """gsfixer/cogvideo/inference.py l. 106-119: ``control = (frames - 0.5) * 2`` (torch), then
+    ``(x * 255).astype(np.uint8)`` (numpy) and the encoders read the 8-bit image: dark pixels wrap."""
+    import numpy as np
+
+    frames = torch.cat([torch.rand(1, 3, 28, 42), torch.tensor([0.0, 0.25, 0.5]).view(1, 3, 1, 1).expand(1, 3, 28, 42)])
+    released = torch.from_numpy((((frames - 0.5) * 2).numpy() * 255).astype(np.uint8)).float() / 255
+    torch.testing.assert_close(wrapped_bytes(frames), released, atol=0, rtol=0)
+    assert round(wrapped_bytes(torch.zeros(1)).item() * 255) == 1  # black -> -255 -> byte 1
+    wrapped = ReferenceEncoderConfig(image_size=28, pixels=ReferencePixels.uint8_wrap)
+    torch.testing.assert_close(reference_images(frames, wrapped),
+                               reference_images(released, ReferenceEncoderConfig(image_size=28)))
 
 
 @pytest.mark.parametrize(("size", "expected"), [((480, 720), (350, 518)), ((720, 480), (518, 518)),

@@ -10,14 +10,14 @@ from support.scenes import ring_cameras
 
 from tracegs.errors import ConfigError
 from tracegs.splat.cameras import Camera, look_at_rotation
-from tracegs.splat.config import ClipRule, TrajectoryConfig
+from tracegs.splat.config import ClipRule, EllipseFrame, TrajectoryConfig
 from tracegs.splat.trajectory import (
     bridge_poses,
     clip_layout,
     ellipse_poses,
+    focus_ellipse,
     focus_point,
     gsfixer_bridge,
-    gsfixer_ellipse,
     make_clip,
     nearest_view,
     round_clips,
@@ -199,6 +199,7 @@ def elliptic_ring() -> list[Camera]:
 
 def gsfixer_config(**overrides) -> TrajectoryConfig:
     values = dict(frames_per_clip=49, ellipse_frames=85, clip_rule=ClipRule.gsfixer_windows,
+                  ellipse_frame=EllipseFrame.focus,
                   ellipse_scales=[1.2, 1.2, 1.2], height_variations=[1.5, 1.3, 1.1], pitch_degrees=[0.0, 2.0, 4.0])
     return TrajectoryConfig(**{**values, **overrides})
 
@@ -221,7 +222,7 @@ def test_gsfixer_round_is_seven_clips_of_a_bridge_a_window_and_a_bridge():
     cfg = gsfixer_config()
     clips = round_clips(cameras, 0, cfg, None, torch.Generator().manual_seed(0))
     phase = 2 * math.pi * torch.rand((), generator=torch.Generator().manual_seed(0)).item()
-    ellipse = gsfixer_ellipse(cameras, 85, 1.2, 1.5, phase, 0.0)
+    ellipse = focus_ellipse(cameras, 85, 1.2, 1.5, phase, 0.0)
     assert len(clips) == 7
     for ((a, b), clip), start in zip(clips, [0, 12, 24, 36, 48, 60, 68]):
         assert len(clip) == 49

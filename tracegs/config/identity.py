@@ -45,6 +45,7 @@ from tracegs.data.config import (
     is_procedural,
     with_variant_teacher,
 )
+from tracegs.errors import ConfigError
 from tracegs.products import BASELINE, PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
 
@@ -203,7 +204,8 @@ def cache_name(cfg: DictConfig, split: str) -> str:
 def register_resolvers() -> None:
     """``${tracegs.run:<kind>}``, ``${tracegs.cache:<split>}``, ``${tracegs.seed:<stream>}``,
     ``${tracegs.gpus_per_node:<ranks>,<trainer's GPUs>}``, ``${tracegs.first_set:<a>,<b>,...}`` and the variant's teacher condition
-    (``${tracegs.with_variant_teacher:...}``, ``${tracegs.fits_variant_teacher:...}``) for the YAML."""
+    (``${tracegs.with_variant_teacher:...}``, ``${tracegs.fits_variant_teacher:...}``) and the GSFixer protocol's
+    choice (``${tracegs.protocol:<release>,<corrected>}``) for the YAML."""
     OmegaConf.register_new_resolver(
         "tracegs.run", lambda kind, _root_: run_name(_root_, kind), replace=True)
     OmegaConf.register_new_resolver("tracegs.cache", lambda split, _root_: cache_name(_root_, split), replace=True)
@@ -214,6 +216,17 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("tracegs.first_set", first_set, replace=True)
     OmegaConf.register_new_resolver("tracegs.with_variant_teacher", with_variant_teacher, replace=True)
     OmegaConf.register_new_resolver("tracegs.fits_variant_teacher", fits_variant_teacher, replace=True)
+    OmegaConf.register_new_resolver("tracegs.protocol", protocol_value, replace=True)
+
+
+def protocol_value(release: Any, corrected: Any, _root_: DictConfig) -> Any:
+    """``${tracegs.protocol:<release>,<corrected>}``: the value of ``deploy.protocol``'s choice (gsfixer_release
+    or corrected); a YAML that derives a field from the protocol cannot be run with ``own``."""
+    protocol = str(_root_.deploy.protocol)
+    if protocol not in ("gsfixer_release", "corrected"):
+        raise ConfigError("deploy.protocol", f"this configuration derives its GSFixer-protocol fields from "
+                                             f"gsfixer_release or corrected, got {protocol}")
+    return release if protocol == "gsfixer_release" else corrected
 
 
 # The name an older version gave a product folder, before names were derived from the typed config alone: the

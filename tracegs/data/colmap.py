@@ -83,7 +83,7 @@ class Scene:
         centres = torch.stack([c.center for c in self.cameras])
         return float(1.1 * (centres - centres.mean(0)).norm(dim=-1).max().clamp_min(1e-6))
 
-    def points_seen_by(self, views: list[int], min_views: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+    def points_seen_by(self, views: list[int], min_views: int) -> tuple[torch.Tensor, torch.Tensor]:
         """SfM points observed by at least ``min_views`` of ``views`` (what those views triangulate)."""
         keep = self.visibility[:, views].sum(dim=1) >= min_views
         return self.points[keep], self.colors[keep]

@@ -202,9 +202,9 @@ def fit_view_set(plan: ScenePlan, key: str, cfg: PrepareConfig) -> None:
     scene = plan.scene
     indices = plan.split.view_sets[key]
     views = [View(image=scene.load_image(i), camera=scene.cameras[i]) for i in indices]
-    # Initialise from the SfM points this view set would triangulate itself (seen by >= 2 of its views),
-    # so sparse fits do not inherit geometry from views they never saw; too few -> random (3DGS fallback).
-    points, colors = scene.points_seen_by(indices)
+    # Initialise from the SfM points the view set sees (data.prepare.fit.init_min_views of its views); too few
+    # -> random (3DGS fallback).
+    points, colors = scene.points_seen_by(indices, cfg.fit.init_min_views)
     init = GaussianModel.from_points(points, colors) if len(points) >= MIN_INIT_POINTS else None
     snapshots = fit_gaussians(views, cfg.fit, init, plan.fits[key], progress=False)
     for iteration, path in paths.items():

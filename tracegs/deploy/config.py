@@ -12,10 +12,30 @@ from dataclasses import dataclass
 
 from tracegs.data.config import CaptionConfig, SfmConfig
 from tracegs.errors import ConfigError
+from tracegs.modes import Mode
 from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
 from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
+
+
+class Protocol(Mode):
+    """Which GSFixer-protocol values a configuration takes: the paper scale's YAML derives each protocol field
+    from it with ``${tracegs.protocol:<release value>,<corrected value>}`` (docs/cluster.md lists them)."""
+
+    gsfixer_release = "gsfixer_release"  # GSFixer's release as it runs (variant A is GSFixer: Table 1's row)
+    corrected = "corrected"  # each deviation of the release from its paper corrected, a named field apiece
+    own = "own"  # every field as its YAML sets it (the embedded scale's measured defaults)
+
+
+class KeptFrames(Mode):
+    """Which restored frames of a clip become pseudo views (Eq. supp-round-pseudo-set)."""
+
+    # GSFixer's release (gsfixer/extrapolation/outpaint/base.py l. 129-140): all of them, the two at the
+    # captured views included (49 a window, 343 a round of 7 windows).
+    every = "every"
+    # Corrected: the frames between the clip's ends, whose cameras are captured views that L_sparse supervises.
+    between_ends = "between_ends"
 
 
 @dataclass
@@ -35,6 +55,8 @@ class RefinementConfig:
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
     steps: int | None = reads(DEPLOYMENT, default=None)
     seed: int = reads(DEPLOYMENT, default=0)
+    protocol: Protocol = reads(DEPLOYMENT, default=Protocol.own)
+    kept_frames: KeptFrames = reads(DEPLOYMENT, default=KeptFrames.between_ends)  # embedded: as corrected
 
     def validate(self) -> None:
         repairs = list(self.repair_iters)
@@ -78,6 +100,9 @@ class EvaluationConfig:
     lpips: bool = reads(DEPLOYMENT, default=True)
     # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
     lpips_convention: str = reads(DEPLOYMENT, default="3dgs")
+    # The headline SSIM column's convention, "torchmetrics" (float images) or "gsfixer" (8-bit PNGs, GSFixer's
+    # metrics.py l. 25-35 and 74); the other one fills the second SSIM column (see eval/metrics.py).
+    ssim_convention: str = reads(DEPLOYMENT, default="torchmetrics")
     # torchvision's VGG16 ImageNet weights (vgg16-397923af.pth) for LPIPS; None = the torch hub cache's copy.
     lpips_weights: str | None = reads(DEPLOYMENT, default=None)
     # Stop before any work when LPIPS cannot be computed (the paper's tables report it); else "n/a" in tables.

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from tracegs.data.captions import clip_caption, release_captioner
-from tracegs.deploy.config import RefinementConfig
+from tracegs.deploy.config import KeptFrames, RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
@@ -75,18 +75,20 @@ def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: Cli
                  cfg: RefinementConfig, fit_cfg: GaussianFitConfig, caption: str,
                  generator: torch.Generator) -> RepairRound:
     """One repair call: render the round's clips, restore every clip, pool the restored target frames into
-    the new pseudo-set (Eq. supp-round-pseudo-set). The two clip ends are the reference views themselves,
-    already supervised by L_sparse, so only the frames between them become pseudo views."""
+    the new pseudo-set (Eq. supp-round-pseudo-set): every frame (``kept_frames=every``, GSFixer's release), or
+    only those between the two clip ends, which are the reference views themselves, already supervised by
+    L_sparse (``between_ends``)."""
     clips = render_round_clips(fitter, captured, round_index, cfg, fit_cfg, caption, generator)
     seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
     with torch.no_grad():
         restored = restorer.restore(clips, seed=seed)
     if len(restored) != len(clips):
         raise RuntimeError(f"restorer returned {len(restored)} clips for {len(clips)}")
+    kept = slice(None) if cfg.kept_frames == KeptFrames.every else slice(1, -1)
     pseudo = [
         View(image=frame, camera=cam)
         for clip, frames in zip(clips, restored)
-        for frame, cam in zip(frames[1:-1], clip.cameras[1:-1])
+        for frame, cam in zip(frames[kept], clip.cameras[kept])
     ]
     return RepairRound(index=round_index, iteration=fitter.iteration, clips=clips, pseudo=pseudo)
 

@@ -45,8 +45,8 @@ def evaluation_units(scenes: Sequence[str], views: Sequence[int], shard_index: i
 def initial_model(scene: Scene, captured_ids: Sequence[int], captured: Sequence[View],
                   fit_cfg: GaussianFitConfig) -> GaussianModel:
     """3DGS initialisation exactly as ``prepare`` made the sparse fits of the training data: the SfM points
-    V_s itself observes (no leak from other views), else random Gaussians where the cameras look."""
-    points, colors = scene.points_seen_by(list(captured_ids))
+    V_s itself observes (``fit_cfg.init_min_views`` of its views), else random Gaussians where the cameras look."""
+    points, colors = scene.points_seen_by(list(captured_ids), fit_cfg.init_min_views)
     if len(points) >= MIN_INIT_POINTS:
         return GaussianModel.from_points(points, colors)
     return random_initial_model(captured, fit_cfg)

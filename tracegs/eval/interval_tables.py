@@ -21,7 +21,7 @@ from tracegs.eval.conclusions import (
 )
 from tracegs.eval.intervals import Interval, clustered, mean_interval, paired_interval
 from tracegs.eval.labels import HIGHER_IS_BETTER, METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
-from tracegs.eval.metrics import METRIC_NAMES
+from tracegs.eval.metrics import HEADLINE_METRICS, METRIC_NAMES
 from tracegs.io import atomic_write
 
 # The paired differences of Tables 1/2: (minuend, subtrahend).
@@ -150,7 +150,7 @@ def ablation_intervals_markdown(variants: Mapping[str, tuple[Mapping, str]]) -> 
     """Table 3 with intervals: ``variants[name] = (per_scene, method)``. Each variant is averaged over the view
     counts evaluated; intervals and the differences to A resample whole scenes (paired by scene and views)."""
     names = list(variants)
-    metrics = [m for m in METRIC_NAMES
+    metrics = [m for m in HEADLINE_METRICS
                if all(unit_scores(per_scene, method, m) is not None for per_scene, method in variants.values())]
     scores = {(name, m): unit_scores(*variants[name], m) for name in names for m in metrics}
 

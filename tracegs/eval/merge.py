@@ -23,6 +23,9 @@ from tracegs.eval.tables_and_figures import (
 )
 from tracegs.io import write_json_atomic
 
+# A unit scored before its record named its SSIM conventions (then SSIM was torchmetrics' alone).
+NOT_RECORDED = "not recorded"
+
 
 def unit_path(out_dir: str | Path, scene: str, views: int) -> Path:
     return Path(out_dir) / "units" / scene / f"views_{views}.json"
@@ -51,7 +54,8 @@ def with_methods_from(units: dict[tuple[str, int], dict], sources: Mapping[str, 
         for method, other in sources.items():
             if key in other and method in other[key]["methods"]:
                 unit["methods"][method] = other[key]["methods"][method]
-                unit["lpips"] = "; ".join(sorted({unit["lpips"], other[key]["lpips"]}))
+                for label in ("lpips", "ssim"):
+                    unit[label] = "; ".join(sorted({unit.get(label, NOT_RECORDED), other[key].get(label, NOT_RECORDED)}))
                 if method in (other[key].get("per_step") or {}):
                     unit["per_step"][method] = other[key]["per_step"][method]
         merged[key] = unit
@@ -84,6 +88,7 @@ def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, view
         raise FileNotFoundError(f"evaluation.methods: no scores of {', '.join(lacking)} for every scene and view "
                                 "count (run tracegs-evaluate for them first)")
     lpips_labels = sorted({u["lpips"] for u in chosen})
+    ssim_labels = sorted({u.get("ssim", NOT_RECORDED) for u in chosen})
     variants = sorted({u.get("variant") for u in chosen}, key=str)
     results: dict = {}
     per_scene: dict = {s: {} for s in scenes}
@@ -96,6 +101,7 @@ def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, view
                 per_scene[s].setdefault(method, {})[str(k)] = mean
     results[META_KEY] = {
         "lpips": "; ".join(lpips_labels),
+        "ssim": "; ".join(ssim_labels),
         "scenes": list(scenes),
         "variant": variants[0] if len(variants) == 1 else variants,
         "protocol": "mean over each scene's test views (captured views excluded), then unweighted mean over scenes",

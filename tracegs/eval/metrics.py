@@ -1,7 +1,8 @@
 """Image-quality metrics of the evaluation protocol (supplement B, "Metric computation").
 
-PSNR and SSIM come from torchmetrics at data range 1 (images in [0, 1]); SSIM uses torchmetrics'
-default 11x11 Gaussian window with sigma 1.5. LPIPS is LPIPS-VGG (``tracegs.eval.lpips_vgg``: torchmetrics'
+PSNR comes from torchmetrics at data range 1 (images in [0, 1]). SSIM is reported twice, under both conventions
+in use (``SSIM_CONVENTIONS``): the headline column ``ssim`` under ``evaluation.ssim_convention``, the second,
+``ssim_alt``, under the other one. LPIPS is LPIPS-VGG (``tracegs.eval.lpips_vgg``: torchmetrics'
 heads on a VGG16 trunk read from torchvision's ImageNet weights file, ``evaluation.lpips_weights``, by default
 where the torch hub cache keeps it); without that file LPIPS is reported as unavailable with the reason,
 never as a made-up number, unless the experiment requires it (``evaluation.require_lpips``), in which case
@@ -26,7 +27,10 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 from tracegs.errors import ConfigError
 from tracegs.eval.lpips_vgg import LpipsVgg
 
-METRIC_NAMES = ("psnr", "ssim", "lpips")
+HEADLINE_METRICS = ("psnr", "ssim", "lpips")  # the paper's three (Table 3's columns)
+# Tables 1/2 add ``ssim_alt``, the same SSIM under the convention the headline column does not use; it comes last
+# so the headline columns keep their places.
+METRIC_NAMES = (*HEADLINE_METRICS, "ssim_alt")
 VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
 
 # Both LPIPS conventions in use. The official 3DGS evaluation feeds [0, 1] images straight into an
@@ -37,6 +41,27 @@ LPIPS_CONVENTIONS = {
     "3dgs": "LPIPS-VGG (unscaled [0,1] images, as the official 3DGS metrics.py; torchmetrics normalize=False)",
     "standard": "LPIPS-VGG ([0,1] images mapped to [-1,1]; torchmetrics normalize=True)",
 }
+
+
+# Both SSIM conventions in use. GSFixer's metrics.py (l. 25-35, 74) scores the 8-bit PNGs the render script wrote
+# with 3DGS's SSIM (utils/loss_utils.py: Gaussian window, zero padding); torchmetrics' SSIM on float images pads
+# by reflection and crops the border. The two give different numbers, so every table names both.
+SSIM_CONVENTIONS = {
+    "gsfixer": "SSIM of 8-bit PNG images (3DGS's 11x11 Gaussian window, zero padding, as GSFixer's metrics.py)",
+    "torchmetrics": "SSIM of float [0,1] images (torchmetrics, 11x11 Gaussian window, sigma 1.5)",
+}
+
+
+def require_ssim_convention(convention: str, field: str) -> None:
+    """A one-line error naming ``field`` unless ``convention`` is a key of ``SSIM_CONVENTIONS``."""
+    if convention not in SSIM_CONVENTIONS:
+        raise ValueError(f"{field} must be one of {sorted(SSIM_CONVENTIONS)}, got {convention!r}")
+
+
+def ssim_label(convention: str) -> str:
+    """The SSIM columns' caption for tables: the headline's convention, then the second column's."""
+    (other,) = set(SSIM_CONVENTIONS) - {convention}
+    return f"{SSIM_CONVENTIONS[convention]}, second column (SSIM′): {SSIM_CONVENTIONS[other]}"
 
 
 def require_lpips_convention(convention: str, field: str) -> None:
@@ -85,6 +110,33 @@ def require_lpips(enabled: bool, required: bool, weights: str | None) -> None:
                                                       "weights (vgg16-397923af.pth) there")
 
 
+def png_bytes(image: Tensor) -> Tensor:
+    """A [0, 1] image as the 8-bit PNG the 3DGS render script writes (``torchvision.utils.save_image``: x 255,
+    + 0.5, clamped, truncated to uint8). GSFixer's release scores such files (metrics.py l. 25-35) and ships no
+    writer of its own, so 3DGS's, whose metrics.py it is, stands in."""
+    return image.mul(255).add(0.5).clamp(0, 255).to(torch.uint8)
+
+
+def gsfixer_ssim(pred: Tensor, target: Tensor) -> Tensor:
+    """SSIM of two 8-bit images [3,H,W] (uint8) as GSFixer's metrics.py computes it (l. 32-33 and 74, its
+    utils/loss_utils.py l. 26-105, 3DGS's): both read back as uint8 / 255 in float32, an 11 x 11 Gaussian window
+    of sigma 1.5 with zero padding at the borders, the map averaged over pixels and channels."""
+    a, b = (image.float()[None] / 255 for image in (pred, target))
+    taps = torch.exp(-((torch.arange(11, dtype=torch.float32) - 5) ** 2) / (2 * 1.5**2))
+    taps = taps / taps.sum()
+    window = (taps[:, None] @ taps[None, :]).expand(a.shape[1], 1, 11, 11)
+
+    def blur(x: Tensor) -> Tensor:
+        return torch.nn.functional.conv2d(x, window, padding=5, groups=a.shape[1])
+
+    mean_a, mean_b = blur(a), blur(b)
+    var_a, var_b = blur(a * a) - mean_a**2, blur(b * b) - mean_b**2
+    covariance = blur(a * b) - mean_a * mean_b
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mean_a * mean_b + c1) * (2 * covariance + c2))
+            / ((mean_a**2 + mean_b**2 + c1) * (var_a + var_b + c2))).mean()
+
+
 def _as_batch(image: Tensor, name: str) -> Tensor:
     if image.dim() == 3:
         image = image.unsqueeze(0)
@@ -97,9 +149,11 @@ class ImageMetrics:
     """Runtime evaluator of PSNR / SSIM / LPIPS between renders and ground truth, both in [0, 1]."""
 
     def __init__(self, lpips: bool = True, lpips_convention: str = "3dgs", device: str | torch.device = "cpu",
-                 lpips_weights: str | None = None):
+                 lpips_weights: str | None = None, ssim_convention: str = "torchmetrics"):
         require_lpips_convention(lpips_convention, "lpips_convention")
+        require_ssim_convention(ssim_convention, "ssim_convention")
         self.lpips_convention = lpips_convention
+        self.ssim_convention = ssim_convention
         self.lpips_status = (lpips_availability(lpips_weights) if lpips
                              else LpipsAvailability(False, "disabled by config"))
         self._lpips = None
@@ -113,6 +167,10 @@ class ImageMetrics:
             return LPIPS_CONVENTIONS[self.lpips_convention]
         return f"LPIPS n/a: {self.lpips_status.reason}"
 
+    @property
+    def ssim_label(self) -> str:
+        return ssim_label(self.ssim_convention)
+
     @torch.no_grad()
     def per_view(self, pred: Tensor, target: Tensor) -> list[dict[str, float | None]]:
         """Metrics of each image in the batch (``[3,H,W]`` or ``[B,3,H,W]``), one dict per view."""
@@ -124,12 +182,15 @@ class ImageMetrics:
         results = []
         for p, t in zip(pred.split(1), target.split(1)):
             psnr = peak_signal_noise_ratio(p, t, data_range=1.0).item()
-            ssim = structural_similarity_index_measure(p, t, data_range=1.0).item()
+            ssim = {"torchmetrics": structural_similarity_index_measure(p, t, data_range=1.0).item(),
+                    "gsfixer": gsfixer_ssim(png_bytes(p[0]), png_bytes(t[0])).item()}
             lpips = None
             if self._lpips is not None:
                 device = self._lpips.scaling_layer.shift.device
                 lpips = self._lpips(p.to(device), t.to(device), normalize=self.lpips_convention == "standard").item()
-            results.append({"psnr": psnr, "ssim": ssim, "lpips": lpips})
+            (other,) = set(ssim) - {self.ssim_convention}
+            results.append({"psnr": psnr, "ssim": ssim[self.ssim_convention], "lpips": lpips,
+                            "ssim_alt": ssim[other]})
         return results
 
 

@@ -36,7 +36,13 @@ from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
 from tracegs.deploy.scenes import SceneUnit, evaluation_units, load_unit, save_model
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
-from tracegs.eval.metrics import ImageMetrics, mean_metrics, require_lpips, require_lpips_convention
+from tracegs.eval.metrics import (
+    ImageMetrics,
+    mean_metrics,
+    require_lpips,
+    require_lpips_convention,
+    require_ssim_convention,
+)
 from tracegs.eval.per_step import per_step_psnr
 from tracegs.eval.tables_and_figures import (
     METHOD_LABELS,
@@ -218,7 +224,7 @@ class _UnitJob:
         cfg = self.cfg
         methods: dict[str, MethodResult] = {m: parts[m] for m in cfg.methods}
         record: dict = {"scene": unit.scene.name, "views": unit.views, "captured": unit.captured_ids,
-                        "test": unit.test_ids, "lpips": self.metrics.lpips_label,
+                        "test": unit.test_ids, "lpips": self.metrics.lpips_label, "ssim": self.metrics.ssim_label,
                         "methods": {m: result.scores for m, result in methods.items()}}
         if PER_STEP in parts:
             record["per_step"] = parts[PER_STEP]
@@ -333,6 +339,7 @@ def score_units(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Re
     if unknown:
         raise ValueError(f"evaluation.methods has unknown methods {unknown}; choose from {list(METHODS)}")
     require_lpips_convention(cfg.lpips_convention, "evaluation.lpips_convention")
+    require_ssim_convention(cfg.ssim_convention, "evaluation.ssim_convention")
     require_lpips(cfg.lpips, cfg.require_lpips, cfg.lpips_weights)
     if cfg.workers < 1:
         raise ValueError(f"evaluation.workers must be >= 1, got {cfg.workers}")
@@ -344,11 +351,12 @@ def score_units(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Re
     refine_cfg.validate()
     require_writable_dir(cfg.out_dir, "evaluation.out_dir", finished_ok=True)
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
-    metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights)
+    metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights,
+                           ssim_convention=cfg.ssim_convention)
     # The LPIPS label says whether LPIPS was computed: a unit scored without it is scored again once it can be.
     job = _UnitJob(cfg, source, refine_cfg, fit_cfg, restorers, metrics, gt_renderer,
                    _fingerprint(refine_cfg, fit_cfg, source, restorer_ids, cfg.methods,
-                                metrics.lpips_label))
+                                metrics.lpips_label, metrics.ssim_label))
     done: dict[tuple[str, int], dict] = {}
     todo = []
     for key in evaluation_units(scenes, cfg.views, cfg.shard_index, cfg.num_shards):

@@ -26,7 +26,7 @@ from tracegs.eval.interval_tables import (
     write_per_scene_csv,
 )
 from tracegs.eval.labels import DATASET_LABELS, METHOD_LABELS, METRIC_DECIMALS, METRIC_LABELS
-from tracegs.eval.metrics import METRIC_NAMES
+from tracegs.eval.metrics import HEADLINE_METRICS, METRIC_NAMES
 from tracegs.io import atomic_directory, atomic_write, write_json_atomic
 
 DEFAULT_METHODS = ("3dgs", "baseline", "tracegs")
@@ -41,7 +41,7 @@ def _fmt(value: float | None, metric: str) -> str:
 
 def _footnote(results: Mapping) -> str:
     meta = results.get(META_KEY, {})
-    lines = [f"LPIPS: {meta.get('lpips', 'not recorded')}."]
+    lines = [f"SSIM: {meta.get('ssim', 'not recorded')}.", f"LPIPS: {meta.get('lpips', 'not recorded')}."]
     scenes = meta.get("scenes")
     if scenes:
         lines.append(
@@ -84,13 +84,14 @@ def write_results_tables(results: Mapping, out_dir: str | Path, stem: str = "tab
     with atomic_write(paths["md"]) as tmp:
         tmp.write_text(results_table_markdown(results, views))
     lpips_note = results.get(META_KEY, {}).get("lpips", "not recorded")
+    ssim_note = results.get(META_KEY, {}).get("ssim", "not recorded")
     with atomic_write(paths["csv"]) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["method", "views", *METRIC_NAMES, "lpips_convention"])
+        writer.writerow(["method", "views", *METRIC_NAMES, "lpips_convention", "ssim_convention"])
         for method in methods_in(results):
             for v in views:
                 row = results[method].get(v, {})
-                writer.writerow([method, v, *[_csv_value(row.get(m)) for m in METRIC_NAMES], lpips_note])
+                writer.writerow([method, v, *[_csv_value(row.get(m)) for m in METRIC_NAMES], lpips_note, ssim_note])
     write_json_atomic(dict(results), paths["json"])
     return paths
 
@@ -126,7 +127,7 @@ def ablation_rows(variant_results: Mapping[str, Mapping], method: str = "tracegs
         rows[variant] = {
             metric: (None if any(r.get(metric) is None for r in per_view)
                      else float(np.mean([r[metric] for r in per_view])))
-            for metric in METRIC_NAMES
+            for metric in HEADLINE_METRICS
         }
         rows[variant]["views"] = ",".join(results[chosen].keys())
     return rows
@@ -164,10 +165,10 @@ def write_ablation_table(dataset_files: Mapping[str, Mapping[str, str | Path]], 
     lpips_notes = {r.get(META_KEY, {}).get("lpips", "not recorded") for d in loaded.values() for r in d.values()}
     out_dir = Path(out_dir)
     label = {dataset: DATASET_LABELS.get(dataset, dataset) for dataset in dataset_files}
-    md = ["| Variant | " + " | ".join(f"{label[d]} {METRIC_LABELS[m]}" for d in rows for m in METRIC_NAMES) + " |",
-          "|---|" + "---|" * (len(rows) * len(METRIC_NAMES))]
+    md = ["| Variant | " + " | ".join(f"{label[d]} {METRIC_LABELS[m]}" for d in rows for m in HEADLINE_METRICS) + " |",
+          "|---|" + "---|" * (len(rows) * len(HEADLINE_METRICS))]
     for variant in variants:
-        cells = [_fmt(rows[d][variant][m], m) if variant in rows[d] else "–" for d in rows for m in METRIC_NAMES]
+        cells = [_fmt(rows[d][variant][m], m) if variant in rows[d] else "–" for d in rows for m in HEADLINE_METRICS]
         md.append(f"| {variant} | " + " | ".join(cells) + " |")
     md += ["", "Each cell: the variant's mean over the view counts evaluated ("
            + "; ".join(f"{label[d]}: {_views_note(rows[d])}" for d in rows) + ").",
@@ -177,11 +178,11 @@ def write_ablation_table(dataset_files: Mapping[str, Mapping[str, str | Path]], 
         tmp.write_text("\n".join(md) + "\n")
     with atomic_write(paths["csv"]) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["variant", "dataset", "views_averaged", *METRIC_NAMES])
+        writer.writerow(["variant", "dataset", "views_averaged", *HEADLINE_METRICS])
         for variant in variants:
             for dataset in (d for d in rows if variant in rows[d]):
                 row = rows[dataset][variant]
-                writer.writerow([variant, dataset, row["views"], *[_csv_value(row[m]) for m in METRIC_NAMES]])
+                writer.writerow([variant, dataset, row["views"], *[_csv_value(row[m]) for m in HEADLINE_METRICS]])
     sections = []
     for dataset, files in dataset_files.items():
         scene_files = {variant: Path(path).parent / "per_scene.json" for variant, path in files.items()}

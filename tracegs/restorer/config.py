@@ -39,6 +39,16 @@ class ReferenceEncoderKind(Mode):
     dinov2_vggt = "dinov2_vggt"  # DINOv2 (transformers) + VGGT (its own package), main paper Sec. 3.2
 
 
+class ReferencePixels(Mode):
+    """What DINOv2 and VGGT see of the two reference frames, before their resize (encoders.reference_images)."""
+
+    clean = "clean"  # the frames as they are, in [0, 1]
+    # GSFixer's release (gsfixer/cogvideo/inference.py l. 106-119): the frames, mapped to [-1, 1], are cast with
+    # ``(x * 255).astype(np.uint8)``, so every pixel below 0.5 wraps modulo 256 (dark turns bright) before the
+    # encoders read the 8-bit image back. Its published numbers were made so; its training code is unreleased.
+    uint8_wrap = "uint8_wrap"
+
+
 class TextEncoderKind(Mode):
     embedded = "embedded"  # deterministic hashed-token embeddings (CPU scale)
     t5 = "t5"  # the T5 encoder of CogVideoX (local folder)
@@ -144,6 +154,8 @@ class ReferenceEncoderConfig:
     # GSFixer (the paper is silent): DINOv2 and VGGT both see VGGT's preprocessing, width 518 with the aspect
     # ratio kept (480 x 720 -> 350 x 518, 25 x 37 patches of 14), unnormalised [0, 1] (encoders.reference_images)
     image_size: int = reads(PREPARE, BASELINE, default=518)
+    # dinov2_vggt only (the embedded stand-in reads pixels of its own): clean frames, or GSFixer's wrapped bytes.
+    pixels: ReferencePixels = reads(PREPARE, BASELINE, default=ReferencePixels.clean)
     # Weights of DINOv2 and VGGT (frozen, inference only); paper scale "bfloat16". Tokens leave as float32.
     dtype: str = reads(PREPARE, BASELINE, default="float32")
 

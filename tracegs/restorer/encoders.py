@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from tracegs.restorer.config import ReferenceEncoderConfig, TextEncoderConfig
+from tracegs.restorer.config import ReferenceEncoderConfig, ReferencePixels, TextEncoderConfig
 from tracegs.restorer.loading import MissingPackageError, require_local_dir, torch_dtype
 
 VGGT_INSTALL_HINT = (
@@ -119,12 +119,23 @@ def reference_grid(cfg: ReferenceEncoderConfig, height: int, width: int) -> tupl
     return min(rows, size // REFERENCE_PATCH), size // REFERENCE_PATCH
 
 
+def wrapped_bytes(images: torch.Tensor) -> torch.Tensor:
+    """[0, 1] frames as GSFixer's release hands them to the reference encoders (gsfixer/cogvideo/inference.py
+    l. 106-119): ``(frames - 0.5) * 2``, then ``(x * 255).astype(np.uint8)``, whose cast truncates toward zero and
+    wraps negatives modulo 256 (-0.5 -> 129), read back as bytes / 255."""
+    signed = (images.float() - 0.5) * 2
+    return (signed * 255).trunc().to(torch.int64).remainder(256).float() / 255
+
+
 def reference_images(images: torch.Tensor, cfg: ReferenceEncoderConfig) -> torch.Tensor:
-    """(N, 3, H, W) in [0, 1] -> what GSFixer feeds both DINOv2 and VGGT: VGGT's ``load_and_preprocess_images``
+    """(N, 3, H, W) in [0, 1] -> what GSFixer feeds both DINOv2 and VGGT: with ``pixels=uint8_wrap`` its wrapped
+    bytes (``wrapped_bytes``), then VGGT's ``load_and_preprocess_images``
     ("crop"): width ``image_size`` (518), height scaled with the aspect ratio to a multiple of 14, bicubic,
     centre-cropped to ``image_size`` if taller; values stay in [0, 1] (VGGT normalises inside its aggregator,
     and GSFixer gives DINOv2 the same unnormalised tensor). Written for tensors because our frames are tensors;
     torch's antialiased bicubic is its PIL-compatible filter (no 8-bit rounding in between)."""
+    if cfg.pixels == ReferencePixels.uint8_wrap:
+        images = wrapped_bytes(images)
     size = cfg.image_size
     height = round(images.shape[-2] * (size / images.shape[-1]) / REFERENCE_PATCH) * REFERENCE_PATCH
     x = F.interpolate(images.float(), size=(height, size), mode="bicubic", align_corners=False, antialias=True)

@@ -36,9 +36,23 @@ class DensificationConfig:
     grow_scale3d: float = reads(EVERY, default=0.01)
     prune_opa: float = reads(EVERY, default=0.005)
     prune_scale3d: float = reads(EVERY, default=0.1)
+    # Prune Gaussians whose screen radius exceeded this many pixels, from the first opacity reset on (the
+    # reference optimiser and GSFixer's release: train.py l. 246, ``size_threshold = 20 if iteration >
+    # opacity_reset_interval``); None = no screen pruning (gsplat's default, the embedded scale's measured one).
+    screen_prune_px: float | None = reads(EVERY, default=None)
     # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
     # per step at the embedded scale); None = no cap (paper scale).
     max_gaussians: int | None = reads(EVERY, default=8000)
+
+
+class PseudoSsim(Mode):
+    """Which SSIM the pseudo-view term L_pseudo of deployment's refinement uses (tracegs.splat.fit)."""
+
+    # GSFixer's release (train.py l. 212): ``ssim(image, gt_image)``, the captured view's render against its
+    # image, reused; the pseudo view contributes only its L1.
+    captured = "captured"
+    # Corrected: D-SSIM of the pseudo view's render against its restored frame.
+    pseudo = "pseudo"
 
 
 @dataclass
@@ -56,6 +70,7 @@ class GaussianFitConfig:
     lr_means_final: float = reads(EVERY, default=1.6e-5)
     lr_quats: float = reads(EVERY, default=5e-3)
     lr_scales: float = reads(EVERY, default=1e-2)
+    # The reference optimiser's opacity rate; GSFixer's release halves it (arguments/__init__.py l. 115: 0.025).
     lr_opacities: float = reads(EVERY, default=5e-2)
     lr_sh_dc: float = reads(EVERY, default=1e-2)
     lr_sh_rest: float = reads(EVERY, default=5e-4)
@@ -67,9 +82,18 @@ class GaussianFitConfig:
     backend: RenderBackend = reads(EVERY, default=RenderBackend.auto)
     seed: int = reads(EVERY, default=0)
     init_num_points: int = reads(EVERY, default=2000)
+    # The SfM points a fit starts from: those seen by at least this many of its views. 2 = what the view set
+    # would triangulate itself (no geometry from views it never saw); GSFixer's release keeps every point any
+    # sparse view observes, 1 (datasets/colmap_debug.py l. 354-369, ``filter_points_sparse``).
+    init_min_views: int = reads(EVERY, default=2)
     # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     keep_freed_cpu_memory: bool = reads(EVERY, default=True)
     densification: DensificationConfig = reads(EVERY, factory=DensificationConfig)
+    # Deployment's pseudo-view term (Eq. supp-refinement-objective): its SSIM pair, and whether the pseudo view's
+    # screen-space gradients feed densification (GSFixer's release: no, train.py l. 198-202 and 243 keep the
+    # captured view's ``viewspace_points``). Embedded default: the corrected protocol.
+    pseudo_ssim: PseudoSsim = reads(EVERY, default=PseudoSsim.pseudo)
+    pseudo_densification: bool = reads(EVERY, default=True)
 
     def sh_degree_at(self, iteration: int) -> int:
         """The SH degree in use at ``iteration``: one band more every ``sh_degree_interval``, up to
@@ -87,6 +111,16 @@ class ClipRule(Mode):
     gsfixer_windows = "gsfixer_windows"
 
 
+class EllipseFrame(Mode):
+    """Where GSFixer's ellipse (``clip_rule=gsfixer_windows``) is laid (tracegs.splat.trajectory)."""
+
+    # GSFixer's release (gsfixer/extrapolation/outpaint/sample_utils.py l. 154-183, in its normalised world,
+    # datasets/normalize.py): centred on 1.2 x the focus point's world xy, heights in absolute world z.
+    gsfixer_world = "gsfixer_world"
+    # Corrected: centred on the focus point, on the cameras' principal axes, heights above the focus.
+    focus = "focus"
+
+
 @dataclass
 class TrajectoryConfig:
     """Deployment trajectory of supplement A.5: a 360-degree ellipse around the focus point whose scale and
@@ -98,7 +132,7 @@ class TrajectoryConfig:
     `clip_rule`: with ``reference_pairs`` the scale multiplies the cameras' horizontal spread and the height
     variation is an amplitude in mean camera distances; with ``gsfixer_windows`` the scale multiplies the
     cameras' 90th-percentile horizontal offset and the height variation multiplies their 10th-90th percentile
-    height band (``gsfixer_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
+    height band (``release_ellipse``, ``focus_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
     is ``deploy.trajectory``)."""
 
     frames_per_clip: int = reads(EVERY, default=9)
@@ -108,6 +142,9 @@ class TrajectoryConfig:
     pitch_degrees: list[float] = reads(EVERY, factory=lambda: [0.0])
     ellipse_frames: int = reads(EVERY, default=64)
     clip_rule: ClipRule = reads(EVERY, default=ClipRule.reference_pairs)
+    # GSFixer's ellipse on its world axes as released, or corrected to the cameras' frame (``gsfixer_windows``
+    # only; the embedded ``reference_pairs`` ellipse is its own).
+    ellipse_frame: EllipseFrame = reads(EVERY, default=EllipseFrame.gsfixer_world)
     # Each clip's first and last rendered frames replaced by the captured reference images they are rendered at,
     # as GSFixer's restorer sees them (``with_captured_ends``); the paper scale sets it (conf/deploy/paper.yaml).
     captured_ends: bool = reads(EVERY, default=False)

@@ -16,7 +16,7 @@ from rich.progress import Progress
 from torch import Tensor
 
 from tracegs.splat.cameras import Camera
-from tracegs.splat.config import GaussianFitConfig
+from tracegs.splat.config import GaussianFitConfig, PseudoSsim
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.render import fit_device, render, require_available
 
@@ -147,6 +147,10 @@ class GaussianFitter:
             prune_scale3d=dens.prune_scale3d, refine_start_iter=dens.refine_start_iter,
             refine_stop_iter=dens.refine_stop_iter if dens.enabled else 0, reset_every=dens.reset_every,
             refine_every=dens.refine_every,
+            # Screen pruning (``screen_prune_px``) tracks radii; gsplat's split by screen size, which the reference
+            # optimiser does not have, stays off.
+            refine_scale2d_stop_iter=dens.refine_stop_iter if dens.screen_prune_px is not None else 0,
+            grow_scale2d=math.inf,
         )
         self.strategy.check_sanity(params, self.optimizers)
         self.strategy_state = self.strategy.initialize_state(scene_scale=scene_extent)
@@ -169,26 +173,52 @@ class GaussianFitter:
     def sh_degree(self, step: int) -> int:
         return self.cfg.sh_degree_at(step)
 
-    def _render_loss(self, view: View, step: int) -> tuple[Tensor, dict]:
+    def _render(self, view: View, step: int) -> tuple[Tensor, Tensor, dict]:
+        """(render, target image, render info) of ``view``; a render of another size than its image (a restored
+        frame at the clip's size) is resized to it bilinearly, as GSFixer's release does (train.py l. 204-208)."""
         camera = view.camera.to(self.model.means.device)
         out = render(self.model, camera, self.background, self.sh_degree(step), self.cfg.backend)
         image = view.image.to(out.image)
-        return photometric_loss(out.image, image, self.cfg.ssim_weight, self.cfg.ssim_window), out.info
+        rendered = out.image
+        if rendered.shape != image.shape:
+            rendered = torch.nn.functional.interpolate(rendered[None], size=image.shape[-2:], mode="bilinear")[0]
+        return rendered, image, out.info
+
+    def _render_loss(self, view: View, step: int) -> tuple[Tensor, dict]:
+        rendered, image, info = self._render(view, step)
+        return photometric_loss(rendered, image, self.cfg.ssim_weight, self.cfg.ssim_window), info
+
+    def _losses(self, captured: View, pseudo: View | None, step: int) -> tuple[Tensor, Tensor | None, list[dict]]:
+        """(L_sparse, L_pseudo or None, the render infos densification reads). With ``pseudo_ssim=captured`` the
+        pseudo term is (1 - lambda) L1(pseudo) + lambda (1 - SSIM(captured render, captured image)), GSFixer's
+        train.py l. 210-213; with ``pseudo_densification`` false only the captured render's info is kept
+        (l. 198-202, 243)."""
+        weight, window = self.cfg.ssim_weight, self.cfg.ssim_window
+        if pseudo is None or self.cfg.pseudo_ssim == PseudoSsim.pseudo:
+            loss, info = self._render_loss(captured, step)
+            pseudo_loss, pseudo_info = (None, None) if pseudo is None else self._render_loss(pseudo, step)
+        else:
+            rendered, image, info = self._render(captured, step)
+            captured_dssim = 1.0 - mean_ssim(rendered, image, window)
+            loss = (1.0 - weight) * (rendered - image).abs().mean() + weight * captured_dssim
+            rendered, image, pseudo_info = self._render(pseudo, step)
+            pseudo_loss = (1.0 - weight) * (rendered - image).abs().mean() + weight * captured_dssim
+        infos = [info] if pseudo_info is None or not self.cfg.pseudo_densification else [info, pseudo_info]
+        return loss, pseudo_loss, infos
 
     def step(self, captured: Sequence[View], pseudo: Sequence[View] = (),
              pseudo_weight: Callable[[int], float] | None = None) -> float:
         """One optimisation step j = self.iteration: L_sparse + w(j) L_pseudo (w = 1 without a schedule)."""
         step = self.iteration
         params = self.model.parameter_dict()
-        loss, info = self._render_loss(captured[self.captured_sampler.next(len(captured))], step)
-        infos = [info]
         weight = 0.0
         if pseudo:
             weight = 1.0 if pseudo_weight is None else float(pseudo_weight(step))
-        if weight > 0.0:
-            pseudo_loss, pseudo_info = self._render_loss(pseudo[self.pseudo_sampler.next(len(pseudo))], step)
+        view = captured[self.captured_sampler.next(len(captured))]
+        pseudo_view = pseudo[self.pseudo_sampler.next(len(pseudo))] if weight > 0.0 else None
+        loss, pseudo_loss, infos = self._losses(view, pseudo_view, step)
+        if pseudo_loss is not None:
             loss = loss + weight * pseudo_loss
-            infos.append(pseudo_info)
         for info in infos:
             self.strategy.step_pre_backward(params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
@@ -197,7 +227,8 @@ class GaussianFitter:
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-        if self.cfg.densification.enabled and all(info["means2d"].grad is not None for info in infos):
+        dens = self.cfg.densification
+        if dens.enabled and all(info["means2d"].grad is not None for info in infos):
             # gsplat's split draws from the global RNG; seed it from the fitter's generator so a run (and a
             # deep-copied branch of it) is reproducible without disturbing anyone else's random stream.
             seed = int(torch.randint(2**62, (), generator=self.generator))
@@ -207,9 +238,10 @@ class GaussianFitter:
                 torch.default_generator.manual_seed(seed)
                 if self.model.means.is_cuda:
                     torch.cuda.manual_seed_all(seed)
-                self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step,
-                                                 _merge_infos(infos))
-            dens = self.cfg.densification
+                merged = _merge_infos(infos)
+                if dens.screen_prune_px is not None:  # gsplat's radii are in units of the larger image side
+                    self.strategy.prune_scale2d = dens.screen_prune_px / max(merged["width"], merged["height"])
+                self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, merged)
             if step > 0 and step % dens.reset_every == 0 and step < dens.refine_stop_iter:
                 # gsplat 1.5.3 writes `step % reset_every == 0 & step > 0`, which Python chains into a
                 # condition that is never true, so its opacity reset never runs; apply it here (idempotent if a

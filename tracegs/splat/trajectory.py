@@ -11,19 +11,25 @@ from kornia.geometry.quaternion import Quaternion
 from torch import Tensor
 
 from tracegs.splat.cameras import Camera, look_at_rotation
-from tracegs.splat.config import ClipRule, TrajectoryConfig
+from tracegs.splat.config import ClipRule, EllipseFrame, TrajectoryConfig
 
 
 def focus_point(cameras: Sequence[Camera]) -> Tensor:
     """The point nearest (least squares) to all optical axes; the centres' mean if the axes are parallel."""
     centres = torch.stack([camera.center.double() for camera in cameras])
     forwards = torch.stack([camera.rotation[2].double() for camera in cameras])
+    return _nearest_to_axes(centres, forwards).float()
+
+
+def _nearest_to_axes(centres: Tensor, forwards: Tensor) -> Tensor:
+    """The point [3] (float64) nearest in least squares to the lines through ``centres`` [N,3] along
+    ``forwards`` [N,3]; the centres' mean if the lines are parallel."""
     projectors = torch.eye(3, dtype=torch.float64) - forwards[:, :, None] * forwards[:, None, :]
     system = projectors.sum(dim=0)
     rhs = (projectors @ centres[:, :, None]).sum(dim=0)
-    if torch.linalg.matrix_rank(system, atol=1e-6 * len(cameras)) < 3:
-        return centres.mean(dim=0).float()
-    return torch.linalg.solve(system, rhs)[:, 0].float()
+    if torch.linalg.matrix_rank(system, atol=1e-6 * len(centres)) < 3:
+        return centres.mean(dim=0)
+    return torch.linalg.solve(system, rhs)[:, 0]
 
 
 def mean_up(cameras: Sequence[Camera]) -> Tensor:
@@ -203,16 +209,14 @@ def round_trajectory(references: Sequence[Camera], pairs: Sequence[tuple[int, in
     return clips
 
 
-def gsfixer_ellipse(cameras: Sequence[Camera], n: int, scale: float, height_multiple: float, phase: float,
+def focus_ellipse(cameras: Sequence[Camera], n: int, scale: float, height_multiple: float, phase: float,
                     pitch_degrees: float) -> list[Camera]:
-    """GSFixer's ellipse of ``n`` poses (gsfixer/extrapolation/outpaint/sample_utils.py l. 144-219), in our
-    world frame: origin at the focus point, height along the cameras' mean up direction, in-plane axes the
-    principal axes of the camera centres (largest spread first, signed so that the first camera lies on the
-    positive side).
-
-    GSFixer computes it in its normalised world (datasets/normalize.py: z up along the cameras' mean up, then
-    the sparse point cloud's principal axes, origin at the point cloud's median); the point cloud is not at
-    hand here, so the camera centres and the focus point stand in for it. Pose k sits at angle 2 pi k / n from
+    """GSFixer's ellipse of ``n`` poses (gsfixer/extrapolation/outpaint/sample_utils.py l. 144-219) corrected to
+    the cameras' own frame (``ellipse_frame=focus``): origin at the focus point, height along the cameras' mean up
+    direction, in-plane axes the principal axes of the camera centres (largest spread first, signed so that the
+    first camera lies on the positive side). The release (``release_ellipse``) instead centres its ellipse on
+    1.2 x the focus point's world xy and measures heights from world z = 0, so the ellipse moves with the
+    world's origin. Pose k sits at angle 2 pi k / n from
     the first axis, on semi-axes ``scale`` x the 90th percentile of the centres' absolute offsets along each axis
     (l. 158-161); its height is ``height_multiple`` x a point of the centres' 10th-90th percentile height band,
     swept once around the loop with phase ``phase`` radians (l. 165-183). Every pose looks at the focus point,
@@ -243,6 +247,102 @@ def gsfixer_ellipse(cameras: Sequence[Camera], n: int, scale: float, height_mult
         rotation = turn @ look_at_rotation(eye, focus, up)
         poses.append(Camera.from_pose(reference.K.float(), rotation, eye, reference.width, reference.height))
     return poses
+
+
+def cameras_to_worlds(cameras: Sequence[Camera]) -> Tensor:
+    """Camera-to-world matrices [N,3,4] (float64, OpenCV axes: x right, y down, z forward), GSFixer's pose
+    layout (sparse.py l. 192-197)."""
+    return torch.stack([torch.cat([camera.rotation.double().T, camera.center.double()[:, None]], dim=1)
+                        for camera in cameras])
+
+
+def gsfixer_world(camera_to_worlds: Tensor) -> Tensor:
+    """The similarity [4,4] (float64) taking a world to GSFixer's normalised one as its camera step computes it
+    (datasets/normalize.py l. 4-63, ``similarity_from_cameras`` with its defaults, called at colmap_debug.py
+    l. 199-201): z along the cameras' mean up (their -y axes), origin at the median of each optical axis's point
+    nearest the old origin, unit median camera distance. GSFixer then turns the world to the principal axes of
+    the scene's whole SfM point cloud (normalize.py l. 66-97, colmap_debug.py l. 204-206); deployment holds no
+    such cloud, so that turn about the up axis is not made."""
+    rotations, centres = camera_to_worlds[:, :, :3], camera_to_worlds[:, :, 3]
+    world_up = -rotations[:, :, 1].mean(dim=0)
+    world_up = world_up / world_up.norm()
+    camera_up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    cosine = camera_up @ world_up
+    cross = torch.linalg.cross(world_up, camera_up)
+    skew = torch.tensor([[0.0, -cross[2], cross[1]], [cross[2], 0.0, -cross[0]], [-cross[1], cross[0], 0.0]],
+                        dtype=torch.float64)
+    if cosine > -1:
+        align = torch.eye(3, dtype=torch.float64) + skew + skew @ skew / (1 + cosine)
+    else:  # the cameras' mean up is +y: a half turn about x (normalize.py l. 33-36)
+        align = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    forwards = (align @ rotations)[:, :, 2]
+    centres = centres @ align.T
+    nearest = centres + ((forwards * -centres).sum(dim=-1))[:, None] * forwards
+    translate = -torch.quantile(nearest, 0.5, dim=0)  # np.median: the mean of the middle two
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :3], transform[:3, 3] = align, translate
+    transform[:3] /= torch.quantile((centres + translate).norm(dim=-1), 0.5)
+    return transform
+
+
+def transform_cameras(transform: Tensor, camera_to_worlds: Tensor) -> Tensor:
+    """Camera-to-world matrices [N,3,4] moved by the similarity ``transform`` [4,4], rotations kept orthonormal
+    (GSFixer's datasets/normalize.py l. 115-130)."""
+    moved = transform[:3, :3] @ camera_to_worlds
+    moved[:, :, 3] += transform[:3, 3]
+    moved[:, :, :3] /= moved[:, 0, :3].norm(dim=-1)[:, None, None]
+    return moved
+
+
+def gsfixer_ellipse_path(camera_to_worlds: Tensor, n: int, z_variation: float, z_phase: float,
+                         pitch_degrees: float, scale: float = 1.2) -> Tensor:
+    """GSFixer's ``generate_ellipse_path`` (gsfixer/extrapolation/outpaint/sample_utils.py l. 144-218) on its
+    camera-to-world poses [N,3,4] (float64): ``n`` poses [n,3,4] on world axes. The centre is ``scale`` (1.2 in the
+    release, l. 160-161) x the focus point's world xy, the semi-axes ``scale`` x the 90th percentile of the
+    centres' absolute offsets from the focus's xy (l. 158); the height is ``z_variation`` x a point of the
+    centres' 10th-90th percentile world-z band, swept once round with phase ``z_phase`` turns (l. 165-183), in
+    absolute world z. Each pose looks at the focus with its y axis the world axis nearest the cameras' mean y
+    (l. 197-203), then turns about its own x axis by ``pitch_degrees`` (l. 204-217: 2 x its ``scale`` argument,
+    the round index). The sign drawn at l. 205 is never applied, so every round pitches the same way."""
+    centres = camera_to_worlds[:, :, 3]
+    focus = _nearest_to_axes(centres, camera_to_worlds[:, :, 2])
+    offset = torch.stack([focus[0], focus[1], torch.zeros((), dtype=torch.float64)])
+    spread = torch.quantile((centres - offset).abs(), 0.9, dim=0)
+    low, high = (offset - spread) * scale, (offset + spread) * scale
+    z_low, z_high = torch.quantile(centres[:, 2], 0.1), torch.quantile(centres[:, 2], 0.9)
+    theta = torch.linspace(0.0, 2.0 * math.pi, n + 1, dtype=torch.float64)[:-1]
+    positions = torch.stack([
+        low[0] + (high - low)[0] * (torch.cos(theta) * 0.5 + 0.5),
+        low[1] + (high - low)[1] * (torch.sin(theta) * 0.5 + 0.5),
+        z_variation * (z_low + (z_high - z_low) * (torch.cos(theta + 2.0 * math.pi * z_phase) * 0.5 + 0.5)),
+    ], dim=-1)
+    mean_y = camera_to_worlds[:, :, 1].mean(dim=0)
+    axis = int(mean_y.abs().argmax())
+    world_y = torch.zeros(3, dtype=torch.float64)
+    world_y[axis] = torch.sign(mean_y[axis])
+    forward = torch.nn.functional.normalize(focus - positions, dim=-1)
+    right = torch.nn.functional.normalize(torch.linalg.cross(world_y.expand_as(forward), forward), dim=-1)
+    down = torch.nn.functional.normalize(torch.linalg.cross(forward, right), dim=-1)
+    pitch = math.radians(pitch_degrees)
+    turn = torch.tensor([[1.0, 0.0, 0.0],
+                         [0.0, math.cos(pitch), -math.sin(pitch)],
+                         [0.0, math.sin(pitch), math.cos(pitch)]], dtype=torch.float64)
+    return torch.cat([torch.stack([right, down, forward], dim=-1) @ turn, positions[:, :, None]], dim=-1)
+
+
+def release_ellipse(cameras: Sequence[Camera], n: int, scale: float, height_multiple: float, phase: float,
+                    pitch_degrees: float) -> list[Camera]:
+    """GSFixer's ellipse as released (``ellipse_frame=gsfixer_world``): ``gsfixer_ellipse_path`` in GSFixer's
+    normalised world (``gsfixer_world`` of the cameras), mapped back to ours. ``phase`` is in radians (GSFixer
+    draws it in turns, sparse.py l. 199). Intrinsics and image size come from ``cameras[0]`` (sparse.py l. 124)."""
+    poses = cameras_to_worlds(cameras)
+    world = gsfixer_world(poses)
+    path = gsfixer_ellipse_path(transform_cameras(world, poses), n, height_multiple, phase / (2.0 * math.pi),
+                                pitch_degrees, scale)
+    path = transform_cameras(torch.linalg.inv(world), path).float()
+    reference = cameras[0]
+    return [Camera.from_pose(reference.K.float(), pose[:, :3].T.contiguous(), pose[:, 3], reference.width,
+                             reference.height) for pose in path]
 
 
 def window_starts(total: int, window: int) -> list[int]:
@@ -294,15 +394,16 @@ def window_clips(references: Sequence[Camera], round_index: int, cfg: Trajectory
                  generator: torch.Generator) -> list[tuple[tuple[int, int], list[Camera]]]:
     """(reference pair, cameras) of every clip of round ``round_index`` by GSFixer's rule (``clip_rule`` =
     ``gsfixer_windows``; gsfixer/extrapolation/outpaint/sparse.py l. 191-283): the round's ellipse
-    (``gsfixer_ellipse`` with the round's scale, height multiple and pitch and a vertical phase drawn from
-    ``generator``, l. 198-204) cut into ``window_starts`` windows of the middle segment's poses and bridged by the
+    (``release_ellipse`` or ``focus_ellipse`` by ``cfg.ellipse_frame``, with the round's scale, height multiple and
+    pitch and a vertical phase drawn from ``generator``, l. 198-204) cut into ``window_starts`` windows of the middle segment's poses and bridged by the
     end segments' (``clip_layout``: 16/17/16 at 49 frames, l. 246-253) from the view nearest its first pose
     (``nearest_view``) and to the view nearest its last one (l. 249-283). A window's first and last ellipse poses also end its bridges, as
     in GSFixer; the pair is (view before, view after), possibly one view twice."""
     scale, height_multiple = round_shape(cfg, round_index)
     pitch = cfg.pitch_degrees[round_index % len(cfg.pitch_degrees)]
     phase = 2.0 * math.pi * torch.rand((), generator=generator).item()
-    ellipse = gsfixer_ellipse(references, cfg.ellipse_frames, scale, height_multiple, phase, pitch)
+    ellipse_rule = release_ellipse if cfg.ellipse_frame == EllipseFrame.gsfixer_world else focus_ellipse
+    ellipse = ellipse_rule(references, cfg.ellipse_frames, scale, height_multiple, phase, pitch)
     bridge, length, _ = clip_layout(cfg.frames_per_clip)
     clips = []
     for start in window_starts(len(ellipse), length):
@@ -325,3 +426,13 @@ def round_clips(references: Sequence[Camera], round_index: int, cfg: TrajectoryC
         return random_subset(window_clips(references, round_index, cfg, generator), max_clips, generator)
     pairs = reference_pairs(len(references), max_clips, generator)
     return list(zip(pairs, round_trajectory(references, pairs, round_index, cfg, generator)))
+
+
+def clips_per_round(cfg: TrajectoryConfig, num_views: int, max_clips: int | None) -> int:
+    """How many clips ``round_clips`` makes a round from ``num_views`` reference views: GSFixer's windows (7 for
+    85 poses in windows of 17), or one per reference pair (``reference_pairs``); at most ``max_clips``."""
+    if cfg.clip_rule == ClipRule.gsfixer_windows:
+        count = len(window_starts(cfg.ellipse_frames, clip_layout(cfg.frames_per_clip)[1]))
+    else:
+        count = len(reference_pairs(num_views, None, torch.Generator()))
+    return count if max_clips is None else min(count, max_clips)

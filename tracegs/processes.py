@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 
@@ -60,6 +62,44 @@ class WorkerPool(ProcessPoolExecutor):
             return super().submit(fn, *args, **kwargs)
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def stop_like_ctrl_c(signum: int, frame) -> None:
+    """A SIGTERM handler: stop as Ctrl-C does. The worker processes get SIGINT (they end silently, as when the
+    terminal sends it to the whole group) and this process a KeyboardInterrupt, which the entry point reports in
+    its one line."""
+    for child in multiprocessing.active_children():
+        if child.pid is not None:
+            os.kill(child.pid, signal.SIGINT)
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def sigterm_at_its_default() -> Iterator[None]:
+    """SIGTERM at its default action in the block (the main thread only can set it): Lightning's fit adds the handler
+    it finds to its own, which would then stop in the middle of a step instead of after it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def quiet_broken_worker_connections() -> None:
+    """Leave out of stderr the traceback of a connection that a worker broke, which the resource sharer's thread
+    prints (``multiprocessing.resource_sharer``: it hands a worker the file descriptors of the tensors it is sent).
+    A worker stopped by Ctrl-C in the middle of that handshake resets it; a worker that dies otherwise is reported
+    by the pool itself (BrokenProcessPool). The main thread's errors are untouched."""
+    previous = sys.excepthook
+
+    def hook(kind, value, traceback) -> None:
+        if not (issubclass(kind, (ConnectionError, EOFError)) and threading.current_thread() is not threading.main_thread()):
+            previous(kind, value, traceback)
+
+    sys.excepthook = hook
 
 
 def run_units(pool: Executor | None, function: Callable, arguments: Iterable[tuple]) -> Iterator:

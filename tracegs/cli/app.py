@@ -9,10 +9,12 @@ seeds everything, and turns the errors a user can fix into one line on stderr an
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import os
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -33,7 +35,10 @@ from tracegs.cli.relaunch import one_job_argv, overrides_for_launched_ranks
 from tracegs.config.location import CONF_DIR
 from tracegs.config.schema import register_configs
 from tracegs.config.validate import validate, validate_names
+from tracegs.console import LogBookmark
 from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
+from tracegs.io import atomic_write
+from tracegs.processes import quiet_broken_worker_connections, stop_like_ctrl_c
 
 
 def log_libraries_through_hydra() -> None:
@@ -55,10 +60,10 @@ class OutputsWritable(Callback):
     """Hydra callback: check the names that make up the run (or sweep) folder are plain names and the folder is a
     writable directory, before Hydra writes into it.
 
-    Hydra creates the folder and its ``.hydra/`` before the task function runs, so the wrapper below
+    Hydra creates the folder and its log file before the task function runs, so the wrapper below
     would only see Hydra's own traceback for an output path that is a file or read-only. A single run whose
     folder already exists where nothing can be written (a read-only copy of a finished root) is let through
-    with Hydra's records and log file off (the log goes to the console): a step with nothing to do writes
+    with Hydra's log file off (the log goes to the console): a step with nothing to do writes
     nothing, and one that would write refuses in one line naming the file.
     """
 
@@ -66,7 +71,6 @@ class OutputsWritable(Callback):
         run_dir = Path(config.hydra.run.dir)
         if run_dir.is_dir() and not writable(run_dir):
             with open_dict(config):
-                config.hydra.output_subdir = None
                 config.hydra.job_logging = CONSOLE_LOGGING
             return
         self._check(config, "run", "hydra.run.dir (run_dir)", kwargs.get("config_name", "run"))
@@ -127,6 +131,30 @@ def remove_attempt_records(cfg: DictConfig) -> None:
                 break
 
 
+# Where Hydra's records of the command go in its run folder (Hydra's own default for hydra.output_subdir).
+HYDRA_RECORDS = ".hydra"
+
+
+def write_hydra_records(task_cfg: DictConfig, log: LogBookmark) -> None:
+    """Hydra's records of this command (``config.yaml``, ``hydra.yaml``, ``overrides.yaml``, as Hydra writes them)
+    in the run folder's ``.hydra/``, once the command succeeded: a refused or interrupted command writes none, and
+    one that made nothing (its log left as it was, tracegs.console.LogBookmark) keeps those of the command that
+    made the products, so a rerun on a copy of a finished root changes no byte. A rank that Lightning launched
+    writes none (its launcher's are the job's), nor does a command in a folder nothing can be written to."""
+    if not HydraConfig.initialized() or int(os.environ.get("LOCAL_RANK", "0")) > 0:
+        return
+    hydra_cfg = HydraConfig.instance().cfg
+    run_dir = Path(hydra_cfg.hydra.runtime.output_dir)
+    folder = run_dir / HYDRA_RECORDS
+    if (folder.is_dir() and log.kept()) or not writable(run_dir):
+        return
+    folder.mkdir(exist_ok=True)
+    for name, node in (("config.yaml", task_cfg), ("hydra.yaml", hydra_cfg),
+                       ("overrides.yaml", hydra_cfg.hydra.overrides.task)):
+        with atomic_write(folder / name) as tmp:
+            tmp.write_text(OmegaConf.to_yaml(node), encoding="utf-8")
+
+
 def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     """What every entry point does with its composed config: validate the cross-field rules, route the
     libraries' messages through Hydra's logging, seed everything from ``cfg.seed``, run ``task``."""
@@ -145,11 +173,15 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
     def decorate(task: Callable[[DictConfig], Any]) -> Callable[[], Any]:
         @functools.wraps(task)
         def run(cfg: DictConfig) -> Any:
+            given, log = copy.deepcopy(cfg), LogBookmark()
             try:
                 if in_multirun():
                     with overrides_for_launched_ranks():
-                        return run_task(task, cfg)
-                return run_task(task, cfg)
+                        result = run_task(task, cfg)
+                else:
+                    result = run_task(task, cfg)
+                write_hydra_records(given, log)
+                return result
             except KeyboardInterrupt:
                 # Every product is written whole or not at all, so an interrupted command has nothing to undo:
                 # one line instead of the tracebacks of every frame it was in, and the shell's code for SIGINT.
@@ -172,7 +204,11 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
 
         @functools.wraps(hydra_main)
         def main() -> Any:
+            # SIGTERM stops a command as Ctrl-C does, in one line (training's own handling replaces this during
+            # the fit: a checkpoint after the step in flight, tracegs.training.checkpoints.CheckpointOnSignal).
+            signal.signal(signal.SIGTERM, stop_like_ctrl_c)
             if not os.environ.get("TRACEGS_TRACEBACK"):
+                quiet_broken_worker_connections()
                 refuse_bad_command_line(config_name, CONF_DIR, config_name, sys.argv[1:])  # before Hydra writes
             if print_configs(CONF_DIR, config_name, sys.argv[1:]):
                 return None

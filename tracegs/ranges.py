@@ -124,21 +124,22 @@ def _optional(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-def _numeric(hint: Any) -> tuple[bool, bool, bool, bool]:
-    """(numeric, a list, optional, optional items) for a field's type: ``int`` or ``float``, or a list of them,
-    each optional or not."""
+def _numeric(hint: Any) -> tuple[type | None, bool, bool, bool]:
+    """(``int`` or ``float``, else None; a list; optional; optional items) for a field's type: a number or a list
+    of them, each optional or not."""
     hint, optional = _optional(hint)
     listed = typing.get_origin(hint) is list
     item, optional_items = _optional(typing.get_args(hint)[0]) if listed else (hint, False)
-    return item in (int, float), listed, optional, optional_items
+    return (item if item in (int, float) else None), listed, optional, optional_items
 
 
 @dataclasses.dataclass(frozen=True)
 class FieldRange:
-    """The declared range of one numeric field; ``optional``: its type admits ``None``, ``optional_items``: so does
-    each item of its list."""
+    """The declared range of one numeric field of type ``number`` (``int`` or ``float``, or a list of them);
+    ``optional``: its type admits ``None``, ``optional_items``: so does each item of its list."""
 
     range: Range
+    number: type
     optional: bool = False
     optional_items: bool = False
 
@@ -170,15 +171,15 @@ def ranges(schema: type) -> dict[str, FieldRange]:
             if dataclasses.is_dataclass(hint):
                 visit(hint, f"{path}.")
                 continue
-            numeric, listed, optional, optional_items = _numeric(hint)
+            number, listed, optional, optional_items = _numeric(hint)
             declared = field.metadata.get(_KEY)
-            if numeric and declared is None:
+            if number is not None and declared is None:
                 raise ConfigError(path, "declares no range: give its product declaration a range=... "
                                         "(tracegs.ranges: at_least, within, positive, each, SEED, FINITE)")
-            if declared is not None and (not numeric or declared.items != listed):
+            if declared is not None and (number is None or declared.items != listed):
                 raise ConfigError(path, f"declares the range '{declared}', but its type is {hint}")
-            if numeric:
-                found[path] = FieldRange(declared, optional, optional_items)
+            if number is not None:
+                found[path] = FieldRange(declared, number, optional, optional_items)
 
     visit(schema, "")
     return found

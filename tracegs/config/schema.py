@@ -29,7 +29,7 @@ from tracegs.products import (
     execution,
     reads,
 )
-from tracegs.ranges import SEED, at_least, each, positive, within
+from tracegs.ranges import SEED, at_least, each, positive, ranges, within
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
@@ -265,7 +265,9 @@ class TraceGSConfig:
 
 def register_configs(schema: type = TraceGSConfig) -> None:
     """Register the root schema so primary configs can list it first in their defaults. A field that declares no
-    products (tracegs.products) is refused here, before any config is composed."""
+    products (tracegs.products), or a numeric one that declares no range (tracegs.ranges), is refused here, before
+    any config is composed."""
     declarations(schema)
+    ranges(schema)
     register_resolvers()
     ConfigStore.instance().store(name=SCHEMA_NAME, node=schema)

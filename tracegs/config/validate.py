@@ -23,7 +23,7 @@ from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
 from tracegs.ranges import ranges
 
-__all__ = ["ConfigError", "validate", "validate_names"]
+__all__ = ["ConfigError", "validate", "validate_names", "validate_ranges"]
 
 
 def _require(condition: bool, field: str, message: str) -> None:
@@ -48,7 +48,7 @@ def _check_increasing(values: Iterable[int], field: str) -> list[int]:
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` naming the first field whose value is inconsistent with the others."""
     _validate_known_keys(cfg)
-    _validate_ranges(cfg)
+    validate_ranges(cfg)
     validate_names(cfg)
     _validate_data(cfg)
     _validate_training(cfg)
@@ -73,7 +73,7 @@ def _validate_known_keys(cfg: DictConfig) -> None:
                                  "see --cfg job for the valid keys") from error
 
 
-def _validate_ranges(cfg: DictConfig) -> None:
+def validate_ranges(cfg: DictConfig) -> None:
     """Every numeric value in the range its field declares. The values given first, then those interpolated from
     others, so the field named is the one the user typed (``seed``, not a part seed derived from it; tracegs-restore's
     ``capture.views``, not the ``evaluation.views`` made of it)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib
 import multiprocessing
 import os
 import signal
@@ -11,6 +12,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from types import ModuleType
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -65,12 +67,13 @@ class WorkerPool(ProcessPoolExecutor):
 
 
 def stop_like_ctrl_c(signum: int, frame) -> None:
-    """A SIGTERM handler: stop as Ctrl-C does. The worker processes get SIGINT (they end silently, as when the
-    terminal sends it to the whole group) and this process a KeyboardInterrupt, which the entry point reports in
-    its one line."""
+    """A SIGTERM handler: stop as Ctrl-C does, this process with a KeyboardInterrupt (which the entry point reports
+    in its one line), its worker processes at once and without a word. Ctrl-C ends them by SIGINT at its default
+    action (``_start_worker``); here they are sent SIGKILL, as abrupt, which also comes ahead of the SIGTERM the pool
+    sends the others once one worker is gone."""
     for child in multiprocessing.active_children():
         if child.pid is not None:
-            os.kill(child.pid, signal.SIGINT)
+            os.kill(child.pid, signal.SIGKILL)
     raise KeyboardInterrupt
 
 
@@ -86,6 +89,17 @@ def sigterm_at_its_default() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def import_keeping_sigterm(name: str) -> ModuleType:
+    """``importlib.import_module(name)`` with this process's SIGTERM handler kept: pycolmap's glog installs its own
+    at import, which prints a stack trace and kills the process instead of letting it stop in one line."""
+    if threading.current_thread() is not threading.main_thread():
+        return importlib.import_module(name)
+    handler = signal.getsignal(signal.SIGTERM)
+    module = importlib.import_module(name)
+    signal.signal(signal.SIGTERM, handler)
+    return module
 
 
 def quiet_broken_worker_connections() -> None:

@@ -102,18 +102,38 @@ def import_keeping_sigterm(name: str) -> ModuleType:
     return module
 
 
-def quiet_broken_worker_connections() -> None:
-    """Leave out of stderr the traceback of a connection that a worker broke, which the resource sharer's thread
-    prints (``multiprocessing.resource_sharer``: it hands a worker the file descriptors of the tensors it is sent).
-    A worker stopped by Ctrl-C in the middle of that handshake resets it; a worker that dies otherwise is reported
-    by the pool itself (BrokenProcessPool). The main thread's errors are untouched."""
-    previous = sys.excepthook
+def _quiet_broken_worker_connections(previous: Callable) -> Callable:
+    """``previous`` (a ``sys.excepthook``) less the traceback of a connection that a worker broke, which the resource
+    sharer's thread prints (``multiprocessing.resource_sharer``: it hands a worker the file descriptors of the
+    tensors it is sent). A worker stopped by Ctrl-C in the middle of that handshake resets it; a worker that dies
+    otherwise is reported by the pool itself (BrokenProcessPool). The main thread's errors are untouched."""
 
     def hook(kind, value, traceback) -> None:
         if not (issubclass(kind, (ConnectionError, EOFError)) and threading.current_thread() is not threading.main_thread()):
             previous(kind, value, traceback)
 
+    return hook
+
+
+@contextlib.contextmanager
+def stops_quietly(tracebacks: bool = False) -> Iterator[None]:
+    """In the block, SIGTERM stops the process as Ctrl-C does (:func:`stop_like_ctrl_c`) and, unless
+    ``tracebacks``, a worker's broken connection prints nothing. Both are kept when a KeyboardInterrupt leaves the
+    block (the process is stopping: its workers' connections break until it has ended), else put back."""
+    hook, term = sys.excepthook, signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, stop_like_ctrl_c)
+    if not tracebacks:
+        sys.excepthook = _quiet_broken_worker_connections(hook)
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise
+    except BaseException:
+        sys.excepthook = hook
+        signal.signal(signal.SIGTERM, term)
+        raise
     sys.excepthook = hook
+    signal.signal(signal.SIGTERM, term)
 
 
 def run_units(pool: Executor | None, function: Callable, arguments: Iterable[tuple]) -> Iterator:

@@ -15,7 +15,6 @@ import gc
 import logging
 import os
 import shutil
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -39,7 +38,7 @@ from tracegs.config.validate import validate, validate_names
 from tracegs.console import LogBookmark
 from tracegs.errors import ConfigError, TraceGSError, require_writable_dir, writable
 from tracegs.io import atomic_write
-from tracegs.processes import quiet_broken_worker_connections, stop_like_ctrl_c
+from tracegs.processes import stops_quietly
 
 
 def log_libraries_through_hydra() -> None:
@@ -185,11 +184,14 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
         def run(cfg: DictConfig) -> Any:
             given, log = copy.deepcopy(cfg), LogBookmark()
             try:
-                if in_multirun():
-                    with overrides_for_launched_ranks():
+                # SIGTERM stops the command as Ctrl-C does, in one line (during training's fit Lightning's own
+                # handling takes over: a checkpoint after the step in flight, tracegs.training.checkpoints).
+                with stops_quietly(tracebacks=bool(os.environ.get("TRACEGS_TRACEBACK"))):
+                    if in_multirun():
+                        with overrides_for_launched_ranks():
+                            result = run_task(task, cfg)
+                    else:
                         result = run_task(task, cfg)
-                else:
-                    result = run_task(task, cfg)
                 write_hydra_records(given, log)
                 return result
             except KeyboardInterrupt:
@@ -214,11 +216,7 @@ def hydra_app(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Calla
 
         @functools.wraps(hydra_main)
         def main() -> Any:
-            # SIGTERM stops a command as Ctrl-C does, in one line (training's own handling replaces this during
-            # the fit: a checkpoint after the step in flight, tracegs.training.checkpoints.CheckpointOnSignal).
-            signal.signal(signal.SIGTERM, stop_like_ctrl_c)
             if not os.environ.get("TRACEGS_TRACEBACK"):
-                quiet_broken_worker_connections()
                 refuse_bad_command_line(config_name, CONF_DIR, config_name, sys.argv[1:])  # before Hydra writes
             if print_configs(CONF_DIR, config_name, sys.argv[1:]):
                 return None

@@ -109,7 +109,8 @@ def _quiet_broken_worker_connections(previous: Callable) -> Callable:
     otherwise is reported by the pool itself (BrokenProcessPool). The main thread's errors are untouched."""
 
     def hook(kind, value, traceback) -> None:
-        if not (issubclass(kind, (ConnectionError, EOFError)) and threading.current_thread() is not threading.main_thread()):
+        in_a_thread = threading.current_thread() is not threading.main_thread()
+        if not (issubclass(kind, (ConnectionError, EOFError)) and in_a_thread):
             previous(kind, value, traceback)
 
     return hook

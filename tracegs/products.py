@@ -25,8 +25,9 @@ settings of a cache and the fingerprint of an evaluation unit all derive from th
 
 Every numeric field also states its range beside its declaration (``range=``, tracegs.ranges).
 
-The module imports nothing of the project but :mod:`tracegs.modes`, :mod:`tracegs.ranges` and :mod:`tracegs.errors`, so every package's
-config dataclasses use it without depending on ``tracegs.config`` (whose schema imports those packages).
+The module imports nothing of the project but :mod:`tracegs.modes`, :mod:`tracegs.ranges` and
+:mod:`tracegs.errors`, so every package's config dataclasses use it without depending on ``tracegs.config``
+(whose schema imports those packages).
 """
 
 from __future__ import annotations

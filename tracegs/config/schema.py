@@ -152,12 +152,16 @@ class ExperimentConfig:
     stage1_lr: float = reads(STAGE1, default=MISSING, range=positive())
     stage2_lr: float = reads(STAGE2, default=MISSING, range=positive())
     batch_size: int = reads(BASELINE, default=MISSING, range=at_least(1))  # per device (A and Stage 1)
-    stage2_batch_size: int = reads(STAGE2, default=MISSING, range=at_least(1))  # per device; a Stage-2 sample is N rollout states, not one
+    # per device; a Stage-2 sample is N rollout states, not one
+    stage2_batch_size: int = reads(STAGE2, default=MISSING, range=at_least(1))
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
-    frame_height: int = reads(BASELINE, default=MISSING, range=at_least(1))  # rendered frames and resized images
+    # rendered frames and resized images
+    frame_height: int = reads(BASELINE, default=MISSING, range=at_least(1))
     frame_width: int = reads(BASELINE, default=MISSING, range=at_least(1))
-    frames_per_clip: int = reads(BASELINE, default=MISSING, range=at_least(1))  # 8k+1 frames per paired clip and deployment clip
-    clips_per_scene: int = reads(BASELINE, default=MISSING, range=at_least(1))  # paired clips prepared per scene (what Stage 2 reads)
+    # 8k+1 frames per paired clip and deployment clip
+    frames_per_clip: int = reads(BASELINE, default=MISSING, range=at_least(1))
+    # paired clips prepared per scene (what Stage 2 reads)
+    clips_per_scene: int = reads(BASELINE, default=MISSING, range=at_least(1))
     # A and Stage 1 read only each scene's first n of them (None: all), so Stage 2 can draw fresh clips from
     # the same cache without changing what A and Stage 1 were trained on.
     baseline_clips_per_scene: int | None = reads(BASELINE, default=None, range=at_least(1))

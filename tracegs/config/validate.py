@@ -1,7 +1,8 @@
 """Cross-field rules that the typed schema cannot express.
 
 Types and key names are checked by OmegaConf when Hydra composes the config, each numeric value against the
-range its field declares (tracegs.ranges) first here; the other rules here relate several fields (a teacher sees more views than every student set or is one, N <= M, 8k+1 clips, ...).
+range its field declares (tracegs.ranges) first here; the other rules here relate several fields (a teacher
+sees more views than every student set or is one, N <= M, 8k+1 clips, ...).
 Every error names the offending field so a sweep with a bad point fails with a one-line message.
 """
 
@@ -91,7 +92,9 @@ def validate_ranges(cfg: DictConfig) -> None:
     for field in sorted(declared_ranges, key=interpolated):
         declared = declared_ranges[field]
         value = OmegaConf.select(cfg, field, throw_on_missing=True)
-        problem = declared.problem(OmegaConf.to_container(value, resolve=True) if isinstance(value, ListConfig) else value)
+        if isinstance(value, ListConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+        problem = declared.problem(value)
         if problem is not None:
             raise ConfigError(field, problem)
 

@@ -283,7 +283,8 @@ def camera_for_image(camera: Camera, path: Path, sparse: Path) -> Camera:
 
 def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     """Load scene ``name`` under ``cfg.root``; every listed image must exist in the image folder."""
-    pycolmap = import_keeping_sigterm("pycolmap")  # lazily, after PIL and torch (bundled zlib, see module docstring)
+    # lazily, after PIL and torch (bundled zlib, see module docstring)
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     image_dir, sparse_dir, _ = preset_dirs(cfg)
     root = Path(cfg.root) / name

@@ -60,15 +60,18 @@ class SyntheticConfig:
     train_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.train,
                                    factory=lambda: [0, 2, 3, 9, 14, 19, 4, 5, 6, 7, 8, 10], range=each(SEED))
     # Disjoint from train_seeds
-    test_seeds: list[int] = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, factory=lambda: [100, 101], range=each(SEED))
+    test_seeds: list[int] = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, factory=lambda: [100, 101],
+                                  range=each(SEED, non_empty=False))
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
     # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
-    val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52], range=each(SEED))
+    val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52],
+                                 range=each(SEED, non_empty=False))
     num_views: int = reads(PREPARE, BASELINE, default=32, range=at_least(1))
     height: int = reads(PREPARE, BASELINE, default=48, range=at_least(1))
     width: int = reads(PREPARE, BASELINE, default=72, range=at_least(1))
     # Narrow enough that 9 views leave gaps 12+ views fill (privileged gap)
-    fov_x_deg: float = reads(PREPARE, BASELINE, default=50.0, range=within(0, 180, low_open=True, high_open=True))
+    fov_x_deg: float = reads(PREPARE, BASELINE, default=50.0,
+                             range=within(0, 180, low_open=True, high_open=True))
     # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
     # Default orbit only: the clip / deployment trajectories are 360-degree ellipses, which leave a
     # forward-facing capture's coverage, so dense fits there are no better than sparse ones (measured).
@@ -80,7 +83,8 @@ class SyntheticConfig:
     gaussians_per_unit_area: float = reads(PREPARE, BASELINE, default=250.0, range=positive())
     # SfM-like points written to points3D (subsampled Gaussian centres)
     init_points: int = reads(PREPARE, BASELINE, default=1500, range=at_least(1))
-    background: list[float] = reads(PREPARE, BASELINE, factory=lambda: [0.0, 0.0, 0.0], range=each(within(0, 1)))
+    background: list[float] = reads(PREPARE, BASELINE, factory=lambda: [0.0, 0.0, 0.0],
+                                    range=each(within(0, 1)))
 
 
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
@@ -130,7 +134,8 @@ class CaptionConfig:
     blip2_path: str | None = reads(EVERY, default=None)
     # Deterministic source: used when a scene has no caption.txt
     fallback: str = reads(EVERY, default="a photo of a scene")
-    max_new_tokens: int = reads(EVERY, default=30, range=at_least(1))  # unstated by the paper: BLIP-2 caption length
+    # unstated by the paper: BLIP-2 caption length
+    max_new_tokens: int = reads(EVERY, default=30, range=at_least(1))
 
 
 
@@ -151,12 +156,15 @@ class PrepareConfig:
     student_views: list[int] = reads(PREPARE, BASELINE, factory=lambda: [3, 6, 9], range=each(at_least(1)))
     # None = all training views. Empty: no R_d (a held-out cache that scores restorers from R_s against ground
     # truth, pseudo_target 'gt'; the privileged report needs the teacher's R_d).
-    dense_views: list[int | None] = reads(PREPARE, BASELINE, factory=lambda: [12, 18, None], range=each(at_least(1), non_empty=False))
+    dense_views: list[int | None] = reads(PREPARE, BASELINE, factory=lambda: [12, 18, None],
+                                          range=each(at_least(1), non_empty=False))
     # Also fit the smallest student set to the final iteration, whose snapshot is the non-privileged teacher of
     # variant B for every K. False stops each sparse fit at its last student snapshot: the student conditions
     # are the same bytes, and a sparse fit costs 17k instead of 30k iterations.
     student_final_fits: bool = reads(PREPARE, BASELINE, default=True)
-    student_snapshots: list[int] = reads(PREPARE, BASELINE, factory=lambda: [140, 340], range=each(at_least(1)))  # paper: 7000, 17000
+    # paper: 7000, 17000
+    student_snapshots: list[int] = reads(PREPARE, BASELINE, factory=lambda: [140, 340],
+                                         range=each(at_least(1)))
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
     fit: GaussianFitConfig = reads(PREPARE, BASELINE, factory=GaussianFitConfig)
     # Processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
@@ -187,7 +195,8 @@ class PrepareConfig:
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = reads(PREPARE, BASELINE, factory=CaptionConfig)
     shard_index: int = execution(default=0, range=at_least(0))
-    num_shards: int = execution(default=1, range=at_least(1))  # shard by scene for Hydra multirun / SLURM arrays
+    # shard by scene for Hydra multirun / SLURM arrays
+    num_shards: int = execution(default=1, range=at_least(1))
     force: bool = execution(default=False)
     contact_sheet: bool = execution(default=True)
     # uint8 frames of every condition, the target, references and ground truth in the shards. None = only in a
@@ -204,7 +213,8 @@ class DataModuleConfig:
     # Handed in, a cache is known by its manifest (tracegs.data.cache_keys.MANIFEST, which cannot be imported
     # here), which records every stored tensor's checksum: hashing the tensors would read the whole cache.
     cache_dir: str = handed_in(BASELINE, content=("manifest.json",), default="data/cache")
-    student_views: list[int] = reads(BASELINE, factory=lambda: [3, 6, 9], range=each(at_least(1)))  # the clips of these K are served
+    # the clips of these K are served
+    student_views: list[int] = reads(BASELINE, factory=lambda: [3, 6, 9], range=each(at_least(1)))
     student_snapshots: list[int] = reads(BASELINE, factory=lambda: [140, 340], range=each(at_least(1)))
     batch_size: int = reads(BASELINE, default=2, range=at_least(1))  # paper: 2 per GPU
     # Serve only the first n clips of each scene (None: every clip the cache holds), so that stages of one
@@ -212,7 +222,8 @@ class DataModuleConfig:
     clips_per_scene: int | None = reads(BASELINE, default=None, range=at_least(1))
     num_workers: int = execution(default=0, range=at_least(0))
     val_scenes: list[str] = reads(BASELINE, factory=list)  # scene names held out for validation
-    caption_dropout: float = reads(BASELINE, default=0.1, range=within(0, 1, high_open=True))  # supplement A.2: zero text embedding, shared by both roles
+    # supplement A.2: zero text embedding, shared by both roles
+    caption_dropout: float = reads(BASELINE, default=0.1, range=within(0, 1, high_open=True))
     seed: int = reads(BASELINE, default=0, range=SEED)
 
 
@@ -232,12 +243,15 @@ class SfmConfig:
     # Reconstructions are kept here, one folder per (photos, settings below): a rerun reuses it.
     dir: str = execution(default="data/captures")
     matcher: Matcher = reads(RESTORE, default=Matcher.auto)
-    sequential_overlap: int = reads(RESTORE, default=10, range=at_least(1))  # images after each one a sequential matcher pairs it with
-    max_image_size: int = reads(RESTORE, default=1600, range=at_least(1))  # longest side SIFT sees (photos downscaled for extraction only)
+    # images after each one a sequential matcher pairs it with
+    sequential_overlap: int = reads(RESTORE, default=10, range=at_least(1))
+    # longest side SIFT sees (photos downscaled for extraction only)
+    max_image_size: int = reads(RESTORE, default=1600, range=at_least(1))
     max_features: int = reads(RESTORE, default=8192, range=at_least(1))  # SIFT features per image
     # The lens model fitted, then undone: the images the scene is made of are undistorted to PINHOLE.
     camera_model: str = reads(RESTORE, default="SIMPLE_RADIAL")
-    min_model_size: int = reads(RESTORE, default=3, range=at_least(1))  # registered images a disconnected model needs to be reported (COLMAP: 10)
+    # registered images a disconnected model needs to be reported (COLMAP: 10)
+    min_model_size: int = reads(RESTORE, default=3, range=at_least(1))
     threads: int = execution(default=-1, range=at_least(1, -1))  # -1: every core
     seed: int = reads(RESTORE, default=0, range=SEED)  # RANSAC and mapping draws
 

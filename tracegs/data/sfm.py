@@ -154,7 +154,8 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
                  capture: Path, sequential: bool) -> None:
     """Run SfM on ``names`` in ``images`` and write the undistorted scene folder ``scene``; refuse, before
     anything is kept, a reconstruction that registers too few images of ``capture`` for ``views``."""
-    pycolmap = import_keeping_sigterm("pycolmap")  # lazily, after PIL and torch (bundled zlib, see module docstring)
+    # lazily, after PIL and torch (bundled zlib, see module docstring)
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     if cfg.camera_model not in pycolmap.CameraModelId.__members__:
         raise ConfigError("capture.sfm.camera_model", f"{cfg.camera_model!r} is not a COLMAP camera model; "

@@ -26,7 +26,8 @@ class RefinementConfig:
     """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
 
     total_iters: int = reads(DEPLOYMENT, default=600, range=at_least(1))  # J; paper 30000
-    repair_iters: list[int] = reads(DEPLOYMENT, factory=lambda: [140, 340, 540], range=each(at_least(1)))  # paper 7000/17000/27000
+    # paper 7000/17000/27000
+    repair_iters: list[int] = reads(DEPLOYMENT, factory=lambda: [140, 340, 540], range=each(at_least(1)))
     lambda_reg: float = reads(DEPLOYMENT, default=1.0, range=at_least(0))  # peak of the half-sine w_reg
     trajectory: TrajectoryConfig = reads(DEPLOYMENT, factory=TrajectoryConfig)
     captions: CaptionConfig = reads(DEPLOYMENT, factory=CaptionConfig)  # the training clips' caption rule
@@ -34,7 +35,8 @@ class RefinementConfig:
     # captured views, or every GSFixer window: the paper's protocol); n = a random n of them per round (the
     # embedded default samples 2 to keep CPU deployment within minutes).
     max_clips_per_round: int | None = reads(DEPLOYMENT, default=2, range=at_least(1))
-    clip_batch: int = reads(DEPLOYMENT, default=4, range=at_least(1))  # clips restored per sampler call (memory knob only; paper scale: 1)
+    # clips restored per sampler call (memory knob only; paper scale: 1)
+    clip_batch: int = reads(DEPLOYMENT, default=4, range=at_least(1))
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
     steps: int | None = reads(DEPLOYMENT, default=None, range=at_least(1))
     seed: int = reads(DEPLOYMENT, default=0, range=SEED)
@@ -92,7 +94,8 @@ class EvaluationConfig:
     save_models: bool = execution(default=False)
     save_frames: bool = execution(default=False)  # each method's renders along the video's trajectory as PNG frames
     grid_views: int = execution(default=3, range=at_least(1))  # test views shown in the qualitative grid
-    video_frames: int = execution(default=24, range=at_least(1))  # frames of the comparison video along a test trajectory
+    # frames of the comparison video along a test trajectory
+    video_frames: int = execution(default=24, range=at_least(1))
     video_fps: int = execution(default=8, range=at_least(1))
     force: bool = execution(default=False)  # recompute finished units even when their settings are unchanged
     variant: str | None = execution(default=None)  # ablation variant name recorded in results.json (Table 3)
@@ -107,6 +110,8 @@ class CaptureConfig:
     # folder of photos (in it or in its images/) that structure-from-motion reconstructs first.
     path: str | None = reads(RESTORE, default=None)
     video: str | None = reads(RESTORE, default=None)  # a video file instead: frames sampled, then reconstructed
-    frames: int = reads(RESTORE, default=60, range=at_least(1))  # frames taken from the video: the sharpest of each of this many windows
-    views: int = reads(RESTORE, default=6, range=CAPTURED_VIEWS)  # K captured views the 3DGS is fitted from (the view-selection rule)
+    # frames taken from the video: the sharpest of each of this many windows
+    frames: int = reads(RESTORE, default=60, range=at_least(1))
+    # K captured views the 3DGS is fitted from (the view-selection rule)
+    views: int = reads(RESTORE, default=6, range=CAPTURED_VIEWS)
     sfm: SfmConfig = reads(RESTORE, factory=SfmConfig)

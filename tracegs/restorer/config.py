@@ -81,7 +81,8 @@ class TransformerConfig:
     use_rotary_positional_embeddings: bool = reads(PREPARE, BASELINE, default=False)
     use_learned_positional_embeddings: bool = reads(PREPARE, BASELINE, default=False)
     attention_bias: bool = reads(PREPARE, BASELINE, default=True)
-    ref_2d_dim: int = reads(PREPARE, BASELINE, default=192, range=at_least(1))  # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
+    # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
+    ref_2d_dim: int = reads(PREPARE, BASELINE, default=192, range=at_least(1))
     # Width of Enc_VGGT tokens (embedded: 8x8x3 cross-view difference + 8 position)
     ref_3d_dim: int = reads(PREPARE, BASELINE, default=200, range=at_least(1))
     # GSFixer's LayerNorms on the reference path: per-head q/k in ``attn_cross`` and after each projector. Its
@@ -206,8 +207,10 @@ class ScheduleConfig:
     # it is 0.79).
     deploy_time_power: float = reads(PREPARE, STAGE2, default=0.0, range=at_least(0))
     # CogVideoX-5B scheduler values (used by vpred_ddim only).
-    beta_start: float = reads(PREPARE, BASELINE, default=0.00085, range=within(0, 1, low_open=True, high_open=True))
-    beta_end: float = reads(PREPARE, BASELINE, default=0.012, range=within(0, 1, low_open=True, high_open=True))
+    beta_start: float = reads(PREPARE, BASELINE, default=0.00085,
+                              range=within(0, 1, low_open=True, high_open=True))
+    beta_end: float = reads(PREPARE, BASELINE, default=0.012,
+                            range=within(0, 1, low_open=True, high_open=True))
     beta_schedule: str = reads(PREPARE, BASELINE, default="scaled_linear")
     snr_shift_scale: float = reads(PREPARE, BASELINE, default=1.0, range=positive())
     rescale_betas_zero_snr: bool = reads(PREPARE, BASELINE, default=True)

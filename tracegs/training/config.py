@@ -71,7 +71,8 @@ class OptimizerConfig:
     # towards the bare base and away from the Stage-1 adapter it is cloned from, which no loss asks for.
     weight_decay: float = reads(BASELINE, default=0.0, range=at_least(0))
     # Not stated in the paper; torch's AdamW defaults, as the paper names no departure from them.
-    betas: list[float] = reads(BASELINE, factory=lambda: [0.9, 0.999], range=each(within(0, 1, high_open=True)))
+    betas: list[float] = reads(BASELINE, factory=lambda: [0.9, 0.999],
+                               range=each(within(0, 1, high_open=True)))
     eps: float = reads(BASELINE, default=1e-8, range=positive())  # not stated in the paper; torch's default
     warmup_steps: int = reads(BASELINE, default=0, range=at_least(0))
     # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
@@ -92,8 +93,10 @@ class DeploymentEvalConfig:
 
     # Validation scenes to deploy on (synthetic benchmark: its val split's scene names); empty = off.
     scenes: list[str] = execution(factory=list)
-    views: list[int] = execution(factory=lambda: [3], range=each(CAPTURED_VIEWS, non_empty=False))  # sparse view counts K deployed from
-    every_n_steps: int | None = execution(default=None, range=at_least(1))  # also deploy every n optimizer steps (None: only at the end)
+    # sparse view counts K deployed from
+    views: list[int] = execution(factory=lambda: [3], range=each(CAPTURED_VIEWS, non_empty=False))
+    # also deploy every n optimizer steps (None: only at the end)
+    every_n_steps: int | None = execution(default=None, range=at_least(1))
     lpips: bool = execution(default=False)  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
 
     def __post_init__(self) -> None:
@@ -130,7 +133,8 @@ class StageConfig:
     """
 
     name: StageName = reads(BASELINE, default=StageName.stage2)
-    # 0: no step (variant A loaded, never trained: experiment.baseline_steps); never -1, which Lightning reads as no limit.
+    # 0: no step (variant A loaded, never trained: experiment.baseline_steps); never -1, which Lightning reads as
+    # no limit.
     max_steps: int = reads(BASELINE, default=150, range=at_least(0))
     # Per-device batch size of this stage; None = data.batch_size.
     batch_size: int | None = reads(BASELINE, default=None, range=at_least(1))

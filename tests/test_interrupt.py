@@ -48,7 +48,7 @@ def test_ctrl_c_during_the_fits_stops_in_one_line_with_code_130(tmp_path):
     os.killpg(process.pid, signal.SIGINT)
     stopped = time.monotonic()
     _, stderr = process.communicate(timeout=60)
-    assert time.monotonic() - stopped < 30
+    assert time.monotonic() - stopped <= 5
     assert process.returncode == 130, stderr[-3000:]
     assert stderr.strip().splitlines() == [
         "tracegs-prepare: error: interrupted (Ctrl-C); the same command goes on from the last finished product"]

@@ -86,19 +86,30 @@ def test_a_second_demo_changes_no_byte_and_trains_nothing(finished, entry_point)
     assert "every product was already made" in again.stdout
 
 
+def outputs_and_data(root: Path) -> dict[str, bytes]:
+    """:func:`every_file` under the root's ``outputs/`` and ``data/`` (Hydra's records and the logs included)."""
+    return {name: data for name, data in every_file(root).items() if name.split("/")[0] in ("outputs", "data")}
+
+
 @pytest.mark.slow
 def test_a_copied_root_spelled_relatively_is_the_same_run(finished, entry_point, tmp_path):
-    """The README's ``tracegs-demo paths.root_dir=...`` on a ``make demo`` root, after the root was copied; a root
-    finished before its folder had a ``report.html`` gets the page the first run wrote, byte for byte."""
+    """The README's ``tracegs-demo paths.root_dir=...`` on a ``make demo`` root, after the root was copied, changes
+    no byte under ``outputs/`` and ``data/``, Hydra's records of the command included (they would name the new
+    paths); a root finished before its folder had a ``report.html`` gets the page the first run wrote, byte for
+    byte."""
     root, sums, versions = finished
     copy = tmp_path / "copied"
     shutil.copytree(root, copy)
+    before = outputs_and_data(copy)
+    assert any("/.hydra/" in name for name in before)  # the first run wrote its records
     (page,) = copy.rglob("demo/*/report.html")
     page.unlink()
     again = run_demo(entry_point, copy, ".")
     assert product_sums(copy) == sums
     assert trained_versions(copy) == versions
     assert said_nothing_to_do(again) == {"baseline", "stage1", "stage2"}
+    after = outputs_and_data(copy)
+    assert sorted(after) == sorted(before) and [name for name in before if after[name] != before[name]] == []
 
 
 @pytest.mark.slow
@@ -158,6 +169,12 @@ REFUSED = [
     pytest.param("evaluate", ["evaluation.held_out_cache=/tmp/x/seed0,student_views=_3_-c477b8e1"],
                  "quote", id="unquoted-path"),
     pytest.param("restore", ["capture.path=/data/a,b"], "quote", id="unquoted-capture-path"),
+    # Values out of their fields' ranges (tracegs.ranges): -1 steps would train until killed, a negative seed stops
+    # in numpy, no view count evaluates nothing, a NaN learning rate poisons the first step.
+    pytest.param("train", ["stage=stage2", "stage.max_steps=-1"], "config field 'stage.max_steps'", id="steps"),
+    pytest.param("prepare", ["seed=-3"], "config field 'seed'", id="seed"),
+    pytest.param("evaluate", ["evaluation.views=[]"], "config field 'evaluation.views'", id="no-views"),
+    pytest.param("train", ["optimizer.lr=nan"], "config field 'optimizer.lr'", id="nan-lr"),
 ]
 
 

@@ -25,6 +25,10 @@ class LogBookmark:
         self.lengths = {Path(h.baseFilename): Path(h.baseFilename).stat().st_size
                         for h in log_files() if Path(h.baseFilename).is_file()}
 
+    def kept(self) -> bool:
+        """Whether every log file is as long as at the bookmark (rewound, or nothing logged since)."""
+        return all(path.is_file() and path.stat().st_size == length for path, length in self.lengths.items())
+
     def rewind(self) -> None:
         """Cut each log file back to its length at the bookmark (handlers append, so they go on from there)."""
         for handler in log_files():

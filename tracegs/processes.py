@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import importlib
 import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from types import ModuleType
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -60,6 +64,77 @@ class WorkerPool(ProcessPoolExecutor):
             return super().submit(fn, *args, **kwargs)
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def stop_like_ctrl_c(signum: int, frame) -> None:
+    """A SIGTERM handler: stop as Ctrl-C does, this process with a KeyboardInterrupt (which the entry point reports
+    in its one line), its worker processes at once and without a word. Ctrl-C ends them by SIGINT at its default
+    action (``_start_worker``); here they are sent SIGKILL, as abrupt, which also comes ahead of the SIGTERM the pool
+    sends the others once one worker is gone."""
+    for child in multiprocessing.active_children():
+        if child.pid is not None:
+            os.kill(child.pid, signal.SIGKILL)
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def sigterm_at_its_default() -> Iterator[None]:
+    """SIGTERM at its default action in the block (the main thread only can set it): Lightning's fit adds the handler
+    it finds to its own, which would then stop in the middle of a step instead of after it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def import_keeping_sigterm(name: str) -> ModuleType:
+    """``importlib.import_module(name)`` with this process's SIGTERM handler kept: pycolmap's glog installs its own
+    at import, which prints a stack trace and kills the process instead of letting it stop in one line."""
+    if threading.current_thread() is not threading.main_thread():
+        return importlib.import_module(name)
+    handler = signal.getsignal(signal.SIGTERM)
+    module = importlib.import_module(name)
+    signal.signal(signal.SIGTERM, handler)
+    return module
+
+
+def _quiet_broken_worker_connections(previous: Callable) -> Callable:
+    """``previous`` (a ``sys.excepthook``) less the traceback of a connection that a worker broke, which the resource
+    sharer's thread prints (``multiprocessing.resource_sharer``: it hands a worker the file descriptors of the
+    tensors it is sent). A worker stopped by Ctrl-C in the middle of that handshake resets it; a worker that dies
+    otherwise is reported by the pool itself (BrokenProcessPool). The main thread's errors are untouched."""
+
+    def hook(kind, value, traceback) -> None:
+        in_a_thread = threading.current_thread() is not threading.main_thread()
+        if not (issubclass(kind, (ConnectionError, EOFError)) and in_a_thread):
+            previous(kind, value, traceback)
+
+    return hook
+
+
+@contextlib.contextmanager
+def stops_quietly(tracebacks: bool = False) -> Iterator[None]:
+    """In the block, SIGTERM stops the process as Ctrl-C does (:func:`stop_like_ctrl_c`) and, unless
+    ``tracebacks``, a worker's broken connection prints nothing. Both are kept when a KeyboardInterrupt leaves the
+    block (the process is stopping: its workers' connections break until it has ended), else put back."""
+    hook, term = sys.excepthook, signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, stop_like_ctrl_c)
+    if not tracebacks:
+        sys.excepthook = _quiet_broken_worker_connections(hook)
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise
+    except BaseException:
+        sys.excepthook = hook
+        signal.signal(signal.SIGTERM, term)
+        raise
+    sys.excepthook = hook
+    signal.signal(signal.SIGTERM, term)
 
 
 def run_units(pool: Executor | None, function: Callable, arguments: Iterable[tuple]) -> Iterator:

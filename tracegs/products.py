@@ -23,8 +23,11 @@ only the products both it and its section name: a dataclass used at two places (
 for deployment, a 3DGS fit, captions) declares its fields ``reads(EVERY)``. The run identity, the clip
 settings of a cache and the fingerprint of an evaluation unit all derive from these declarations.
 
-The module imports nothing of the project but :mod:`tracegs.modes` and :mod:`tracegs.errors`, so every package's
-config dataclasses use it without depending on ``tracegs.config`` (whose schema imports those packages).
+Every numeric field also states its range beside its declaration (``range=``, tracegs.ranges).
+
+The module imports nothing of the project but :mod:`tracegs.modes`, :mod:`tracegs.ranges` and
+:mod:`tracegs.errors`, so every package's config dataclasses use it without depending on ``tracegs.config``
+(whose schema imports those packages).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from typing import Any
 
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
+from tracegs.ranges import Range, metadata
 
 
 class Product(Mode):
@@ -91,34 +95,38 @@ def _flat(products: tuple[Product | tuple[Product, ...], ...]) -> list[Product]:
     return [p for item in products for p in (item if isinstance(item, tuple) else (item,))]
 
 
-def _field(declaration: Declaration, default: Any, factory: Any) -> Any:
+def _field(declaration: Declaration, default: Any, factory: Any, declared_range: Range | None) -> Any:
+    # The range is metadata beside the declaration, never part of it: no identity reads it (tracegs.ranges).
+    fields = {_KEY: declaration, **metadata(declared_range)}
     if factory is not None:
-        return dataclasses.field(default_factory=factory, metadata={_KEY: declaration})
-    return dataclasses.field(default=default, metadata={_KEY: declaration})
+        return dataclasses.field(default_factory=factory, metadata=fields)
+    return dataclasses.field(default=default, metadata=fields)
 
 
 def reads(*products: Product | tuple[Product, ...], default: Any = dataclasses.MISSING, factory: Any = None,
-          split: str | None = None) -> Any:
+          split: str | None = None, range: Range | None = None) -> Any:
     """A field that changes ``products`` and every product made from them; ``split``: a scene list of that split
-    (a cache of another split does not read it). ``factory`` builds a mutable default."""
-    return _field(Declaration(_made_from(_flat(products)), split=split), default, factory)
+    (a cache of another split does not read it). ``factory`` builds a mutable default; ``range``: the values a
+    numeric field admits (tracegs.ranges), as for every declaration below."""
+    return _field(Declaration(_made_from(_flat(products)), split=split), default, factory, range)
 
 
-def execution(default: Any = dataclasses.MISSING, factory: Any = None) -> Any:
+def execution(default: Any = dataclasses.MISSING, factory: Any = None, range: Range | None = None) -> Any:
     """A field that changes no product."""
-    return _field(Declaration(frozenset()), default, factory)
+    return _field(Declaration(frozenset()), default, factory, range)
 
 
-def via(*fields: str, default: Any = dataclasses.MISSING, factory: Any = None) -> Any:
+def via(*fields: str, default: Any = dataclasses.MISSING, factory: Any = None,
+        range: Range | None = None) -> Any:
     """A field that changes products only through ``fields`` (dotted paths from the root), which interpolate it:
     their values name the products it changes, so no identity reads it a second time."""
-    return _field(Declaration(frozenset(), via=fields), default, factory)
+    return _field(Declaration(frozenset(), via=fields), default, factory, range)
 
 
 def handed_in(*products: Product, content: tuple[str, ...] = (), default: Any = dataclasses.MISSING) -> Any:
     """An input given by path: ``products`` (and those made from them) read what ``content`` names inside it
     (none: all of it)."""
-    return _field(Declaration(_made_from(products), content=content), default, None)
+    return _field(Declaration(_made_from(products), content=content), default, None, None)
 
 
 def declaration(field: dataclasses.Field, where: str) -> Declaration:

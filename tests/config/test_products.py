@@ -11,6 +11,7 @@ from tracegs.config.identity import scoped_values
 from tracegs.config.schema import TraceGSConfig, register_configs
 from tracegs.errors import ConfigError
 from tracegs.products import STAGE1, STAGE2, declarations, reads
+from tracegs.ranges import at_least
 from tracegs.training.config import LossConfig
 
 pytestmark = pytest.mark.usefixtures("hydra_context")  # tests/conftest.py
@@ -28,7 +29,7 @@ class UndeclaredFieldSchema(TraceGSConfig):
 
 @dataclass
 class LossWithStage2Weight(LossConfig):
-    lambda_new: float = reads(STAGE2, default=0.5)
+    lambda_new: float = reads(STAGE2, default=0.5, range=at_least(0))
 
 
 @dataclass

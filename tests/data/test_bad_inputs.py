@@ -1,5 +1,5 @@
 """Every bad input through the real entry points: exit code 2, one line on stderr naming the file or field,
-and nothing written but Hydra's own run record (.hydra/, the log file)."""
+and nothing written but the error line in the run's log file (no Hydra record of a command that did nothing)."""
 
 from __future__ import annotations
 
@@ -178,7 +178,8 @@ def test_read_only_output_folder_is_named(tmp_path, entry_point, read_only):
 
 def test_a_run_folder_that_held_something_keeps_it_and_gets_the_error_line(tmp_path, entry_point):
     """A refused command removes only a run folder it made itself; in one that held something before (an
-    explicit ``run_dir`` of the user's), the error line reaches the run's log beside it."""
+    explicit ``run_dir`` of the user's), the error line reaches the run's log beside it, and Hydra's records of the
+    command (``.hydra/``) are not written."""
     app, overrides, expected = corrupt_checkpoint(tmp_path)
     run_dir = tmp_path / "my_run"
     run_dir.mkdir()
@@ -188,3 +189,4 @@ def test_a_run_folder_that_held_something_keeps_it_and_gets_the_error_line(tmp_p
     assert (run_dir / "notes.txt").read_text() == "the user's own file"
     logs = list(run_dir.rglob("*.log"))
     assert logs and any(expected in log.read_text() for log in logs)
+    assert not (run_dir / ".hydra").exists()

@@ -64,7 +64,8 @@ def scene_list_line_outside_the_root(root: Path):
 def capture_views_zero(root: Path):
     scene, _ = write_scene(root / "scenes" / "ring", n=12)
     return ("restore", [*TINY_RESTORE, f"capture.path={scene}", "capture.views=0"],
-            "config field 'capture.views': 0 captured views: deployment needs at least 2")
+            "config field 'capture.views': 0 is out of range: must be >= 2 (deployment's clips run between two "
+            "captured reference views)")
 
 
 def capture_views_above_the_capture(root: Path):

@@ -29,6 +29,7 @@ from tracegs.products import (
     execution,
     reads,
 )
+from tracegs.ranges import SEED, at_least, each, positive, ranges, within
 from tracegs.restorer.config import BackboneConfig, SamplerConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.training.config import (
@@ -139,27 +140,31 @@ class ExperimentConfig:
     # Per-scale training budgets that the ``stage`` group files read (supplement A.4); keeping them here
     # lets ``experiment=paper stage=stage1`` and ``experiment=paper stage=stage2`` each pick their own.
     # 0 = variant A is a pretrained restorer, loaded and never trained
-    baseline_steps: int = reads(BASELINE, default=MISSING)
-    baseline_lr: float = reads(BASELINE, default=MISSING)
+    baseline_steps: int = reads(BASELINE, default=MISSING, range=at_least(0))
+    baseline_lr: float = reads(BASELINE, default=MISSING, range=positive())
     # The baseline exports its weights' moving average (stage.ema_decay)
-    baseline_ema_decay: float | None = reads(BASELINE, default=None)
+    baseline_ema_decay: float | None = reads(BASELINE, default=None, range=within(0, 1, high_open=True))
     # A trains the whole transformer and never reads a later stage's budget; Stage 1 never reads Stage 2's, so a
     # Stage-2 sweep reuses one A and one Stage-1 adapter.
-    stage1_steps: int = reads(STAGE1, default=MISSING)
-    stage2_steps: int = reads(STAGE2, default=MISSING)
-    stage2_warmup_steps: int = reads(STAGE2, default=MISSING)
-    stage1_lr: float = reads(STAGE1, default=MISSING)
-    stage2_lr: float = reads(STAGE2, default=MISSING)
-    batch_size: int = reads(BASELINE, default=MISSING)  # per device (A and Stage 1)
-    stage2_batch_size: int = reads(STAGE2, default=MISSING)  # per device; a Stage-2 sample is N rollout states, not one
+    stage1_steps: int = reads(STAGE1, default=MISSING, range=at_least(1))
+    stage2_steps: int = reads(STAGE2, default=MISSING, range=at_least(1))
+    stage2_warmup_steps: int = reads(STAGE2, default=MISSING, range=at_least(0))
+    stage1_lr: float = reads(STAGE1, default=MISSING, range=positive())
+    stage2_lr: float = reads(STAGE2, default=MISSING, range=positive())
+    batch_size: int = reads(BASELINE, default=MISSING, range=at_least(1))  # per device (A and Stage 1)
+    # per device; a Stage-2 sample is N rollout states, not one
+    stage2_batch_size: int = reads(STAGE2, default=MISSING, range=at_least(1))
     # Per-scale sizes that every ``data`` option reads, so any dataset composes with either scale.
-    frame_height: int = reads(BASELINE, default=MISSING)  # rendered frames and resized images
-    frame_width: int = reads(BASELINE, default=MISSING)
-    frames_per_clip: int = reads(BASELINE, default=MISSING)  # 8k+1 frames per paired clip and deployment clip
-    clips_per_scene: int = reads(BASELINE, default=MISSING)  # paired clips prepared per scene (what Stage 2 reads)
+    # rendered frames and resized images
+    frame_height: int = reads(BASELINE, default=MISSING, range=at_least(1))
+    frame_width: int = reads(BASELINE, default=MISSING, range=at_least(1))
+    # 8k+1 frames per paired clip and deployment clip
+    frames_per_clip: int = reads(BASELINE, default=MISSING, range=at_least(1))
+    # paired clips prepared per scene (what Stage 2 reads)
+    clips_per_scene: int = reads(BASELINE, default=MISSING, range=at_least(1))
     # A and Stage 1 read only each scene's first n of them (None: all), so Stage 2 can draw fresh clips from
     # the same cache without changing what A and Stage 1 were trained on.
-    baseline_clips_per_scene: int | None = reads(BASELINE, default=None)
+    baseline_clips_per_scene: int | None = reads(BASELINE, default=None, range=at_least(1))
     # The scenes A is trained on (conf/stage/baseline.yaml reads that split's cache): ``pretrain``, scenes of its
     # own, as GSFixer was trained before TRACE-GS froze it, so that Stage 1 and 2 see the training scenes only
     # through pseudo-targets (the paper's protocol; the embedded default); ``train``, the training scenes' ground
@@ -174,7 +179,7 @@ class AblationConfig:
     name: str = reads(STAGE2, default=MISSING)
     description: str = execution(default=MISSING)
     # Its row in Table 3: the sweep trains and the report lists the variants in this order.
-    row: int = execution(default=MISSING)
+    row: int = execution(default=MISSING, range=at_least(1))
     # Variant A evaluates the frozen baseline restorer and trains nothing.
     train_stage2: bool = execution(default=MISSING)
     # The evaluation method that stands for this variant in Table 3 (variant A: the baseline restorer);
@@ -207,10 +212,10 @@ class ReplicateConfig:
     """``tracegs-replicate``: the restorer trained from scratch once per training seed, on data, 3DGS fits and
     deployment noise that the root ``seed`` fixes for every replicate (so plain 3DGS is computed once)."""
 
-    training_seeds: list[int] = execution(factory=lambda: [0, 1, 2])
+    training_seeds: list[int] = execution(factory=lambda: [0, 1, 2], range=each(SEED))
     # Clips per held-out scene (the training scenes keep experiment.clips_per_scene): the trajectory diagnostics
     # cost each variant about three restorations of every clip, their largest share after deployment.
-    held_out_clips_per_scene: int = execution(default=2)
+    held_out_clips_per_scene: int = execution(default=2, range=at_least(1))
     # The Table 3 variants to train and deploy (names of conf/ablation/ files); None = every one of them.
     variants: list[str] | None = execution(default=None)
 
@@ -221,8 +226,8 @@ class ProcessesConfig:
     rank per device (conf/train.yaml: trainer.num_nodes x trainer.devices); every other command is one process on
     one device, with no rank logic, so its cluster job asks for one task."""
 
-    nodes: int = execution(default=1)
-    per_node: int = execution(default=1)
+    nodes: int = execution(default=1, range=at_least(1))
+    per_node: int = execution(default=1, range=at_least(1))
 
 
 @dataclass
@@ -231,7 +236,7 @@ class TraceGSConfig:
 
     task: Task = execution(default=MISSING)  # set by each entry point's conf/<task>.yaml
     # The root of every random stream (scene fits, clip sampling, noise, dropout, deployment).
-    seed: int = reads(PREPARE, BASELINE, default=0)
+    seed: int = reads(PREPARE, BASELINE, default=0, range=SEED)
     # The ``data`` option the restorers are trained on (the experiment chooses it). Training runs on it; ``data``
     # names what a command prepares, deploys or evaluates, so evaluating another dataset (``data=mipnerf360``)
     # loads the students trained on this one (tracegs.pipeline.upstream).
@@ -272,7 +277,9 @@ class TraceGSConfig:
 
 def register_configs(schema: type = TraceGSConfig) -> None:
     """Register the root schema so primary configs can list it first in their defaults. A field that declares no
-    products (tracegs.products) is refused here, before any config is composed."""
+    products (tracegs.products), or a numeric one that declares no range (tracegs.ranges), is refused here, before
+    any config is composed."""
     declarations(schema)
+    ranges(schema)
     register_resolvers()
     ConfigStore.instance().store(name=SCHEMA_NAME, node=schema)

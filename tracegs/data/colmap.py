@@ -20,6 +20,7 @@ from tracegs.data.images import read_rgb, resize
 from tracegs.errors import ConfigError, InputFileError, plain_name_problem
 from tracegs.io import atomic_directory
 from tracegs.location import CONF_DIR
+from tracegs.processes import import_keeping_sigterm
 from tracegs.splat.cameras import Camera
 
 log = logging.getLogger(__name__)
@@ -282,7 +283,8 @@ def camera_for_image(camera: Camera, path: Path, sparse: Path) -> Camera:
 
 def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     """Load scene ``name`` under ``cfg.root``; every listed image must exist in the image folder."""
-    import pycolmap  # lazily, after PIL and torch (bundled zlib, see module docstring)
+    # lazily, after PIL and torch (bundled zlib, see module docstring)
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     image_dir, sparse_dir, _ = preset_dirs(cfg)
     root = Path(cfg.root) / name
@@ -365,7 +367,7 @@ def write_colmap_model(
     ``tracks[p]`` lists ``(image_index, xy)`` observations of point ``p``. The model is written to a
     temporary sibling directory and renamed into place, so a killed run never leaves half a model.
     """
-    import pycolmap  # lazily, after PIL and torch (bundled zlib)
+    pycolmap = import_keeping_sigterm("pycolmap")  # lazily, after PIL and torch (bundled zlib)
 
     reconstruction = pycolmap.Reconstruction()
     keypoints: list[list[np.ndarray]] = [[] for _ in cameras]

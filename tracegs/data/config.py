@@ -12,6 +12,7 @@ from typing import Any
 
 from tracegs.modes import Mode
 from tracegs.products import BASELINE, DEPLOY, EVALUATE, EVERY, PREPARE, RESTORE, execution, handed_in, reads
+from tracegs.ranges import SEED, at_least, each, positive, within
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig
 
 
@@ -72,33 +73,37 @@ class SyntheticConfig:
     # on validation scene 50, whose backdrop (hubble deep field) none of them showed. The first six (0, 2, 3,
     # 9, 14, 19) show them all; six more lift the restorers on validation clips (conf/data/synthetic.yaml).
     train_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.train,
-                                   factory=lambda: [0, 2, 3, 9, 14, 19, 4, 5, 6, 7, 8, 10])
+                                   factory=lambda: [0, 2, 3, 9, 14, 19, 4, 5, 6, 7, 8, 10], range=each(SEED))
     # Disjoint from train_seeds
-    test_seeds: list[int] = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, factory=lambda: [100, 101])
+    test_seeds: list[int] = reads(PREPARE, DEPLOY, EVALUATE, split=Split.test, factory=lambda: [100, 101],
+                                  range=each(SEED, non_empty=False))
     # Scenes of the training distribution that no stage trains on: embedded settings are chosen on their
     # clips (``prepare.split=val``), never on the test scenes. Disjoint from both lists above.
-    val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52])
+    val_seeds: list[int] = reads(PREPARE, split=Split.val, factory=lambda: [50, 51, 52],
+                                 range=each(SEED, non_empty=False))
     # Variant A's pretraining scenes (``prepare.split=pretrain``, read by A where experiment.baseline_split says so):
     # a seed range of their own, disjoint from the three lists above.
     pretrain_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.pretrain,
-                                      factory=lambda: list(range(200, 212)))
-    num_views: int = reads(PREPARE, BASELINE, default=32)
-    height: int = reads(PREPARE, BASELINE, default=48)
-    width: int = reads(PREPARE, BASELINE, default=72)
+                                      factory=lambda: list(range(200, 212)), range=each(SEED, non_empty=False))
+    num_views: int = reads(PREPARE, BASELINE, default=32, range=at_least(1))
+    height: int = reads(PREPARE, BASELINE, default=48, range=at_least(1))
+    width: int = reads(PREPARE, BASELINE, default=72, range=at_least(1))
     # Narrow enough that 9 views leave gaps 12+ views fill (privileged gap)
-    fov_x_deg: float = reads(PREPARE, BASELINE, default=50.0)
+    fov_x_deg: float = reads(PREPARE, BASELINE, default=50.0,
+                             range=within(0, 180, low_open=True, high_open=True))
     # Camera path per seed, cycled: "orbit" (arc around the objects) or "forward" (forward-facing).
     # Default orbit only: the clip / deployment trajectories are 360-degree ellipses, which leave a
     # forward-facing capture's coverage, so dense fits there are no better than sparse ones (measured).
     path_styles: list[str] = reads(PREPARE, BASELINE, factory=lambda: ["orbit"])
     # An open arc, like a walk-around video; a closed ring would wrap
-    orbit_arc_deg: float = reads(PREPARE, BASELINE, default=300.0)
-    num_objects: int = reads(PREPARE, BASELINE, default=6)
+    orbit_arc_deg: float = reads(PREPARE, BASELINE, default=300.0, range=within(0, 360, low_open=True))
+    num_objects: int = reads(PREPARE, BASELINE, default=6, range=at_least(1))
     # Density of surface Gaussians on the textured shapes
-    gaussians_per_unit_area: float = reads(PREPARE, BASELINE, default=250.0)
+    gaussians_per_unit_area: float = reads(PREPARE, BASELINE, default=250.0, range=positive())
     # SfM-like points written to points3D (subsampled Gaussian centres)
-    init_points: int = reads(PREPARE, BASELINE, default=1500)
-    background: list[float] = reads(PREPARE, BASELINE, factory=lambda: [0.0, 0.0, 0.0])
+    init_points: int = reads(PREPARE, BASELINE, default=1500, range=at_least(1))
+    background: list[float] = reads(PREPARE, BASELINE, factory=lambda: [0.0, 0.0, 0.0],
+                                    range=each(within(0, 1)))
 
 
 def split_seeds(cfg: SyntheticConfig, split: str) -> list[int]:
@@ -130,11 +135,11 @@ class SceneSourceConfig:
     image_dir: str | None = reads(PREPARE, BASELINE, default=None)
     sparse_dir: str | None = reads(PREPARE, BASELINE, default=None)  # None = preset default, e.g. "sparse/0"
     # Resize images (and intrinsics) to this size; None = as stored
-    height: int | None = reads(PREPARE, BASELINE, default=None)
-    width: int | None = reads(PREPARE, BASELINE, default=None)  # paper scale: 480 x 720
+    height: int | None = reads(PREPARE, BASELINE, default=None, range=at_least(1))
+    width: int | None = reads(PREPARE, BASELINE, default=None, range=at_least(1))  # paper scale: 480 x 720
     # Centre the cameras and scale them into the unit ball (3DGS convention)
     normalize: bool = reads(PREPARE, BASELINE, default=True)
-    test_every: int = reads(PREPARE, BASELINE, default=8)
+    test_every: int = reads(PREPARE, BASELINE, default=8, range=at_least(2))
     # Where a scene has no split file for a count. nested: V_s in V_d, which training clips need (paper Sec. 3).
     # linspace: GSFixer's sparse views (datasets/colmap_debug.py l. 416-422), not nested; the evaluation-only
     # datasets use it (conf/data/mipnerf360.yaml, conf/data/nerfbusters.yaml).
@@ -149,7 +154,8 @@ class CaptionConfig:
     blip2_path: str | None = reads(EVERY, default=None)
     # Deterministic source: used when a scene has no caption.txt
     fallback: str = reads(EVERY, default="a photo of a scene")
-    max_new_tokens: int = reads(EVERY, default=30)  # unstated by the paper: BLIP-2 caption length
+    # unstated by the paper: BLIP-2 caption length
+    max_new_tokens: int = reads(EVERY, default=30, range=at_least(1))
 
 
 
@@ -167,29 +173,32 @@ class PrepareConfig:
     split: Split = reads(PREPARE, default=Split.train)
     # Fitted snapshots (PLY) per (scene, view set): resumable unit
     work_dir: str = execution(default="data/prepare_work")
-    student_views: list[int] = reads(PREPARE, BASELINE, factory=lambda: [3, 6, 9])
+    student_views: list[int] = reads(PREPARE, BASELINE, factory=lambda: [3, 6, 9], range=each(at_least(1)))
     # None = all training views. Empty: no R_d (a held-out cache that scores restorers from R_s against ground
     # truth, pseudo_target 'gt'; the privileged report needs the teacher's R_d).
-    dense_views: list[int | None] = reads(PREPARE, BASELINE, factory=lambda: [12, 18, None])
+    dense_views: list[int | None] = reads(PREPARE, BASELINE, factory=lambda: [12, 18, None],
+                                          range=each(at_least(1), non_empty=False))
     # Also fit the smallest student set to the final iteration, whose snapshot is the non-privileged teacher of
     # variant B for every K. False stops each sparse fit at its last student snapshot: the student conditions
     # are the same bytes, and a sparse fit costs 17k instead of 30k iterations.
     student_final_fits: bool = reads(PREPARE, BASELINE, default=True)
-    student_snapshots: list[int] = reads(PREPARE, BASELINE, factory=lambda: [140, 340])  # paper: 7000, 17000
+    # paper: 7000, 17000
+    student_snapshots: list[int] = reads(PREPARE, BASELINE, factory=lambda: [140, 340],
+                                         range=each(at_least(1)))
     # Embedded: 600 iterations, snapshots 140/340/600 (paper 7k/17k/30k x 0.02).
     fit: GaussianFitConfig = reads(PREPARE, BASELINE, factory=GaussianFitConfig)
     # Processes for fits and clip renders (one thread each); 1 = in-process. Paper: 1 per GPU
-    workers: int = execution(default=2)
+    workers: int = execution(default=2, range=at_least(1))
     # Each clip belongs to one student view count K (clips divided evenly among student_views; the paper is silent)
     # and holds every student snapshot of it (one paired clip per snapshot).
     # Paper: 75 (a real dataset's held-out split: one clip per reference pair of each K)
-    clips_per_scene: int = reads(PREPARE, BASELINE, default=8)
+    clips_per_scene: int = reads(PREPARE, BASELINE, default=8, range=at_least(1))
     # True: each trajectory, drawn on the smallest K's views, serves every K (nested view sets, V_3 in V_6 in V_9) and
     # is restored into one pseudo-target; clips_per_scene counts trajectories x K. False: each clip has its own
     # trajectory on its own K's views and its own pseudo-target. Paper: "150 paired clips" per scene, read as 25
     # trajectories x 3 K x 2 snapshots with one pseudo-target each (2,800 restorations for 112 scenes, not 16,800).
     shared_trajectories: bool = reads(PREPARE, BASELINE, default=False)
-    frames_per_clip: int = reads(PREPARE, BASELINE, default=9)  # paper: 49
+    frames_per_clip: int = reads(PREPARE, BASELINE, default=9, range=at_least(1))  # paper: 49
     # A real dataset's held-out clip whose two reference views have fewer captured images between them than
     # frames_per_clip - 2: False refuses the scene; True repeats captured frames evenly to fill the clip (each
     # frame keeps its own ground truth). Paper silent; Mip-NeRF 360 captures hold 125-311 images, fewer than 47
@@ -210,25 +219,28 @@ class PrepareConfig:
     # The pretraining split's clips (experiment.baseline_split=pretrain): see PretrainPairs; and how many per scene
     # along trajectories (None: clips_per_scene). Captured-camera clips are every reference pair of every K.
     pretrain_pairs: PretrainPairs = reads(PREPARE, BASELINE, split=Split.pretrain, default=PretrainPairs.trajectory)
-    pretrain_clips_per_scene: int | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
+    pretrain_clips_per_scene: int | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None,
+                                                 range=at_least(1))
     # The view counts of the pretraining split's sparse fits (None: student_views). A pretrained restorer makes the
     # pseudo-targets from R_d, so its pairs must reach inputs as good as R_d: a restorer that never saw a near-clean
     # rendering repaints it (measured: A from R_d 5 dB below R_d itself with pairs at 3, 6 and 9 views only).
-    pretrain_views: list[int] | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
+    pretrain_views: list[int] | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None,
+                                             range=each(at_least(1)))
     # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
     # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
-    pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0)
+    pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0, range=at_least(0))
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = reads(PREPARE, BASELINE, factory=CaptionConfig)
-    shard_index: int = execution(default=0)
-    num_shards: int = execution(default=1)  # shard by scene for Hydra multirun / SLURM arrays
+    shard_index: int = execution(default=0, range=at_least(0))
+    # shard by scene for Hydra multirun / SLURM arrays
+    num_shards: int = execution(default=1, range=at_least(1))
     force: bool = execution(default=False)
     contact_sheet: bool = execution(default=True)
     # uint8 frames of every condition, the target, references and ground truth in the shards. None = only in a
     # held-out split's cache (val / test), which evaluation scores in pixels; training reads latents only.
     store_frames: bool | None = reads(PREPARE, default=None)
     latent_dtype: str = reads(PREPARE, BASELINE, default="float16")
-    seed: int = reads(PREPARE, BASELINE, default=0)
+    seed: int = reads(PREPARE, BASELINE, default=0, range=SEED)
 
 
 @dataclass
@@ -238,16 +250,18 @@ class DataModuleConfig:
     # Handed in, a cache is known by its manifest (tracegs.data.cache_keys.MANIFEST, which cannot be imported
     # here), which records every stored tensor's checksum: hashing the tensors would read the whole cache.
     cache_dir: str = handed_in(BASELINE, content=("manifest.json",), default="data/cache")
-    student_views: list[int] = reads(BASELINE, factory=lambda: [3, 6, 9])  # the clips of these K are served
-    student_snapshots: list[int] = reads(BASELINE, factory=lambda: [140, 340])
-    batch_size: int = reads(BASELINE, default=2)  # paper: 2 per GPU
+    # the clips of these K are served
+    student_views: list[int] = reads(BASELINE, factory=lambda: [3, 6, 9], range=each(at_least(1)))
+    student_snapshots: list[int] = reads(BASELINE, factory=lambda: [140, 340], range=each(at_least(1)))
+    batch_size: int = reads(BASELINE, default=2, range=at_least(1))  # paper: 2 per GPU
     # Serve only the first n clips of each scene (None: every clip the cache holds), so that stages of one
     # experiment can read different amounts of one cache (experiment.baseline_clips_per_scene).
-    clips_per_scene: int | None = reads(BASELINE, default=None)
-    num_workers: int = execution(default=0)
+    clips_per_scene: int | None = reads(BASELINE, default=None, range=at_least(1))
+    num_workers: int = execution(default=0, range=at_least(0))
     val_scenes: list[str] = reads(BASELINE, factory=list)  # scene names held out for validation
-    caption_dropout: float = reads(BASELINE, default=0.1)  # supplement A.2: zero text embedding, shared by both roles
-    seed: int = reads(BASELINE, default=0)
+    # supplement A.2: zero text embedding, shared by both roles
+    caption_dropout: float = reads(BASELINE, default=0.1, range=within(0, 1, high_open=True))
+    seed: int = reads(BASELINE, default=0, range=SEED)
 
 
 class Matcher(Mode):
@@ -266,14 +280,17 @@ class SfmConfig:
     # Reconstructions are kept here, one folder per (photos, settings below): a rerun reuses it.
     dir: str = execution(default="data/captures")
     matcher: Matcher = reads(RESTORE, default=Matcher.auto)
-    sequential_overlap: int = reads(RESTORE, default=10)  # images after each one a sequential matcher pairs it with
-    max_image_size: int = reads(RESTORE, default=1600)  # longest side SIFT sees (photos downscaled for extraction only)
-    max_features: int = reads(RESTORE, default=8192)  # SIFT features per image
+    # images after each one a sequential matcher pairs it with
+    sequential_overlap: int = reads(RESTORE, default=10, range=at_least(1))
+    # longest side SIFT sees (photos downscaled for extraction only)
+    max_image_size: int = reads(RESTORE, default=1600, range=at_least(1))
+    max_features: int = reads(RESTORE, default=8192, range=at_least(1))  # SIFT features per image
     # The lens model fitted, then undone: the images the scene is made of are undistorted to PINHOLE.
     camera_model: str = reads(RESTORE, default="SIMPLE_RADIAL")
-    min_model_size: int = reads(RESTORE, default=3)  # registered images a disconnected model needs to be reported (COLMAP: 10)
-    threads: int = execution(default=-1)  # -1: every core
-    seed: int = reads(RESTORE, default=0)  # RANSAC and mapping draws
+    # registered images a disconnected model needs to be reported (COLMAP: 10)
+    min_model_size: int = reads(RESTORE, default=3, range=at_least(1))
+    threads: int = execution(default=-1, range=at_least(1, -1))  # -1: every core
+    seed: int = reads(RESTORE, default=0, range=SEED)  # RANSAC and mapping draws
 
 
 def is_procedural(source: SceneSourceConfig | Any) -> bool:

@@ -42,6 +42,7 @@ from tracegs.data.config import Matcher, SfmConfig
 from tracegs.data.splits import images_needed
 from tracegs.errors import ConfigError, InputFileError, one_line
 from tracegs.io import atomic_directory, write_json_atomic
+from tracegs.processes import import_keeping_sigterm
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def _quiet_colmap(least: str = "ERROR") -> Iterator[None]:
     """COLMAP's own log (glog) off stderr and out of /tmp while it runs: a refused command prints one line, and
     what the reconstruction found goes to this module's log instead. Its messages from ``least`` up still reach
     stderr: errors, unless a caller reports that outcome itself."""
-    import pycolmap
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     flags = pycolmap.logging
     before = flags.logtostderr, flags.minloglevel
@@ -153,7 +154,8 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
                  capture: Path, sequential: bool) -> None:
     """Run SfM on ``names`` in ``images`` and write the undistorted scene folder ``scene``; refuse, before
     anything is kept, a reconstruction that registers too few images of ``capture`` for ``views``."""
-    import pycolmap  # lazily, after PIL and torch (bundled zlib, see module docstring)
+    # lazily, after PIL and torch (bundled zlib, see module docstring)
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     if cfg.camera_model not in pycolmap.CameraModelId.__members__:
         raise ConfigError("capture.sfm.camera_model", f"{cfg.camera_model!r} is not a COLMAP camera model; "
@@ -233,7 +235,7 @@ def _upright(images: Path, names: list[str], out: Path) -> Path:
 def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> list[tuple[int, int]]:
     """SIFT features of ``names`` into ``database``, one camera per image size (COLMAP's AUTO mode gives
     one per image in pycolmap 4.2, so each size is read on its own in SINGLE mode); returns the sizes."""
-    import pycolmap
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     by_size: dict[tuple[int, int], list[str]] = {}
     for name in names:
@@ -251,7 +253,7 @@ def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> 
 
 
 def _match(database: Path, matcher: Matcher, cfg: SfmConfig) -> None:
-    import pycolmap
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.threads
@@ -278,7 +280,7 @@ def _findings(database: Path, names: list[str], models: dict, options) -> dict:
     mapping's pycolmap.IncrementalPipelineOptions. The record keeps, for each image left out though matched, its
     verified matches with the registered images (with no model: the most it has with any one image), so the
     refusal can say how far each was from being placed, a reused reconstruction's too."""
-    import pycolmap
+    pycolmap = import_keeping_sigterm("pycolmap")
 
     with pycolmap.Database.open(database) as db:
         ids = {image.name: image.image_id for image in db.read_all_images()}

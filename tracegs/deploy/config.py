@@ -14,9 +14,12 @@ from tracegs.data.config import CaptionConfig, SfmConfig
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
+from tracegs.ranges import SEED, at_least, each
 from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
+# A count K of captured views deployment starts from (Algorithm 1: its clips run between two of them).
+CAPTURED_VIEWS = at_least(2, why="deployment's clips run between two captured reference views")
 
 
 class Protocol(Mode):
@@ -42,19 +45,21 @@ class KeptFrames(Mode):
 class RefinementConfig:
     """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
 
-    total_iters: int = reads(DEPLOYMENT, default=600)  # J; paper 30000
-    repair_iters: list[int] = reads(DEPLOYMENT, factory=lambda: [140, 340, 540])  # paper 7000/17000/27000
-    lambda_reg: float = reads(DEPLOYMENT, default=1.0)  # peak of the half-sine w_reg
+    total_iters: int = reads(DEPLOYMENT, default=600, range=at_least(1))  # J; paper 30000
+    # paper 7000/17000/27000
+    repair_iters: list[int] = reads(DEPLOYMENT, factory=lambda: [140, 340, 540], range=each(at_least(1)))
+    lambda_reg: float = reads(DEPLOYMENT, default=1.0, range=at_least(0))  # peak of the half-sine w_reg
     trajectory: TrajectoryConfig = reads(DEPLOYMENT, factory=TrajectoryConfig)
     captions: CaptionConfig = reads(DEPLOYMENT, factory=CaptionConfig)  # the training clips' caption rule
     # Clips restored per round: None = every clip of the round's rule (one per reference pair of the chained
     # captured views, or every GSFixer window: the paper's protocol); n = a random n of them per round (the
     # embedded default samples 2 to keep CPU deployment within minutes).
-    max_clips_per_round: int | None = reads(DEPLOYMENT, default=2)
-    clip_batch: int = reads(DEPLOYMENT, default=4)  # clips restored per sampler call (memory knob only; paper scale: 1)
+    max_clips_per_round: int | None = reads(DEPLOYMENT, default=2, range=at_least(1))
+    # clips restored per sampler call (memory knob only; paper scale: 1)
+    clip_batch: int = reads(DEPLOYMENT, default=4, range=at_least(1))
     # Reverse steps per restoration; None = the backbone's full M-step schedule (the paper's protocol).
-    steps: int | None = reads(DEPLOYMENT, default=None)
-    seed: int = reads(DEPLOYMENT, default=0)
+    steps: int | None = reads(DEPLOYMENT, default=None, range=at_least(1))
+    seed: int = reads(DEPLOYMENT, default=0, range=SEED)
     protocol: Protocol = reads(DEPLOYMENT, default=Protocol.own)
     kept_frames: KeptFrames = reads(DEPLOYMENT, default=KeptFrames.between_ends)  # embedded: as corrected
 
@@ -87,16 +92,16 @@ class EvaluationConfig:
     # (save_*, grid_views, video_*): each unit is its own file, recorded with its own settings, so selections of
     # units share one evaluation folder and merge into one results.json.
     methods: list[str] = execution(factory=lambda: list(METHODS))
-    views: list[int] = execution(factory=lambda: [3, 6, 9])
+    views: list[int] = execution(factory=lambda: [3, 6, 9], range=each(CAPTURED_VIEWS))
     scenes: list[str] | None = execution(default=None)  # None = the benchmark's test scenes
     # A paired-clip cache of held-out scenes with ground truth (``tracegs-prepare data.prepare.split=test``).
     # When set, each diffusion restorer also restores its clips and is scored against its input R_s.
     held_out_cache: str | None = execution(default=None)
     # Sharding (Hydra multirun / SLURM array): this job evaluates every num_shards-th (scene, views) unit.
-    shard_index: int = execution(default=0)
-    num_shards: int = execution(default=1)
+    shard_index: int = execution(default=0, range=at_least(0))
+    num_shards: int = execution(default=1, range=at_least(1))
     # Units evaluated in parallel by forked CPU processes (1 intra-op thread each); GPU runs use 1.
-    workers: int = execution(default=2)
+    workers: int = execution(default=2, range=at_least(1))
     lpips: bool = reads(DEPLOYMENT, default=True)
     # "3dgs" (official 3DGS metrics) or "standard"; see eval/metrics.py
     lpips_convention: str = reads(DEPLOYMENT, default="3dgs")
@@ -113,9 +118,10 @@ class EvaluationConfig:
     # Each method's refined 3DGS as PLY (models/<scene>/views_<K>_<method>.ply)
     save_models: bool = execution(default=False)
     save_frames: bool = execution(default=False)  # each method's renders along the video's trajectory as PNG frames
-    grid_views: int = execution(default=3)  # test views shown in the qualitative grid
-    video_frames: int = execution(default=24)  # frames of the comparison video along a test trajectory
-    video_fps: int = execution(default=8)
+    grid_views: int = execution(default=3, range=at_least(1))  # test views shown in the qualitative grid
+    # frames of the comparison video along a test trajectory
+    video_frames: int = execution(default=24, range=at_least(1))
+    video_fps: int = execution(default=8, range=at_least(1))
     force: bool = execution(default=False)  # recompute finished units even when their settings are unchanged
     variant: str | None = execution(default=None)  # ablation variant name recorded in results.json (Table 3)
     progress: bool = execution(default=True)
@@ -129,6 +135,8 @@ class CaptureConfig:
     # folder of photos (in it or in its images/) that structure-from-motion reconstructs first.
     path: str | None = reads(RESTORE, default=None)
     video: str | None = reads(RESTORE, default=None)  # a video file instead: frames sampled, then reconstructed
-    frames: int = reads(RESTORE, default=60)  # frames taken from the video: the sharpest of each of this many windows
-    views: int = reads(RESTORE, default=6)  # K captured views the 3DGS is fitted from (the view-selection rule)
+    # frames taken from the video: the sharpest of each of this many windows
+    frames: int = reads(RESTORE, default=60, range=at_least(1))
+    # K captured views the 3DGS is fitted from (the view-selection rule)
+    views: int = reads(RESTORE, default=6, range=CAPTURED_VIEWS)
     sfm: SfmConfig = reads(RESTORE, factory=SfmConfig)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from tracegs.modes import Mode
 from tracegs.products import BASELINE, PREPARE, STAGE1, STAGE2, execution, reads
+from tracegs.ranges import FINITE, SEED, at_least, each, positive, within
 
 # Supplement A.2, "Text tokens": appended to every BLIP-2 caption before T5 encoding.
 QUALITY_SUFFIX = (
@@ -70,43 +71,44 @@ class ScheduleKind(Mode):
 class TransformerConfig:
     """Reference-guided CogVideoX DiT (supplement A.1). Field names follow diffusers' config keys."""
 
-    num_layers: int = reads(PREPARE, BASELINE, default=2)
-    num_attention_heads: int = reads(PREPARE, BASELINE, default=6)
-    attention_head_dim: int = reads(PREPARE, BASELINE, default=32)
+    num_layers: int = reads(PREPARE, BASELINE, default=2, range=at_least(1))
+    num_attention_heads: int = reads(PREPARE, BASELINE, default=6, range=at_least(1))
+    attention_head_dim: int = reads(PREPARE, BASELINE, default=32, range=at_least(1))
     # Per-token output is patch^2 x latent_channels = 96 = width / 2: a wider output than ~half the width
     # leaves the velocity head rank-limited and noise cannot be removed.
     # The patch embedding sees 2x this: noisy + condition latent (Eq. supp-render-cond).
-    latent_channels: int = reads(PREPARE, BASELINE, default=24)
-    text_embed_dim: int = reads(PREPARE, BASELINE, default=64)
-    max_text_seq_length: int = reads(PREPARE, BASELINE, default=8)
-    time_embed_dim: int = reads(PREPARE, BASELINE, default=128)
-    patch_size: int = reads(PREPARE, BASELINE, default=2)
+    latent_channels: int = reads(PREPARE, BASELINE, default=24, range=at_least(1))
+    text_embed_dim: int = reads(PREPARE, BASELINE, default=64, range=at_least(1))
+    max_text_seq_length: int = reads(PREPARE, BASELINE, default=8, range=at_least(1))
+    time_embed_dim: int = reads(PREPARE, BASELINE, default=128, range=at_least(1))
+    patch_size: int = reads(PREPARE, BASELINE, default=2, range=at_least(1))
     # Latent grid the positional embeddings are precomputed for (other sizes are recomputed per call).
     # Pixel frames, diffusers convention: latent frames = (F - 1) / ratio + 1
-    sample_frames: int = reads(PREPARE, BASELINE, default=9)
-    sample_height: int = reads(PREPARE, BASELINE, default=12)
-    sample_width: int = reads(PREPARE, BASELINE, default=18)
-    temporal_compression_ratio: int = reads(PREPARE, BASELINE, default=1)
+    sample_frames: int = reads(PREPARE, BASELINE, default=9, range=at_least(1))
+    sample_height: int = reads(PREPARE, BASELINE, default=12, range=at_least(1))
+    sample_width: int = reads(PREPARE, BASELINE, default=18, range=at_least(1))
+    temporal_compression_ratio: int = reads(PREPARE, BASELINE, default=1, range=at_least(1))
     use_rotary_positional_embeddings: bool = reads(PREPARE, BASELINE, default=False)
     use_learned_positional_embeddings: bool = reads(PREPARE, BASELINE, default=False)
     attention_bias: bool = reads(PREPARE, BASELINE, default=True)
-    ref_2d_dim: int = reads(PREPARE, BASELINE, default=192)  # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
+    # width of Enc_DINO tokens (embedded: 8x8x3 pixel patches)
+    ref_2d_dim: int = reads(PREPARE, BASELINE, default=192, range=at_least(1))
     # Width of Enc_VGGT tokens (embedded: 8x8x3 cross-view difference + 8 position)
-    ref_3d_dim: int = reads(PREPARE, BASELINE, default=200)
+    ref_3d_dim: int = reads(PREPARE, BASELINE, default=200, range=at_least(1))
     # GSFixer's LayerNorms on the reference path: per-head q/k in ``attn_cross`` and after each projector. Its
     # released weights hold them (paper scale: true); the embedded restorer was tuned without them.
     reference_norms: bool = reads(PREPARE, BASELINE, default=False)
     # The model embeds ``timestep * timestep_scale``: rectified-flow t in [0, 1] -> 0..1000 like CogVideoX's
     # integer DDPM steps (scale 1). Callers always pass the schedule's native t.
-    timestep_scale: float = reads(PREPARE, BASELINE, default=1000.0)
+    timestep_scale: float = reads(PREPARE, BASELINE, default=1000.0, range=positive())
     # "velocity" (the output head predicts v, as CogVideoX) or "clean" (it predicts x0 and the model returns
     # v = (z_t - x0) / max(t, clean_min_time); rectified flow only). See transformer.velocity_from_clean.
     prediction: Prediction = reads(PREPARE, BASELINE, default=Prediction.velocity)
-    clean_min_time: float = reads(PREPARE, BASELINE, default=0.05)
+    clean_min_time: float = reads(PREPARE, BASELINE, default=0.05, range=within(0, 1, low_open=True))
     # prediction=preconditioned: the standard deviation of the residual x0 - R in latent units, EDM's sigma_data.
-    sigma_data: float = reads(PREPARE, BASELINE, default=1.0)
+    sigma_data: float = reads(PREPARE, BASELINE, default=1.0, range=positive())
     # prediction=preconditioned: the schedule's noise end sigma_n (schedule.noise_scale; the two must agree).
-    noise_scale: float = reads(PREPARE, BASELINE, default=1.0)
+    noise_scale: float = reads(PREPARE, BASELINE, default=1.0, range=positive())
     # Local folder holding config.json and the weights (build.load_transformer), or whose transformer/ holds them.
     pretrained_path: str | None = reads(PREPARE, BASELINE, default=None)
     # Exact key names of stored tensors the class has no place for: skipped and logged (each) instead of refusing
@@ -123,9 +125,9 @@ class TransformerConfig:
 class LoraConfig:
     """LoRA on both attentions of every block (supplement Table of insertion points, Eq. supp-lora)."""
 
-    rank: int = reads(STAGE1, default=8)
-    alpha: int = reads(STAGE1, default=8)
-    dropout: float = reads(STAGE1, default=0.0)
+    rank: int = reads(STAGE1, default=8, range=at_least(1))
+    alpha: int = reads(STAGE1, default=8, range=at_least(1))
+    dropout: float = reads(STAGE1, default=0.0, range=within(0, 1, high_open=True))
     target_modules: list[str] = reads(STAGE1, factory=lambda: ["to_q", "to_k", "to_v", "to_out.0"])
     attention_modules: list[str] = reads(STAGE1, factory=lambda: ["attn1", "attn_cross"])
 
@@ -135,9 +137,9 @@ class CodecConfig:
     """``embedded``: fixed orthonormal block transform; ``cogvideox``: AutoencoderKLCogVideoX (local dir)."""
 
     kind: CodecKind = reads(PREPARE, BASELINE, default=CodecKind.embedded)
-    block_size: int = reads(PREPARE, BASELINE, default=4)
+    block_size: int = reads(PREPARE, BASELINE, default=4, range=at_least(1))
     # 40.4 dB mean round trip on scikit-image photos at 48x72 (16 -> 35.0 dB)
-    latent_channels: int = reads(PREPARE, BASELINE, default=24)
+    latent_channels: int = reads(PREPARE, BASELINE, default=24, range=at_least(1))
     pretrained_path: str | None = reads(PREPARE, BASELINE, default=None)
     # Decode the VAE in tiles to bound memory at 480x720 (diffusers' enable_tiling).
     tiling: bool = reads(PREPARE, BASELINE, default=True)
@@ -148,12 +150,12 @@ class ReferenceEncoderConfig:
     """``embedded``: pixel-patch tokens; ``dinov2_vggt``: DINOv2 (transformers) + VGGT (its own package)."""
 
     kind: ReferenceEncoderKind = reads(PREPARE, BASELINE, default=ReferenceEncoderKind.embedded)
-    patch_size: int = reads(PREPARE, BASELINE, default=8)
+    patch_size: int = reads(PREPARE, BASELINE, default=8, range=at_least(1))
     dino_path: str | None = reads(PREPARE, BASELINE, default=None)
     vggt_path: str | None = reads(PREPARE, BASELINE, default=None)
     # GSFixer (the paper is silent): DINOv2 and VGGT both see VGGT's preprocessing, width 518 with the aspect
     # ratio kept (480 x 720 -> 350 x 518, 25 x 37 patches of 14), unnormalised [0, 1] (encoders.reference_images)
-    image_size: int = reads(PREPARE, BASELINE, default=518)
+    image_size: int = reads(PREPARE, BASELINE, default=518, range=at_least(1))
     # dinov2_vggt only (the embedded stand-in reads pixels of its own): clean frames, or GSFixer's wrapped bytes.
     pixels: ReferencePixels = reads(PREPARE, BASELINE, default=ReferencePixels.clean)
     # Weights of DINOv2 and VGGT (frozen, inference only); paper scale "bfloat16". Tokens leave as float32.
@@ -165,8 +167,8 @@ class TextEncoderConfig:
     """``embedded``: deterministic hashed-token embeddings; ``t5``: T5 encoder (local dir)."""
 
     kind: TextEncoderKind = reads(PREPARE, BASELINE, default=TextEncoderKind.embedded)
-    dim: int = reads(PREPARE, BASELINE, default=64)
-    max_length: int = reads(PREPARE, BASELINE, default=8)
+    dim: int = reads(PREPARE, BASELINE, default=64, range=at_least(1))
+    max_length: int = reads(PREPARE, BASELINE, default=8, range=at_least(1))
     pretrained_path: str | None = reads(PREPARE, BASELINE, default=None)
     # The T5 tokenizer's directory; None = CogVideoX's layout, ``tokenizer/`` beside ``pretrained_path``
     # (``text_encoder/``), or ``pretrained_path`` itself if there is no such folder (a plain T5 checkpoint).
@@ -176,7 +178,7 @@ class TextEncoderConfig:
     # embedding caption dropout trains (supplement A.2); a prompt = its encoding, without the quality suffix.
     # Paper scale: GSFixer's negative prompt (conf/backbone/cogvideox5b.yaml).
     negative_prompt: str | None = reads(PREPARE, BASELINE, default=None)
-    seed: int = reads(PREPARE, BASELINE, default=0)
+    seed: int = reads(PREPARE, BASELINE, default=0, range=SEED)
     # T5 weights (frozen, inference only); paper scale "bfloat16". Embeddings leave as float32.
     dtype: str = reads(PREPARE, BASELINE, default="float32")
 
@@ -186,21 +188,21 @@ class ScheduleConfig:
     """``rectified_flow`` (tiny backbone) or ``vpred_ddim`` (CogVideoX v-prediction DDPM + DDIM)."""
 
     kind: ScheduleKind = reads(PREPARE, BASELINE, default=ScheduleKind.rectified_flow)
-    num_train_timesteps: int = reads(PREPARE, BASELINE, default=1000)
+    num_train_timesteps: int = reads(PREPARE, BASELINE, default=1000, range=at_least(1))
     # The deployment grid, and the training-time density below, are read where they are used: a restoration
     # (a restorer-made cache, Stage 2's rollout, deployment) samples on the grid and never draws training times.
-    deploy_steps: int = reads(PREPARE, STAGE2, default=20)  # M
+    deploy_steps: int = reads(PREPARE, STAGE2, default=20, range=at_least(1))  # M
     # rectified_flow: training times of forward-noised states (baseline L_fm, Stage 1) are drawn with density
     # proportional to t^p, p >= 0 (0 = uniform). A large p trains mostly at high noise, where the restorer reads
     # the clip from its condition; conf/backbone/tiny.yaml records the measured choice.
-    train_time_power: float = reads(BASELINE, default=0.0)
+    train_time_power: float = reads(BASELINE, default=0.0, range=at_least(0))
     # rectified_flow: with a value, training times are logit-normal instead, t = sigmoid(m + s n), n ~ N(0, 1)
     # (Esser et al. 2024, Sec. 3.1): [m, s]. Takes the place of train_time_power.
-    train_time_logit_normal: list[float] | None = reads(PREPARE, BASELINE, default=None)
+    train_time_logit_normal: list[float] | None = reads(PREPARE, BASELINE, default=None, range=each(FINITE))
     # rectified_flow: the share of training times drawn uniformly on [0, 1] instead (a mixture with the density
     # above): a density concentrated near t = 1, where the first prediction is made, still trains the low-noise
     # states the last reverse steps visit.
-    train_time_uniform_share: float = reads(BASELINE, default=0.0)
+    train_time_uniform_share: float = reads(BASELINE, default=0.0, range=within(0, 1))
     # rectified_flow with transformer.prediction=preconditioned: "edm" weights each training state's squared
     # velocity error by EDM's lambda = 1 / c_out^2 (Karras et al. 2022, Table 1) written in velocity units, so the
     # network output's error counts alike at every t (transformer.Preconditioning.loss_weight); "uniform" (the
@@ -209,18 +211,20 @@ class ScheduleConfig:
     train_loss_weighting: LossWeighting = reads(BASELINE, default=LossWeighting.uniform)
     # rectified_flow: the noise end of the path, z_1 = noise_scale eps (1: the standard path). Near the size of the
     # residual x0 - R, the states carry what the restorer is unsure of through the whole trajectory.
-    noise_scale: float = reads(PREPARE, BASELINE, default=1.0)
+    noise_scale: float = reads(PREPARE, BASELINE, default=1.0, range=positive())
     # rectified_flow: the deployment grid (and so Stage 2's resampled grids, drawn from it) puts its M + 1 points
     # at equal steps of t^(q + 1), q >= 0; q = 0 is the uniform grid. With q = p every solver step spans an equal
     # share of the training times, so the solver stays where the training times are (with p = 12 and q = 0
     # the last state before the clean end is t = 0.05, which t^12 draws with probability 0.05^13; with q = 12
     # it is 0.79).
-    deploy_time_power: float = reads(PREPARE, STAGE2, default=0.0)
+    deploy_time_power: float = reads(PREPARE, STAGE2, default=0.0, range=at_least(0))
     # CogVideoX-5B scheduler values (used by vpred_ddim only).
-    beta_start: float = reads(PREPARE, BASELINE, default=0.00085)
-    beta_end: float = reads(PREPARE, BASELINE, default=0.012)
+    beta_start: float = reads(PREPARE, BASELINE, default=0.00085,
+                              range=within(0, 1, low_open=True, high_open=True))
+    beta_end: float = reads(PREPARE, BASELINE, default=0.012,
+                            range=within(0, 1, low_open=True, high_open=True))
     beta_schedule: str = reads(PREPARE, BASELINE, default="scaled_linear")
-    snr_shift_scale: float = reads(PREPARE, BASELINE, default=1.0)
+    snr_shift_scale: float = reads(PREPARE, BASELINE, default=1.0, range=positive())
     rescale_betas_zero_snr: bool = reads(PREPARE, BASELINE, default=True)
 
 
@@ -235,15 +239,15 @@ class SamplerConfig:
 
     # A and Stage 1 never sample (reads(PREPARE, STAGE2) on BackboneConfig.sampler); a cache's pseudo-targets have
     # their own guidance (data.prepare.pseudo_target_guidance) and a seed derived from each clip.
-    guidance_scale: float = reads(STAGE2, default=1.0)
-    seed: int = reads(STAGE2, default=0)
+    guidance_scale: float = reads(STAGE2, default=1.0, range=at_least(0))
+    seed: int = reads(STAGE2, default=0, range=SEED)
     # Sampling temperature tau: every reverse trajectory (deployment, pseudo-target restorations, the Stage-2
     # rollout, the trajectory diagnostics) starts at the schedule's noise end of tau * eps. The paper samples
     # from the Gaussian prior itself (tau = 1, its DDIM from noise). tau < 1 narrows the samples towards the
     # restorer's posterior mean, which PSNR rewards; tau = 0 starts every trajectory at the noise end's centre
     # (a deterministic restorer; forward-noised training states are never that quiet, so the student's states
     # are its own). conf/backbone/tiny_diffusion.yaml records the measured choice.
-    temperature: float = reads(PREPARE, STAGE2, default=1.0)
+    temperature: float = reads(PREPARE, STAGE2, default=1.0, range=within(0, 1))
     autocast_bf16: bool = reads(PREPARE, STAGE2, default=True)  # only takes effect on CUDA
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import EVERY, reads
+from tracegs.ranges import FINITE, SEED, at_least, each, positive, within
 
 
 class RenderBackend(Mode):
@@ -27,22 +28,22 @@ class DensificationConfig:
     """gsplat `DefaultStrategy` settings (3DGS's adaptive density control), iterations 0-based."""
 
     enabled: bool = reads(EVERY, default=True)
-    refine_start_iter: int = reads(EVERY, default=50)
-    refine_stop_iter: int = reads(EVERY, default=450)
-    refine_every: int = reads(EVERY, default=25)
-    reset_every: int = reads(EVERY, default=200)
+    refine_start_iter: int = reads(EVERY, default=50, range=at_least(0))
+    refine_stop_iter: int = reads(EVERY, default=450, range=at_least(0))
+    refine_every: int = reads(EVERY, default=25, range=at_least(1))
+    reset_every: int = reads(EVERY, default=200, range=at_least(1))
     # 3DGS uses 0.0002 at full resolution; at 48x72 that grows ~10x too many
-    grow_grad2d: float = reads(EVERY, default=0.002)
-    grow_scale3d: float = reads(EVERY, default=0.01)
-    prune_opa: float = reads(EVERY, default=0.005)
-    prune_scale3d: float = reads(EVERY, default=0.1)
+    grow_grad2d: float = reads(EVERY, default=0.002, range=positive())
+    grow_scale3d: float = reads(EVERY, default=0.01, range=positive())
+    prune_opa: float = reads(EVERY, default=0.005, range=within(0, 1))
+    prune_scale3d: float = reads(EVERY, default=0.1, range=positive())
     # Prune Gaussians whose screen radius exceeded this many pixels, from the first opacity reset on (the
     # reference optimiser and GSFixer's release: train.py l. 246, ``size_threshold = 20 if iteration >
     # opacity_reset_interval``); None = no screen pruning (gsplat's default, the embedded scale's measured one).
-    screen_prune_px: float | None = reads(EVERY, default=None)
+    screen_prune_px: float | None = reads(EVERY, default=None, range=positive())
     # Not in the reference optimiser: keep the most opaque Gaussians beyond this budget (bounds the CPU cost
     # per step at the embedded scale); None = no cap (paper scale).
-    max_gaussians: int | None = reads(EVERY, default=8000)
+    max_gaussians: int | None = reads(EVERY, default=8000, range=at_least(1))
 
 
 class PseudoSsim(Mode):
@@ -64,28 +65,28 @@ class GaussianFitConfig:
     iterations up to `sh_degree`.
     """
 
-    iterations: int = reads(EVERY, default=600)
-    snapshot_iters: list[int] = reads(EVERY, factory=lambda: [140, 340, 600])
-    lr_means: float = reads(EVERY, default=1.6e-3)
-    lr_means_final: float = reads(EVERY, default=1.6e-5)
-    lr_quats: float = reads(EVERY, default=5e-3)
-    lr_scales: float = reads(EVERY, default=1e-2)
+    iterations: int = reads(EVERY, default=600, range=at_least(1))
+    snapshot_iters: list[int] = reads(EVERY, factory=lambda: [140, 340, 600], range=each(at_least(1)))
+    lr_means: float = reads(EVERY, default=1.6e-3, range=positive())
+    lr_means_final: float = reads(EVERY, default=1.6e-5, range=positive())
+    lr_quats: float = reads(EVERY, default=5e-3, range=at_least(0))
+    lr_scales: float = reads(EVERY, default=1e-2, range=at_least(0))
     # The reference optimiser's opacity rate; GSFixer's release halves it (arguments/__init__.py l. 115: 0.025).
-    lr_opacities: float = reads(EVERY, default=5e-2)
-    lr_sh_dc: float = reads(EVERY, default=1e-2)
-    lr_sh_rest: float = reads(EVERY, default=5e-4)
-    ssim_weight: float = reads(EVERY, default=0.2)
-    ssim_window: int = reads(EVERY, default=11)
-    sh_degree: int = reads(EVERY, default=3)
-    sh_degree_interval: int = reads(EVERY, default=100)
-    background: list[float] = reads(EVERY, factory=lambda: [0.0, 0.0, 0.0])
+    lr_opacities: float = reads(EVERY, default=5e-2, range=at_least(0))
+    lr_sh_dc: float = reads(EVERY, default=1e-2, range=at_least(0))
+    lr_sh_rest: float = reads(EVERY, default=5e-4, range=at_least(0))
+    ssim_weight: float = reads(EVERY, default=0.2, range=within(0, 1))
+    ssim_window: int = reads(EVERY, default=11, range=at_least(1))
+    sh_degree: int = reads(EVERY, default=3, range=within(0, 3))
+    sh_degree_interval: int = reads(EVERY, default=100, range=at_least(1))
+    background: list[float] = reads(EVERY, factory=lambda: [0.0, 0.0, 0.0], range=each(within(0, 1)))
     backend: RenderBackend = reads(EVERY, default=RenderBackend.auto)
-    seed: int = reads(EVERY, default=0)
-    init_num_points: int = reads(EVERY, default=2000)
+    seed: int = reads(EVERY, default=0, range=SEED)
+    init_num_points: int = reads(EVERY, default=2000, range=at_least(1))
     # The SfM points a fit starts from: those seen by at least this many of its views. 2 = what the view set
     # would triangulate itself (no geometry from views it never saw); GSFixer's release keeps every point any
     # sparse view observes, 1 (datasets/colmap_debug.py l. 354-369, ``filter_points_sparse``).
-    init_min_views: int = reads(EVERY, default=2)
+    init_min_views: int = reads(EVERY, default=2, range=at_least(1))
     # glibc keeps freed pages: ~20% faster CPU steps (see fit.py)
     keep_freed_cpu_memory: bool = reads(EVERY, default=True)
     densification: DensificationConfig = reads(EVERY, factory=DensificationConfig)
@@ -135,12 +136,12 @@ class TrajectoryConfig:
     height band (``release_ellipse``, ``focus_ellipse``). Prepare and deployment read this one config (``data.prepare.trajectory``
     is ``deploy.trajectory``)."""
 
-    frames_per_clip: int = reads(EVERY, default=9)
-    ellipse_scales: list[float] = reads(EVERY, factory=lambda: [1.0, 0.85, 0.7])
-    height_variations: list[float] = reads(EVERY, factory=lambda: [0.05, 0.1, 0.15])
+    frames_per_clip: int = reads(EVERY, default=9, range=at_least(1))
+    ellipse_scales: list[float] = reads(EVERY, factory=lambda: [1.0, 0.85, 0.7], range=each(positive()))
+    height_variations: list[float] = reads(EVERY, factory=lambda: [0.05, 0.1, 0.15], range=each(at_least(0)))
     # Every ellipse pose pitched up about its own x axis by this many degrees (``gsfixer_windows`` only).
-    pitch_degrees: list[float] = reads(EVERY, factory=lambda: [0.0])
-    ellipse_frames: int = reads(EVERY, default=64)
+    pitch_degrees: list[float] = reads(EVERY, factory=lambda: [0.0], range=each(FINITE))
+    ellipse_frames: int = reads(EVERY, default=64, range=at_least(1))
     clip_rule: ClipRule = reads(EVERY, default=ClipRule.reference_pairs)
     # GSFixer's ellipse on its world axes as released, or corrected to the cameras' frame (``gsfixer_windows``
     # only; the embedded ``reference_pairs`` ellipse is its own).

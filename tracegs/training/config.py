@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from tracegs.data.config import DataModuleConfig, SceneSourceConfig
-from tracegs.deploy.config import RefinementConfig
+from tracegs.deploy.config import CAPTURED_VIEWS, RefinementConfig
 from tracegs.modes import Mode
 from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, reads, via
+from tracegs.ranges import SEED, at_least, each, positive, within
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig
 
@@ -65,19 +66,20 @@ class OptimizerConfig:
     ``grad_clip`` are not stated in the paper, and each says below why its value was chosen.
     """
 
-    lr: float = reads(BASELINE, default=1e-3)
+    lr: float = reads(BASELINE, default=1e-3, range=positive())
     # Not stated in the paper; 0 because decay would pull the LoRA factors towards zero, i.e. the student
     # towards the bare base and away from the Stage-1 adapter it is cloned from, which no loss asks for.
-    weight_decay: float = reads(BASELINE, default=0.0)
+    weight_decay: float = reads(BASELINE, default=0.0, range=at_least(0))
     # Not stated in the paper; torch's AdamW defaults, as the paper names no departure from them.
-    betas: list[float] = reads(BASELINE, factory=lambda: [0.9, 0.999])
-    eps: float = reads(BASELINE, default=1e-8)  # not stated in the paper; torch's default
-    warmup_steps: int = reads(BASELINE, default=0)
+    betas: list[float] = reads(BASELINE, factory=lambda: [0.9, 0.999],
+                               range=each(within(0, 1, high_open=True)))
+    eps: float = reads(BASELINE, default=1e-8, range=positive())  # not stated in the paper; torch's default
+    warmup_steps: int = reads(BASELINE, default=0, range=at_least(0))
     # After warm-up: "constant" (supplement A.4) or "cosine" to zero at the stage's max_steps.
     decay: LrDecay = reads(BASELINE, default=LrDecay.constant)
     # Max global L2 norm of the trainable gradients; None disables clipping. Not stated in the paper; 1.0
     # (diffusers' fine-tuning scripts' max_grad_norm) bounds the step a rare outlier batch can take.
-    grad_clip: float | None = reads(BASELINE, default=1.0)
+    grad_clip: float | None = reads(BASELINE, default=1.0, range=positive())
 
     def __post_init__(self) -> None:
         self.decay = LrDecay.parse(self.decay, "optimizer.decay")
@@ -91,8 +93,10 @@ class DeploymentEvalConfig:
 
     # Validation scenes to deploy on (synthetic benchmark: its val split's scene names); empty = off.
     scenes: list[str] = execution(factory=list)
-    views: list[int] = execution(factory=lambda: [3])  # sparse view counts K deployed from
-    every_n_steps: int | None = execution(default=None)  # also deploy every n optimizer steps (None: only at the end)
+    # sparse view counts K deployed from
+    views: list[int] = execution(factory=lambda: [3], range=each(CAPTURED_VIEWS, non_empty=False))
+    # also deploy every n optimizer steps (None: only at the end)
+    every_n_steps: int | None = execution(default=None, range=at_least(1))
     lpips: bool = execution(default=False)  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
 
     def __post_init__(self) -> None:
@@ -110,7 +114,7 @@ class HeldOutEvalConfig:
 
     # A prepared held-out cache, e.g. the validation scenes' (tracegs-prepare data.prepare.split=val); None = off.
     cache: str | None = execution(default=None)
-    every_n_steps: int = execution(default=25)
+    every_n_steps: int = execution(default=25, range=at_least(1))
 
     def __post_init__(self) -> None:
         if self.every_n_steps < 1:
@@ -129,16 +133,18 @@ class StageConfig:
     """
 
     name: StageName = reads(BASELINE, default=StageName.stage2)
-    max_steps: int = reads(BASELINE, default=150)
+    # 0: no step (variant A loaded, never trained: experiment.baseline_steps); never -1, which Lightning reads as
+    # no limit.
+    max_steps: int = reads(BASELINE, default=150, range=at_least(0))
     # Per-device batch size of this stage; None = data.batch_size.
-    batch_size: int | None = reads(BASELINE, default=None)
-    rollout_steps: int = reads(STAGE2, default=5)
+    batch_size: int | None = reads(BASELINE, default=None, range=at_least(1))
+    rollout_steps: int = reads(STAGE2, default=5, range=at_least(1))
     memory_mode: MemoryMode = reads(STAGE2, default=MemoryMode.stepwise)
     # Stage 2: classifier-free guidance of the rollout and of both roles' queries in the losses. 1 = none, as the
     # supplement writes the rollout (u_i = v(z_{t'_i}, t'_i, R_s), N student + N teacher forwards); any other
     # value adds an unconditional forward per query (the all-zero text) and doubles the student's activations.
-    guidance_scale: float = reads(STAGE2, default=1.0)
-    seed: int = reads(BASELINE, default=0)
+    guidance_scale: float = reads(STAGE2, default=1.0, range=at_least(0))
+    seed: int = reads(BASELINE, default=0, range=SEED)
     # Name of the LoRA adapter trained by Stage 1 and cloned into teacher/student by Stage 2.
     adapter_name: str = reads(BASELINE, default="aligned")
     # Stage 1 / 2: variant A's transformer (diffusers directory written by the baseline stage), used as the
@@ -147,17 +153,17 @@ class StageConfig:
     # Stage 2: the Stage-1 adapter (folder or safetensors file) to clone; required for stage2.
     init_adapter: str | None = handed_in(BASELINE, default=None)
     # Save a resumable Lightning checkpoint every n optimizer steps (and at the end).
-    checkpoint_every_n_steps: int = execution(default=50)
+    checkpoint_every_n_steps: int = execution(default=50, range=at_least(1))
     # Step checkpoints kept besides last.ckpt: 1 = the latest, 0 = none, -1 = all (paper-scale adapter +
     # AdamW state is ~0.8 GB per checkpoint). Without a monitored metric Lightning allows only these.
-    keep_checkpoints: int = execution(default=1)
+    keep_checkpoints: int = execution(default=1, range=within(0, 1, -1))
     # Resume from this Lightning checkpoint ("last" = the run's own last.ckpt if it exists).
     resume_from: str | None = execution(default="last")
     # Export the exponential moving average of the trained weights (the baseline's, or the adapters') with this
     # decay, updated after every step (None = the last step's weights). Checkpoints carry the average and the
     # current weights; held_out_eval scores the current ones. The average is a second copy of the module (frozen
     # weights included), so it is for unsharded runs.
-    ema_decay: float | None = reads(BASELINE, default=None)
+    ema_decay: float | None = reads(BASELINE, default=None, range=within(0, 1, high_open=True))
     # Deploy the in-training restorer on validation scenes and log its scores (off unless scenes are named).
     # It draws its own random streams: the weights are the same with or without it (so is held_out_eval).
     deployment_eval: DeploymentEvalConfig = execution(factory=DeploymentEvalConfig)
@@ -187,7 +193,7 @@ class TeacherConfig:
     """
 
     # Stage 1 aligns to this teacher's R_d.
-    views: int | None = reads(STAGE1, default=None)
+    views: int | None = reads(STAGE1, default=None, range=at_least(1))
 
 
 @dataclass
@@ -201,22 +207,22 @@ class PolicyConfig:
 class LossConfig:
     """Loss weights: Stage 1 L_warm (supplement Eq. supp-stage1), Stage 2 Eq. 9."""
 
-    lambda_align: float = reads(STAGE1, default=1.0)
-    lambda_ret: float = reads(STAGE2, default=0.15)
+    lambda_align: float = reads(STAGE1, default=1.0, range=at_least(0))
+    lambda_ret: float = reads(STAGE2, default=0.15, range=at_least(0))
     trajectory_space: TrajectorySpace = reads(STAGE2, default=TrajectorySpace.velocity)
     trajectory_target: TrajectoryTarget = reads(STAGE2, default=TrajectoryTarget.teacher)
     # epsilon of the token-wise L2 normalisation (supplement Eq. supp-retrieval-normalization).
-    retrieval_eps: float = reads(STAGE2, default=1e-6)
+    retrieval_eps: float = reads(STAGE2, default=1e-6, range=positive())
 
 
 @dataclass
 class ClusterResources:
     """What one SLURM job running this trainer requests (read by conf/hydra/launcher/slurm.yaml)."""
 
-    gpus_per_node: int = execution(default=0)
-    cpus_per_task: int = execution(default=2)
-    mem_gb: int = execution(default=8)
-    timeout_min: int = execution(default=240)
+    gpus_per_node: int = execution(default=0, range=at_least(0))
+    cpus_per_task: int = execution(default=2, range=at_least(1))
+    mem_gb: int = execution(default=8, range=at_least(1))
+    timeout_min: int = execution(default=240, range=at_least(1))
 
 
 @dataclass
@@ -238,22 +244,22 @@ class TrainerConfig:
 
     accelerator: str = reads(BASELINE, default="cpu")
     devices: str = reads(BASELINE, default="1")  # Lightning syntax: "1", "4", "auto", "0,1"
-    num_nodes: int = reads(BASELINE, default=1)
+    num_nodes: int = reads(BASELINE, default=1, range=at_least(1))
     strategy: str = reads(BASELINE, default="auto")
     precision: str = reads(BASELINE, default="32-true")
-    log_every_n_steps: int = execution(default=10)
+    log_every_n_steps: int = execution(default=10, range=at_least(1))
     # Any of "csv", "tensorboard", "wandb" (wandb needs the optional extra).
     loggers: list[str] = execution(factory=lambda: ["csv", "tensorboard"])
     enable_progress_bar: bool = execution(default=True)
     deterministic: bool = reads(BASELINE, default=False)
     # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
-    cpu_threads: int | None = execution(default=None)
+    cpu_threads: int | None = execution(default=None, range=at_least(1))
     # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection, and every stage's
     # step budget (None: each stage's own, experiment.<stage>_steps). The budget is set here, not in the stage section,
     # so that a later stage's config still says what an earlier one ran (tracegs.pipeline.upstream).
-    max_steps: int | None = via("stage.max_steps", default=None)
-    fast_dev_run: int = reads(BASELINE, default=0)
-    overfit_batches: float = reads(BASELINE, default=0.0)
+    max_steps: int | None = via("stage.max_steps", default=None, range=at_least(1))
+    fast_dev_run: int = reads(BASELINE, default=0, range=at_least(0))
+    overfit_batches: float = reads(BASELINE, default=0.0, range=at_least(0))
     detect_anomaly: bool = reads(BASELINE, default=False)
     # Lightning owns SLURM requeueing: on this signal its SLURMEnvironment checkpoints (hpc_ckpt_<n>.ckpt in the
     # run folder, after the step in flight) and requeues; the requeued job resumes from its newest checkpoint.

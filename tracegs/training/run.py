@@ -30,6 +30,7 @@ from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
 from tracegs.io import atomic_directory
+from tracegs.processes import sigterm_at_its_default
 from tracegs.restorer.build import build_backbone
 from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.checkpoints import (
@@ -278,7 +279,8 @@ def train_stage(cfg) -> Path:
             module.load_state_dict(finished["state_dict"], strict=False)
         else:
             try:
-                trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+                with sigterm_at_its_default():  # Lightning's own: a checkpoint after the step in flight
+                    trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
             except SIGTERMException:
                 raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
         product = output_dir / PRODUCTS[cfg.stage.name]

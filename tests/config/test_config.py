@@ -296,4 +296,10 @@ def test_a_and_stage1_read_the_first_clips_of_the_cache_stage2_reads_with_its_ow
     assert {stage: cfg.data.datamodule.batch_size for stage, cfg in reads.items()} == {
         "baseline": reads["baseline"].experiment.batch_size, "stage1": reads["stage1"].experiment.batch_size,
         "stage2": 1}
-    assert len({cfg.data.datamodule.cache_dir for cfg in reads.values()}) == 1
+    # A reads its own pretraining scenes (the paper's data protocol), Stage 1 and 2 the one training cache; under
+    # experiment=embedded_gt_targets A reads that cache too.
+    assert reads["stage1"].data.datamodule.cache_dir == reads["stage2"].data.datamodule.cache_dir
+    assert "-pretrain-" in reads["baseline"].data.datamodule.cache_dir
+    gt = {stage: compose(config_name="train", overrides=[f"stage={stage}", "experiment=embedded_gt_targets"])
+          for stage in ("baseline", "stage2")}
+    assert len({cfg.data.datamodule.cache_dir for cfg in gt.values()}) == 1

@@ -62,7 +62,7 @@ def test_help_fits_one_screen_and_names_the_groups(help_pages, name):
     if name not in NO_CONFIG:
         listed = {line.split(":")[0] for line in lines if ": " in line}
         assert set(GROUPS) <= listed, f"groups missing from {name} --help: {sorted(set(GROUPS) - listed)}"
-        assert "experiment: embedded, embedded_onestep, paper, rehearsal, replicate" in page
+        assert "experiment: embedded, embedded_gt_targets, embedded_onestep, paper, rehearsal, replicate" in page
     # Two examples of this very command; the config dump stays behind --cfg.
     examples = page.split("Examples:")[1].splitlines()
     assert sum(line.strip().startswith(name) for line in examples) >= 2

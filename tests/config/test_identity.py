@@ -346,7 +346,10 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     """A training or sampling setting keeps the paired-clip cache (a sweep over it re-prepares nothing); the
     codec and the frozen encoders name it, and so does the whole backbone when it makes the pseudo-targets."""
     def cache(*overrides: str) -> str:
-        return str(compose(config_name="train", overrides=list(overrides)).data.datamodule.cache_dir)
+        # A cache of ground-truth targets (A trained by this framework makes the embedded default's: its training
+        # settings name that cache, tests/config/test_data_protocol.py).
+        overrides = ["experiment=embedded_gt_targets", *overrides]
+        return str(compose(config_name="train", overrides=overrides).data.datamodule.cache_dir)
 
     for training_setting in ("backbone.schedule.train_time_power=0", "backbone.transformer.prediction=velocity",
                              "backbone.lora.rank=2", "backbone.sampler.guidance_scale=2"):
@@ -359,9 +362,9 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     assert cache(restorer, "backbone.transformer.num_layers=3") != cache(restorer)
 
 
-@pytest.mark.parametrize("experiment", ["embedded", "rehearsal"])
+@pytest.mark.parametrize("experiment", ["embedded_gt_targets", "rehearsal"])
 def test_settings_that_do_not_change_a_restoration_keep_a_restorer_made_cache(experiment):
-    """Pseudo-targets from the frozen restorer: its adapters, memory settings, where the encoders live, the
+    """Pseudo-targets from a frozen restorer loaded from its weights: its adapters, memory settings, where the encoders live, the
     training-time density and the deployment guidance never touch the cached bytes, so they keep the cache."""
     base = [f"experiment={experiment}", "data.prepare.pseudo_target=restorer"]
 

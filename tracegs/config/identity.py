@@ -45,7 +45,6 @@ from tracegs.data.config import (
     is_procedural,
     with_variant_teacher,
 )
-from tracegs.errors import ConfigError
 from tracegs.products import BASELINE, PREPARE, Declaration, Product, declarations
 from tracegs.restorer.config import sections_not_in_cache
 
@@ -220,13 +219,10 @@ def register_resolvers() -> None:
 
 
 def protocol_value(release: Any, corrected: Any, _root_: DictConfig) -> Any:
-    """``${tracegs.protocol:<release>,<corrected>}``: the value of ``deploy.protocol``'s choice (gsfixer_release
-    or corrected); a YAML that derives a field from the protocol cannot be run with ``own``."""
-    protocol = str(_root_.deploy.protocol)
-    if protocol not in ("gsfixer_release", "corrected"):
-        raise ConfigError("deploy.protocol", f"this configuration derives its GSFixer-protocol fields from "
-                                             f"gsfixer_release or corrected, got {protocol}")
-    return release if protocol == "gsfixer_release" else corrected
+    """``${tracegs.protocol:<release>,<corrected>}``: the value of ``deploy.protocol``'s choice: GSFixer's release
+    under gsfixer_release, else the corrected one (``own``, the embedded scale's measured deployment, composed with a
+    paper-scale group option, takes the corrections)."""
+    return release if str(_root_.deploy.protocol) == "gsfixer_release" else corrected
 
 
 # The name an older version gave a product folder, before names were derived from the typed config alone: the

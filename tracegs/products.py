@@ -25,9 +25,10 @@ settings of a cache and the fingerprint of an evaluation unit all derive from th
 
 Every numeric field also states its range beside its declaration (``range=``, tracegs.ranges).
 
-The module imports nothing of the project but :mod:`tracegs.modes`, :mod:`tracegs.ranges` and
-:mod:`tracegs.errors`, so every package's config dataclasses use it without depending on ``tracegs.config``
-(whose schema imports those packages).
+The products, and which are made from which, are the product graph's (:mod:`tracegs.stages`). The module
+imports nothing of the project but :mod:`tracegs.stages`, :mod:`tracegs.ranges` and :mod:`tracegs.errors`, so
+every package's config dataclasses use it without depending on ``tracegs.config`` (whose schema imports those
+packages).
 """
 
 from __future__ import annotations
@@ -39,31 +40,15 @@ from functools import cache
 from typing import Any
 
 from tracegs.errors import ConfigError
-from tracegs.modes import Mode
 from tracegs.ranges import Range, metadata
-
-
-class Product(Mode):
-    """A run kind whose folder is named by its identity (``${tracegs.run:<kind>}``)."""
-
-    prepare = "prepare"
-    baseline = "baseline"
-    stage1 = "stage1"
-    stage2 = "stage2"
-    deploy = "deploy"
-    evaluate = "evaluate"
-    restore = "restore"
-
+from tracegs.stages import DEPLOYMENT as DEPLOYMENT
+from tracegs.stages import STAGES, Product
 
 PREPARE, BASELINE, STAGE1, STAGE2 = Product.prepare, Product.baseline, Product.stage1, Product.stage2
 DEPLOY, EVALUATE, RESTORE = Product.deploy, Product.evaluate, Product.restore
-# The products that load the trained restorers.
-DEPLOYMENT = (DEPLOY, EVALUATE, RESTORE)
 # Every product: for the fields of a dataclass used at several places, which change what their section changes.
 EVERY = tuple(Product)
 
-# The products made from each trained one (see the module docstring).
-_MADE_FROM = {BASELINE: (STAGE1,), STAGE1: (STAGE2,), STAGE2: DEPLOYMENT}
 _KEY = "tracegs.products"
 
 
@@ -81,14 +66,7 @@ class Declaration:
 
 
 def _made_from(products: Iterable[Product]) -> frozenset[Product]:
-    found = set()
-    todo = [Product(p) for p in products]
-    while todo:
-        product = todo.pop()
-        if product not in found:
-            found.add(product)
-            todo.extend(_MADE_FROM.get(product, ()))
-    return frozenset(found)
+    return STAGES.made_from(Product(p) for p in products)
 
 
 def _flat(products: tuple[Product | tuple[Product, ...], ...]) -> list[Product]:

@@ -116,6 +116,11 @@ def test_the_config_location_is_on_the_ground_floor():
     assert import_graph()["tracegs.location"] == set()
 
 
+def test_the_stage_table_is_on_the_ground_floor():
+    """Every package's config dataclasses read the product graph (through tracegs.products)."""
+    assert import_graph()["tracegs.stages"] == {"tracegs.modes"}
+
+
 def test_no_import_cycle():
     assert cycles(import_graph()) == []
 

@@ -20,6 +20,7 @@ from tracegs.content import names_and_bytes_digest
 from tracegs.data.captions import captioner_dtype
 from tracegs.deploy.restorers import DiffusionRestorer
 from tracegs.devices import accelerator
+from tracegs.products import STAGE2
 from tracegs.restorer import adapters
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
@@ -37,7 +38,7 @@ class AdapterFile:
     path: Path
     field: str
     label: str
-    stage: str = "stage2"
+    stage: str = STAGE2.value
 
 
 @dataclass

@@ -1,9 +1,11 @@
 """How methods and metrics are named and rounded in every table of the report."""
 
+from tracegs.products import Product
+
 METHOD_LABELS = {"3dgs": "3DGS", "baseline": "Baseline (A)", "tracegs": "TRACE-GS"}
 # Restorers that appear only in diagnostics (the privileged gap), never as evaluation methods.
 # The Stage-1 adapter's name as a restorer of its own (the diagnostics' row and teacher, the privileged report's row).
-STAGE1 = "stage1"
+STAGE1 = Product.stage1.value
 RESTORER_LABELS = {**METHOD_LABELS, STAGE1: "Stage-1 adapter", "tracegs": "Stage-2 student (TRACE-GS)"}
 # SSIM′ is the second SSIM column, the convention the headline SSIM does not use (tracegs.eval.metrics).
 METRIC_LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "ssim_alt": "SSIM′↑"}

@@ -29,6 +29,7 @@ from tracegs.eval.replicates import diagnostics_markdown
 from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.upstream import as_variant, locate_artifacts, section
 from tracegs.pipeline.variants import in_table_order, table3_variants
+from tracegs.products import Product
 
 TEACHER = STAGE1  # the adapter name of the frozen Stage-1 teacher on the shared backbone
 
@@ -56,7 +57,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
             raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
                                     "(run tracegs-train stage=stage1 with the same settings)")
         files[TEACHER] = AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", TEACHER,
-                                     "stage1")
+                                     Product.stage1.value)
     roles = {}
     for name, variant in variants.items():
         if not variant.ablation.train_stage2:

@@ -20,6 +20,7 @@ from tracegs.config.identity import current_name, differing_keys, scoped_values
 from tracegs.content import names_and_bytes_digest, root_relative
 from tracegs.errors import ConfigError, require_writable_dir, writable
 from tracegs.io import atomic_write, write_json_atomic
+from tracegs.stages import STAGES
 
 log = logging.getLogger("tracegs")
 
@@ -28,15 +29,12 @@ LOCK_FILE = ".tracegs.lock"
 # How far below the experiment's folder and the data folder product folders lie: ``stage2/<variant>/<run>`` and
 # ``eval/<variant>/<data>-<run>`` (conf/stage/stage2.yaml, conf/evaluation/default.yaml), ``cache/<cache>``.
 PRODUCT_DEPTH = 3
-# The products of earlier runs each kind loads: their content is part of the record (an edit recomputes).
-# A cache whose pseudo-targets variant A makes reads A (tracegs.pipeline.prepare.pseudo_target_generator).
-INPUT_ARTIFACTS = {"prepare": ("baseline_weights",), "stage1": ("baseline_weights",),
-                   "stage2": ("baseline_weights", "stage1_adapter")}
 
 
 def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
-    """Content digests of the earlier products a ``kind`` run reads (tracegs.content)."""
-    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in INPUT_ARTIFACTS.get(kind, ())}
+    """Content digests of the earlier products a ``kind`` run reads (tracegs.content): their content is part of
+    the record, so an edit recomputes (the product graph says which, tracegs.stages)."""
+    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in STAGES.record_inputs(kind)}
     return {f"content.{name}": names_and_bytes_digest(path) for name, path in paths.items()
             if path is not None and Path(path).exists()}
 

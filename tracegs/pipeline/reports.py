@@ -20,6 +20,7 @@ from tracegs.eval.clips import (
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.interval_tables import write_per_step_intervals
+from tracegs.eval.labels import STAGE1
 from tracegs.eval.merge import merge_results
 from tracegs.eval.privileged import privileged_gap, privileged_gap_markdown
 from tracegs.eval.seeds import seed_spread_markdown
@@ -33,6 +34,7 @@ from tracegs.pipeline.diagnostics import diagnostics_report
 from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import as_variant, locate_artifacts, product_folder, section
 from tracegs.pipeline.variants import per_step_variants, table3_variants
+from tracegs.products import Product
 
 
 def report(cfg: DictConfig) -> Path:
@@ -112,8 +114,8 @@ def privileged_report(cfg: DictConfig) -> Path:
     pipelines = {name: restorer.pipeline for name, restorer in shared_restorers(
         section(cfg.backbone), cfg.artifacts.baseline_weights,
         {"baseline": None,
-         **({"stage1": AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", "stage1",
-                                   "stage1")} if cfg.report.stage1_row else {}),
+         **({STAGE1: AdapterFile(Path(cfg.artifacts.stage1_adapter), "artifacts.stage1_adapter", STAGE1,
+                                 Product.stage1.value)} if cfg.report.stage1_row else {}),
          "tracegs": AdapterFile(Path(cfg.artifacts.student_adapter), "artifacts.student_adapter", "student")},
         batch=cfg.deploy.clip_batch, steps=cfg.deploy.steps).items()}
     # The student conditions at the view counts evaluated: each is one more restoration per clip and restorer.

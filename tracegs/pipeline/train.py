@@ -12,30 +12,30 @@ from tracegs.data.sources import SceneSource
 from tracegs.eval.held_out_curve import HELD_OUT_CURVE
 from tracegs.pipeline.records import product_lock, reuse_finished, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts, section
+from tracegs.products import BASELINE, STAGE2
+from tracegs.stages import STAGES
 from tracegs.training.config import TrainConfig
-from tracegs.training.run import PRODUCTS, train_stage
+from tracegs.training.run import train_stage
 
 log = logging.getLogger("tracegs")
-
-# The earlier products each stage loads.
-STAGE_INPUTS = {"baseline": [], "stage1": ["baseline_weights"], "stage2": ["baseline_weights", "stage1_adapter"]}
 
 
 def train(cfg: DictConfig) -> Path | None:
     """Train ``cfg.stage.name`` into ``cfg.run_dir``; a variant that trains no student (A) trains no Stage 2."""
-    if cfg.stage.name == "stage2" and not cfg.ablation.train_stage2:
+    if cfg.stage.name == STAGE2 and not cfg.ablation.train_stage2:
         log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
         return None
-    if cfg.stage.name == "baseline" and cfg.experiment.baseline_steps == 0:
+    if cfg.stage.name == BASELINE and cfg.experiment.baseline_steps == 0:
         # Paper scale: variant A is GSFixer's pretrained restorer, loaded where it is used; the sweep's first
         # command must pass on to Stage 1 rather than stop.
         log.info("experiment %s: variant A is the pretrained restorer %s; nothing to train", cfg.experiment.name,
                  cfg.backbone.transformer.pretrained_path)
         return None
-    locate_artifacts(cfg, STAGE_INPUTS[cfg.stage.name])
+    locate_artifacts(cfg, STAGES.stage_inputs(cfg.stage.name))
+    product = Path(cfg.run_dir) / STAGES.stage(cfg.stage.name).folder
     with product_lock(cfg.run_dir, "run_dir"):
-        if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]):
-            return Path(cfg.run_dir) / PRODUCTS[cfg.stage.name]
+        if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, product):
+            return product
         return train_locked(cfg)
 
 

@@ -36,7 +36,7 @@ from tracegs.config.tree import ConfigTree
 from tracegs.errors import ConfigError
 from tracegs.pipeline.records import RUN_RECORD
 from tracegs.pipeline.variants import VARIANT_SECTIONS, variant_sections
-from tracegs.training.run import PRODUCTS
+from tracegs.stages import STAGES
 
 log = logging.getLogger("tracegs")
 
@@ -47,10 +47,7 @@ def section(node: DictConfig) -> Any:
 
 
 # The products a training stage makes: they are looked up on the training data (``training_data``).
-TRAINED = ("baseline", "stage1", "stage2")
-# The earlier stage whose product each artifact is, and the artifact each stage's product is.
-PRODUCERS = {"baseline_weights": "baseline", "stage1_adapter": "stage1", "student_adapter": "stage2"}
-ARTIFACT_OF = {stage: artifact for artifact, stage in PRODUCERS.items()}
+TRAINED = STAGES.names()
 # The sections a training stage's own settings live in; the stage group's options also set these keys elsewhere.
 STAGE_SECTIONS = ("stage", "optimizer")
 # What A and Stage 1 read of a variant is the default variant's (every variant clones their products); its loss
@@ -72,10 +69,10 @@ def as_variant(cfg: DictConfig, variant: str) -> DictConfig:
 
 
 def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> DictConfig:
-    """The config of the earlier ``kind`` run ("baseline", "stage1", "stage2" or "evaluate"; the last two of
-    ``variant``, default this config's) whose product ``cfg`` needs, on this config's dataset: a projection of
+    """The config of the earlier ``kind`` run (a trained stage or "evaluate"; a stage trained per variant and an
+    evaluation of ``variant``, default this config's) whose product ``cfg`` needs, on this config's dataset: a projection of
     ``cfg`` (see the module docstring). ``cfg``'s own folders and artifacts must not be pinned yet."""
-    if kind in ("baseline", "stage1"):
+    if kind in TRAINED and not STAGES.stage(kind).per_variant:
         projected = copy.deepcopy(cfg)
         _set_sections(projected, variant_sections(None, ConfigTree.of(cfg)), SHARED_BY_VARIANTS)
     else:
@@ -126,7 +123,7 @@ def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -
         if values.get("data.name") == data and _compared(values) == expected:
             matches.append(record.parent)
     if len(matches) > 1:
-        field = f"artifacts.{ARTIFACT_OF[kind]}" if kind in TRAINED else "data"
+        field = f"artifacts.{STAGES.stage(kind).artifact}" if kind in TRAINED else "data"
         raise ConfigError(field, f"{len(matches)} {kind} runs on {data} match this run's settings "
                                  f"({', '.join(m.name for m in matches)} under {parent}); name the one to use")
     return matches[0] if matches else parent / f"none-on-{data}-with-these-settings"
@@ -139,8 +136,8 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
 
     Every product is found from the configuration as given, and the run's own folders are resolved and kept
     before any artifact is filled in, so they stay named by it too."""
-    found = {artifact: product_folder(cfg, PRODUCERS[artifact]) / PRODUCTS[PRODUCERS[artifact]]
-             for artifact in needed if cfg.artifacts[artifact] == AUTO}
+    stages = {artifact: STAGES.producer(artifact) for artifact in needed if cfg.artifacts[artifact] == AUTO}
+    found = {artifact: product_folder(cfg, stage.product) / stage.folder for artifact, stage in stages.items()}
     for key in ("run_dir", "evaluation.out_dir"):
         OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
     for artifact, path in found.items():

@@ -17,12 +17,7 @@ from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, rea
 from tracegs.ranges import SEED, at_least, each, positive, within
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig
-
-
-class StageName(Mode):
-    baseline = "baseline"  # variant A's restorer (embedded scale; the paper loads GSFixer's)
-    stage1 = "stage1"  # privileged direction alignment (main paper Sec. 3.3)
-    stage2 = "stage2"  # on-policy distillation (main paper Sec. 3.4)
+from tracegs.stages import StageName
 
 
 class MemoryMode(Mode):

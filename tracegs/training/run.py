@@ -31,7 +31,9 @@ from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
 from tracegs.io import atomic_directory
 from tracegs.processes import sigterm_at_its_default
+from tracegs.products import BASELINE, STAGE1, STAGE2
 from tracegs.restorer.build import build_backbone
+from tracegs.stages import STAGES
 from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.checkpoints import (
     CheckpointOnSignal,
@@ -49,19 +51,16 @@ from tracegs.training.stage1 import Stage1AlignmentModule
 from tracegs.training.stage2 import STUDENT, Stage2DistillationModule
 from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
 
-PRODUCTS = {
-    "baseline": "baseline_transformer",
-    "stage1": "stage1_adapter",
-    "stage2": "student_adapter",
-}
+# Each stage's product, by its name inside the run folder (the product graph's, tracegs.stages).
+PRODUCTS = {stage.product: stage.folder for stage in STAGES.stages}
 
 
 def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
     """The LightningModule of ``cfg.stage.name`` around the backbone's transformer and schedule."""
     stage = cfg.stage
-    if stage.name == "baseline":
+    if stage.name == BASELINE:
         return BaselineRestorerModule(backbone.transformer, backbone.schedule, cfg.optimizer, seed=stage.seed)
-    if stage.name == "stage1":
+    if stage.name == STAGE1:
         return Stage1AlignmentModule(
             backbone.transformer,
             backbone.schedule,
@@ -124,7 +123,7 @@ def weight_average(stage: StageConfig) -> list[Callback]:
 
 def deployed_adapter(stage: StageConfig) -> str | None:
     """The adapter a stage's restorer deploys with: none for A, the aligned adapter, the Stage-2 student."""
-    return {"baseline": None, "stage1": stage.adapter_name, "stage2": STUDENT}[stage.name]
+    return {BASELINE: None, STAGE1: stage.adapter_name, STAGE2: STUDENT}[stage.name]
 
 
 def deployment_eval(cfg: TrainConfig, backbone) -> list[Callback]:
@@ -217,11 +216,11 @@ def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path,
     """Write the stage's product atomically and return its path (``lora_state``: the adapters' whole weights
     when the transformer is sharded)."""
     product = output_dir / PRODUCTS[stage]
-    if stage == "baseline":
+    if stage == BASELINE:
         # A diffusers directory is several files: the directory is the atomic unit.
         with atomic_directory(product) as staging:
             module.transformer.save_pretrained(staging)
-    elif stage == "stage1":
+    elif stage == STAGE1:
         module.save_adapter(product, lora_state)
     else:
         module.save_student(product, lora_state)
@@ -244,14 +243,14 @@ def train_stage(cfg) -> Path:
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work
-    if cfg.trainer.strategy == "fsdp" and cfg.stage.name == "baseline":
+    if cfg.trainer.strategy == "fsdp" and cfg.stage.name == BASELINE:
         raise ValueError("trainer.strategy: fsdp shards adapter training (stage1, stage2); train stage=baseline "
                          "with trainer=ddp")
     if cfg.trainer.strategy == "fsdp" and cfg.stage.deployment_eval.scenes:
         raise ValueError("stage.deployment_eval: rank 0 deploys alone, which a sharded transformer cannot do "
                          "(train with trainer=ddp, or set stage.deployment_eval.scenes to [])")
     L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
-    if cfg.stage.name != "baseline" and cfg.stage.base_weights is not None:
+    if cfg.stage.name != BASELINE and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
             raise FileNotFoundError(
                 f"stage.base_weights: no baseline restorer directory {cfg.stage.base_weights} "
@@ -263,7 +262,7 @@ def train_stage(cfg) -> Path:
     backbone = build_backbone(cfg.backbone, encoders=False)  # the cache holds every encoder's output
     module = build_module(cfg, backbone)
     # A reads R_s and its target only: its own pretraining scenes fit no teacher.
-    teacher = NO_TEACHER if cfg.stage.name == "baseline" else cfg.teacher.views
+    teacher = NO_TEACHER if cfg.stage.name == BASELINE else cfg.teacher.views
     datamodule = PairedClipDataModule(cfg.data, teacher_views=teacher)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from tracegs.products import STAGE1
 from tracegs.restorer.adapters import activate, adapter_parameters, add_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.training.config import OptimizerConfig
@@ -60,4 +61,4 @@ class Stage1AlignmentModule(RestorerTrainingModule):
 
     def save_adapter(self, path, state_dict: dict | None = None) -> None:
         """Write the aligned adapter phi (safetensors) that Stage 2 clones into teacher and student."""
-        save_adapter(self.transformer, self.adapter_name, path, state_dict, stage="stage1")
+        save_adapter(self.transformer, self.adapter_name, path, state_dict, stage=STAGE1.value)

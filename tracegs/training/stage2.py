@@ -8,6 +8,7 @@ import torch
 from lightning.pytorch.strategies import ParallelStrategy
 from torch import Tensor, nn
 
+from tracegs.products import STAGE1, STAGE2
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve
@@ -78,7 +79,7 @@ class Stage2DistillationModule(RestorerTrainingModule):
         # The aligned adapter is loaded once and deep-copied: no re-initialisation, no shared tensors.
         # ``lora`` (the run's backbone.lora) must match the file: the student trains at the configured rank.
         load_adapter(self.transformer, STUDENT, init_adapter, trainable=True, expected=typed(lora, LoraConfig),
-                     field="stage.init_adapter", stage="stage1")
+                     field="stage.init_adapter", stage=STAGE1.value)
         clone_adapter(self.transformer, STUDENT, TEACHER, trainable=False)
         activate(self.transformer, STUDENT)
 
@@ -180,4 +181,4 @@ class Stage2DistillationModule(RestorerTrainingModule):
 
     def save_student(self, path, state_dict: dict | None = None) -> None:
         """Write the distilled student adapter phi_S (the only thing deployment needs)."""
-        save_adapter(self.transformer, STUDENT, path, state_dict, stage="stage2")
+        save_adapter(self.transformer, STUDENT, path, state_dict, stage=STAGE2.value)

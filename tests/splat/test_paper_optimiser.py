@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 from support.scenes import random_scene
 
 from tracegs.cli.app import CONF_DIR
+from tracegs.config.identity import register_resolvers
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View
 from tracegs.splat.render import render
@@ -22,11 +23,15 @@ def test_paper_yaml_sets_every_fit_field_so_no_embedded_default_leaks():
     dens_fields = {f.name for f in dataclasses.fields(DensificationConfig)}
     assert fit_fields - set(paper) == set()
     assert dens_fields - set(paper.densification) == set()
-    fit = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(GaussianFitConfig), paper))
+    # The protocol-derived values read deploy.protocol from the root (tracegs.config.identity.protocol_value).
+    register_resolvers()
+    root = OmegaConf.create({"deploy": {"protocol": "gsfixer_release"},
+                             "fit": OmegaConf.merge(OmegaConf.structured(GaussianFitConfig), paper)})
+    fit = OmegaConf.to_object(root.fit)
     assert fit.densification.max_gaussians is None  # the reference optimiser has no cap
-    # Kerbl et al. 2023 / gsplat DefaultStrategy.
+    # Kerbl et al. 2023 / gsplat DefaultStrategy; the opacity rate as GSFixer's release sets it (0.025).
     assert (fit.lr_quats, fit.lr_scales, fit.lr_opacities, fit.lr_sh_dc, fit.lr_sh_rest) == (
-        1e-3, 5e-3, 5e-2, 2.5e-3, 1.25e-4)
+        1e-3, 5e-3, 2.5e-2, 2.5e-3, 1.25e-4)
     assert (fit.ssim_weight, fit.sh_degree, fit.densification.grow_scale3d, fit.densification.prune_opa) == (
         0.2, 3, 0.01, 0.005)
 

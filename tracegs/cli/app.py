@@ -23,6 +23,7 @@ from typing import Any
 
 import hydra
 import lightning
+import torch
 from diffusers.utils import logging as diffusers_logging
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
@@ -190,6 +191,9 @@ def run_task(task: Callable[[DictConfig], Any], cfg: DictConfig) -> Any:
     log_libraries_through_hydra()
     quiet_library_notices()
     lightning.seed_everything(cfg.seed, workers=True, verbose=False)
+    threads = OmegaConf.select(cfg, "trainer.cpu_threads")
+    if threads is not None:  # every command, not only training: concurrent runs on shared cores otherwise spin
+        torch.set_num_threads(threads)
     return task(cfg)
 
 

@@ -247,7 +247,8 @@ class TrainerConfig:
     loggers: list[str] = execution(factory=lambda: ["csv", "tensorboard"])
     enable_progress_bar: bool = execution(default=True)
     deterministic: bool = reads(BASELINE, default=False)
-    # torch intra-op threads per process (None = torch's default); 1 when several ranks share a CPU.
+    # torch intra-op threads per process of every command (None = torch's default); 1 when several ranks or runs
+    # share the cores (more then spin in OpenMP barriers).
     cpu_threads: int | None = execution(default=None, range=at_least(1))
     # Debug switches (conf/debug): a one-step smoke run, overfitting one batch, anomaly detection, and every stage's
     # step budget (None: each stage's own, experiment.<stage>_steps). The budget is set here, not in the stage section,

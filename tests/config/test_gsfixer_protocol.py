@@ -141,11 +141,19 @@ def test_the_paper_scale_deploys_as_gsfixer_released_it_and_corrected_names_each
     assert value(composed("prepare", ["experiment=paper", f"{key}={override}"]), key) == corrected
 
 
-def test_screen_pruning_follows_gsfixers_train_script_under_both_protocols():
-    """train.py l. 246: ``size_threshold = 20 if iteration > opacity_reset_interval`` (the reference optimiser's)."""
+# The table's rows that are the release's under both protocols (nothing to correct): (key, value, file and line).
+SHARED_FIELDS = [
+    # train.py l. 246: ``size_threshold = 20 if iteration > opacity_reset_interval`` (the reference optimiser's).
+    ("data.prepare.fit.densification.screen_prune_px", 20, "train.py l. 246"),
+    # base.py l. 13-34 with sparse.py l. 236-283: 7 bridged windows a round.
+    ("deploy.trajectory.clip_rule", "gsfixer_windows", "gsfixer/extrapolation/outpaint/base.py l. 13-34"),
+]
+
+
+@pytest.mark.parametrize("key, shared, where", SHARED_FIELDS)
+def test_values_with_nothing_to_correct_follow_gsfixer_under_both_protocols(key, shared, where):
     for protocol in ("gsfixer_release", "corrected"):
-        cfg = composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"])
-        assert cfg.data.prepare.fit.densification.screen_prune_px == 20
+        assert value(composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"]), key) == shared, where
 
 
 def test_the_rehearsal_runs_gsfixers_release():
@@ -186,3 +194,6 @@ def test_every_protocol_field_is_a_row_of_the_cluster_docs_table():
         for shown in (release, corrected):
             assert f"`{'null' if shown is None else shown}`".lower() in row, key
         assert where.split(" l. ")[0].split("/")[-1] in row, key
+    for key, shared, where in SHARED_FIELDS:
+        (row,) = [line.lower() for line in table.splitlines() if f"| `{key.split('.')[-1]}` |" in line]
+        assert row.count(f"`{shared}`") >= 2 and where.split(" l. ")[0].split("/")[-1] in row, key

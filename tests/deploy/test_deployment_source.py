@@ -104,7 +104,7 @@ def test_a_pseudo_view_at_the_clips_size_is_compared_with_its_render_resized_bil
     camera = unit.test_cameras[0]
     with torch.no_grad():
         full = fitter._render(View(image=unit.test_images[0], camera=camera), 0)[0]
-        rendered, image, _ = fitter._render(View(image=_bilinear(unit.test_images[:1])[0], camera=camera), 0)
+        rendered = fitter._render(View(image=_bilinear(unit.test_images[:1])[0], camera=camera), 0)[0]
     assert tuple(rendered.shape[-2:]) == CLIP
     assert torch.allclose(rendered, _bilinear(full[None])[0], atol=1e-6)
 

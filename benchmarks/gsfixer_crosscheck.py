@@ -17,7 +17,7 @@ stood in by empty modules while they load. What is run, each with fixed inputs a
 - ``Dataset.__init__``'s sparse-view rule (datasets/colmap_debug.py l. 416-431) on a stand-in parser;
 - ``ssim`` (utils/loss_utils.py l. 65-105), as ``metrics.py`` l. 25-35 and 74 feed it 8-bit PNGs.
 
-The script then checks ours against what it wrote (``tests/test_gsfixer_goldens.py`` does the same from the file)
+The script then checks ours against what it wrote (``tests/config/test_gsfixer_goldens.py`` does the same from the file)
 and exits 1 on a mismatch.
 """
 

@@ -118,6 +118,9 @@ PROTOCOL_FIELDS = [
     ("data.prepare.fit.init_min_views", 1, 2, "datasets/colmap_debug.py l. 354-369"),
     ("backbone.reference_encoder.pixels", "uint8_wrap", "clean", "gsfixer/cogvideo/inference.py l. 106-119"),
     ("evaluation.ssim_convention", "gsfixer", "torchmetrics", "metrics.py l. 25-35, 74"),
+    ("deploy.resolution", "dataset", "frame",
+     "datasets/colmap_debug.py l. 160-170; arguments/__init__.py l. 64; base.py l. 63; train.py l. 204-208"),
+    ("deploy.view_rule", "linspace", None, "datasets/colmap_debug.py l. 402-422"),
 ]
 
 
@@ -134,14 +137,23 @@ def test_the_paper_scale_deploys_as_gsfixer_released_it_and_corrected_names_each
     every field at once, and each stays overridable by name."""
     assert value(composed("prepare", ["experiment=paper"]), key) == release, where
     assert value(composed("prepare", ["experiment=paper", "deploy.protocol=corrected"]), key) == corrected, where
-    assert value(composed("prepare", ["experiment=paper", f"{key}={corrected}"]), key) == corrected
+    override = "null" if corrected is None else corrected
+    assert value(composed("prepare", ["experiment=paper", f"{key}={override}"]), key) == corrected
 
 
-def test_screen_pruning_follows_gsfixers_train_script_under_both_protocols():
-    """train.py l. 246: ``size_threshold = 20 if iteration > opacity_reset_interval`` (the reference optimiser's)."""
+# The table's rows that are the release's under both protocols (nothing to correct): (key, value, file and line).
+SHARED_FIELDS = [
+    # train.py l. 246: ``size_threshold = 20 if iteration > opacity_reset_interval`` (the reference optimiser's).
+    ("data.prepare.fit.densification.screen_prune_px", 20, "train.py l. 246"),
+    # base.py l. 13-34 with sparse.py l. 236-283: 7 bridged windows a round.
+    ("deploy.trajectory.clip_rule", "gsfixer_windows", "gsfixer/extrapolation/outpaint/base.py l. 13-34"),
+]
+
+
+@pytest.mark.parametrize("key, shared, where", SHARED_FIELDS)
+def test_values_with_nothing_to_correct_follow_gsfixer_under_both_protocols(key, shared, where):
     for protocol in ("gsfixer_release", "corrected"):
-        cfg = composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"])
-        assert cfg.data.prepare.fit.densification.screen_prune_px == 20
+        assert value(composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"]), key) == shared, where
 
 
 def test_the_rehearsal_runs_gsfixers_release():
@@ -159,11 +171,29 @@ def test_the_embedded_scale_keeps_its_measured_values_under_its_own_protocol():
     assert (cfg.data.prepare.fit.lr_opacities, cfg.data.prepare.fit.init_min_views) == (0.05, 2)
     assert cfg.backbone.reference_encoder.pixels == "clean"
     assert cfg.evaluation.ssim_convention == "torchmetrics"
+    assert (cfg.deploy.resolution, cfg.deploy.clip_size, cfg.deploy.view_rule) == ("frame", None, None)
+
+
+def test_the_paper_scales_clips_reach_the_restorer_at_its_480x720():
+    """train_mipnerf360_sparse_view_recon_per_scene.py l. 40-41: ``--diffusion_resize_width 720
+    --diffusion_resize_height 480``, under both protocols."""
+    for protocol in ("gsfixer_release", "corrected"):
+        cfg = composed("prepare", ["experiment=paper", f"deploy.protocol={protocol}"])
+        assert list(cfg.deploy.clip_size) == [480, 720]
+
+
+def test_a_capture_of_ones_own_is_fitted_at_the_restorers_frames_under_every_protocol():
+    cfg = composed("restore", ["experiment=paper"])
+    assert (cfg.deploy.protocol, cfg.deploy.resolution) == ("gsfixer_release", "frame")
 
 
 def test_every_protocol_field_is_a_row_of_the_cluster_docs_table():
     table = (Path(__file__).resolve().parents[2] / "docs" / "cluster.md").read_text()
     for key, release, corrected, where in PROTOCOL_FIELDS:
         (row,) = [line.lower() for line in table.splitlines() if f"| `{key.split('.')[-1]}` |" in line]
-        assert f"`{release}`".lower() in row and f"`{corrected}`".lower() in row, key
+        for shown in (release, corrected):
+            assert f"`{'null' if shown is None else shown}`".lower() in row, key
         assert where.split(" l. ")[0].split("/")[-1] in row, key
+    for key, shared, where in SHARED_FIELDS:
+        (row,) = [line.lower() for line in table.splitlines() if f"| `{key.split('.')[-1]}` |" in line]
+        assert row.count(f"`{shared}`") >= 2 and where.split(" l. ")[0].split("/")[-1] in row, key

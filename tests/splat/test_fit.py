@@ -160,4 +160,4 @@ def test_fitter_input_errors_are_clear():
     with pytest.raises(ValueError, match="captured"):
         GaussianFitter(init, cfg, 1.0).train_until(3, [], progress=False)
     with pytest.raises(ValueError, match=r"View.image"):
-        View(torch.zeros(3, 10, 10), views[0].camera)
+        View(torch.zeros(1, 10, 10), views[0].camera)

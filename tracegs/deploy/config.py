@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from tracegs.data.config import CaptionConfig, SfmConfig
+from tracegs.data.config import CaptionConfig, SfmConfig, ViewRule
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
@@ -41,6 +41,20 @@ class KeptFrames(Mode):
     between_ends = "between_ends"
 
 
+class Resolution(Mode):
+    """The image size deployment fits, refines and scores at (tracegs.deploy.scenes.deployment_source)."""
+
+    # GSFixer's release: the dataset's own downsampled images (``data_factor = 4``: images_4, arguments/__init__.py
+    # l. 64, datasets/colmap_debug.py l. 160-170), data.source's size ignored; each clip is resized bilinearly to
+    # the restorer's frame (``clip_size``: gsfixer/extrapolation/outpaint/base.py l. 63, the captured ends
+    # sparse.py l. 287-296), its restored frames stay at that size and each pseudo view's render is resized
+    # bilinearly to them (train.py l. 204-208).
+    dataset = "dataset"
+    # Corrected: every image resized (Lanczos) to data.source's height x width on load, and fitted, restored and
+    # scored at that one size.
+    frame = "frame"
+
+
 @dataclass
 class RefinementConfig:
     """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
@@ -62,6 +76,15 @@ class RefinementConfig:
     seed: int = reads(DEPLOYMENT, default=0, range=SEED)
     protocol: Protocol = reads(DEPLOYMENT, default=Protocol.own)
     kept_frames: KeptFrames = reads(DEPLOYMENT, default=KeptFrames.between_ends)  # embedded: as corrected
+    resolution: Resolution = reads(DEPLOYMENT, default=Resolution.frame)  # embedded: as corrected
+    # [height, width] each clip's frames and reference images are resized to (bilinearly) before the restorer sees
+    # them, where they differ (``resolution=dataset``); None = as rendered.
+    clip_size: list[int] | None = reads(DEPLOYMENT, default=None, range=each(at_least(1)))
+    # The sparse-view rule of the scenes deployment fits and scores, where no split file lists a K-view set; None =
+    # data.source.view_rule. GSFixer's release picks DL3DV's as every other dataset's (its one loader,
+    # datasets/colmap_debug.py l. 402-422: np.linspace over the every-8th split's training views), where the DL3DV
+    # config's own rule is nested for its training clips (paper Sec. 3).
+    view_rule: ViewRule | None = reads(DEPLOYMENT, default=None)
 
     def validate(self) -> None:
         repairs = list(self.repair_iters)
@@ -75,6 +98,11 @@ class RefinementConfig:
             raise ConfigError("steps", f"must be >= 1 or null (full schedule), got {self.steps}")
         if self.max_clips_per_round is not None and self.max_clips_per_round < 1:
             raise ConfigError("max_clips_per_round", f"must be >= 1 or null, got {self.max_clips_per_round}")
+        if self.resolution == Resolution.dataset and self.clip_size is None:
+            raise ConfigError("clip_size", "resolution=dataset fits at the dataset's own image size, so the "
+                                           "restorer's clips need a size: set [height, width]")
+        if self.clip_size is not None and len(self.clip_size) != 2:
+            raise ConfigError("clip_size", f"must be [height, width] or null, got {list(self.clip_size)}")
         if self.clip_batch < 1:
             raise ConfigError("clip_batch", f"must be >= 1, got {self.clip_batch}")
         try:

@@ -52,17 +52,27 @@ class RepairRound:
     pseudo: list[View]  # replaces every earlier pseudo view
 
 
+def to_clip_size(images: torch.Tensor, size: Sequence[int] | None) -> torch.Tensor:
+    """Images [N,3,H,W] resized bilinearly to the restorer's ``size`` [height, width] where they differ, as GSFixer's
+    release resizes its renders (gsfixer/extrapolation/outpaint/base.py l. 63) and captured ends (sparse.py
+    l. 287-296); unchanged when ``size`` is None."""
+    if size is None or tuple(images.shape[-2:]) == tuple(size):
+        return images
+    return torch.nn.functional.interpolate(images, size=tuple(size), mode="bilinear", align_corners=False)
+
+
 def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
                        fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
     """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
-    whose two ends are observed reference views (their captured images become the clip's references).
+    whose two ends are observed reference views (their captured images become the clip's references), both at
+    the restorer's ``cfg.clip_size`` (``to_clip_size``).
     Frames come from ``render_clip`` and captions from ``clip_caption`` on each clip's first frame, as in
     prepare; ``caption`` is the scene's own caption (its caption.txt, "" when it has none)."""
     clips = []
     for (a, b), cams in round_clips([v.camera for v in captured], round_index, cfg.trajectory,
                                     cfg.max_clips_per_round, generator):
-        frames = render_clip(fitter.model, cams, fit_cfg, fitter.iteration)
-        references = torch.stack([captured[a].image, captured[b].image])
+        frames = to_clip_size(render_clip(fitter.model, cams, fit_cfg, fitter.iteration), cfg.clip_size)
+        references = to_clip_size(torch.stack([captured[a].image, captured[b].image]), cfg.clip_size)
         if cfg.trajectory.captured_ends:
             frames = with_captured_ends(frames, references)
         clips.append(Clip(frames=frames, cameras=list(cams), references=references,

@@ -21,7 +21,8 @@ from tracegs.splat.render import render
 @dataclass
 class Clip:
     """One restoration unit: ``frames`` [F,3,H,W] in [0,1] rendered at ``cameras`` (frame 0 and -1 at the
-    reference views), ``references`` [2,3,H,W] the captured images of those reference views."""
+    reference views), ``references`` [2,3,H,W] the captured images of those reference views, both at the
+    restorer's size (``deploy.clip_size``), which may differ from the cameras'."""
 
     frames: Tensor
     cameras: list[Camera]

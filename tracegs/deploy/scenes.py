@@ -9,7 +9,7 @@ and the sparse-only cold start fitted from them. Units are the shards of a Hydra
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -22,7 +22,7 @@ from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.prepare import MIN_INIT_POINTS
 from tracegs.data.splits import split_scene
-from tracegs.deploy.config import EvaluationConfig, RefinementConfig
+from tracegs.deploy.config import EvaluationConfig, RefinementConfig, Resolution
 from tracegs.deploy.refine import cold_start, refine
 from tracegs.deploy.restorers import ClipRestorer
 from tracegs.io import atomic_write
@@ -41,6 +41,16 @@ def evaluation_units(scenes: Sequence[str], views: Sequence[int], shard_index: i
         raise ValueError(f"evaluation.shard_index={shard_index} must lie in [0, num_shards={num_shards})")
     units = [(scene, int(k)) for scene in scenes for k in views]
     return units[shard_index::num_shards]
+
+def deployment_source(source: SceneSourceConfig, cfg: RefinementConfig) -> SceneSourceConfig:
+    """The scenes as deployment fits, refines and scores them: resized to ``source``'s height x width
+    (``resolution=frame``), or at the dataset's own images (``resolution=dataset``, GSFixer's release), whose clips
+    ``render_round_clips`` resizes to the restorer's ``clip_size``; their K-view sets by ``cfg.view_rule`` where
+    it names one."""
+    if cfg.resolution == Resolution.dataset:
+        source = replace(source, height=None, width=None)
+    return source if cfg.view_rule is None else replace(source, view_rule=cfg.view_rule)
+
 
 def initial_model(scene: Scene, captured_ids: Sequence[int], captured: Sequence[View],
                   fit_cfg: GaussianFitConfig) -> GaussianModel:
@@ -69,8 +79,9 @@ class SceneUnit:
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
-    """Split ``scene`` exactly as prepare does (``split_scene``: the same view sets) and load V_s and the
-    test set. Test views are disjoint from every training view, so reference frames never enter the metrics."""
+    """Split ``scene`` as prepare does (``split_scene``, with ``source``'s view rule: ``deployment_source`` may set
+    GSFixer's) and load V_s and the test set. Test views are disjoint from every training view, so reference frames
+    never enter the metrics."""
     split = split_scene(scene, source, [views])
     captured_ids = split.views(views)
     if set(captured_ids) & set(split.test):
@@ -107,6 +118,7 @@ def deploy_scenes(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: 
         task = progress.add_task("deploy", total=len(units))
         plain = PlainProgress("deploy", len(units))
         loaded: dict[str, Scene] = {}
+        source = deployment_source(source, refine_cfg)
         for finished, (scene_name, views) in enumerate(units, 1):
             target = Path(out_dir) / scene_name / f"views_{views}.ply"
             if not target.is_file() or cfg.force:

@@ -24,7 +24,7 @@ from tracegs.data.config import SceneSourceConfig
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.refine import refine
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
-from tracegs.deploy.scenes import SceneUnit, load_unit
+from tracegs.deploy.scenes import SceneUnit, deployment_source, load_unit
 from tracegs.eval.metrics import METRIC_NAMES, ImageMetrics, mean_metrics
 from tracegs.restorer.build import with_encoders
 from tracegs.restorer.sampler import RestorationPipeline
@@ -66,7 +66,8 @@ class DeploymentRefinement(L.Callback):
         if every_n_steps is not None and every_n_steps < 1:
             raise ValueError(f"every_n_steps must be >= 1 or None, got {every_n_steps}")
         refine_cfg.validate()
-        self.scenes, self.source, self.views = list(scenes), source, [int(v) for v in views]
+        self.scenes, self.views = list(scenes), [int(v) for v in views]
+        self.source = deployment_source(source, refine_cfg)
         self.restorer_factory = restorer_factory
         self.refine_cfg, self.fit_cfg = refine_cfg, fit_cfg
         self.every_n_steps = every_n_steps

@@ -31,9 +31,9 @@ from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
 from tracegs.data.sources import GroundTruthRenderer
 from tracegs.deploy.config import METHODS, EvaluationConfig, RefinementConfig
-from tracegs.deploy.refine import refine, render_round_clips
+from tracegs.deploy.refine import refine, render_round_clips, to_clip_size
 from tracegs.deploy.restorers import ClipRestorer, DiffusionRestorer
-from tracegs.deploy.scenes import SceneUnit, evaluation_units, load_unit, save_model
+from tracegs.deploy.scenes import SceneUnit, deployment_source, evaluation_units, load_unit, save_model
 from tracegs.errors import NonFiniteError, require_writable_dir
 from tracegs.eval.merge import merge_results, unit_path
 from tracegs.eval.metrics import (
@@ -121,7 +121,8 @@ def unit_per_step_curves(unit: SceneUnit, cold: GaussianFitter, restorers: Mappi
     generator = torch.Generator().manual_seed(refine_cfg.seed)
     caption = unit.scene.caption or ""
     clips = render_round_clips(cold, unit.captured, 0, refine_cfg, fit_cfg, caption, generator)
-    truth = torch.stack([gt_renderer(unit.scene, clip.cameras) for clip in clips])
+    truth = torch.stack([to_clip_size(gt_renderer(unit.scene, clip.cameras), refine_cfg.clip_size)
+                         for clip in clips])
     frames = torch.stack([c.frames for c in clips])
     refs = torch.stack([c.references for c in clips])
     return {
@@ -349,6 +350,7 @@ def score_units(cfg: EvaluationConfig, source: SceneSourceConfig, refine_cfg: Re
         raise ValueError("evaluation.scenes is empty: name the test scenes to evaluate")
     require_captioner(refine_cfg.captions, "deploy.captions")
     refine_cfg.validate()
+    source = deployment_source(source, refine_cfg)
     require_writable_dir(cfg.out_dir, "evaluation.out_dir", finished_ok=True)
     restorer_ids = {m: "3dgs" if r is None else getattr(r, "identity", type(r).__name__) for m, r in restorers.items()}
     metrics = ImageMetrics(lpips=cfg.lpips, lpips_convention=cfg.lpips_convention, lpips_weights=cfg.lpips_weights,

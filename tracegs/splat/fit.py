@@ -23,7 +23,9 @@ from tracegs.splat.render import fit_device, render, require_available
 
 @dataclass
 class View:
-    """A posed image: `image` [3,H,W] in [0,1] seen by `camera`."""
+    """A posed image: `image` [3,H,W] in [0,1] seen by `camera`. A captured view's image is its camera's size; a
+    pseudo view's may be another (a restored frame at the restorer's clip size, ``deploy.resolution=dataset``),
+    which the loss compares with the render resized to it (``GaussianFitter._render``)."""
 
     image: Tensor
     camera: Camera
@@ -31,9 +33,6 @@ class View:
     def __post_init__(self) -> None:
         if self.image.ndim != 3 or self.image.shape[0] != 3:
             raise ValueError(f"View.image must have shape (3, H, W), got {tuple(self.image.shape)}")
-        if tuple(self.image.shape[1:]) != (self.camera.height, self.camera.width):
-            raise ValueError(f"View.image is {tuple(self.image.shape[1:])} but its camera renders "
-                             f"{(self.camera.height, self.camera.width)}")
 
 
 def camera_extent(cameras: Sequence[Camera]) -> float:

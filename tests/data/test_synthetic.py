@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hydra import compose
 
+from tracegs.config.validate import ConfigError, validate
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SyntheticConfig
 from tracegs.data.synthetic import (
     BACKDROP_TEXTURES,
     GROUND_TEXTURES,
+    TEXTURES,
     draw_surroundings,
     generate_benchmark,
     generate_scene,
@@ -69,3 +73,29 @@ def test_the_first_draws_of_a_scene_seed_are_the_textures_it_is_built_with(prepa
     ground, backdrop = draw_surroundings(np.random.default_rng(0))
     caption = (Path(synthetic.root) / "scene_000" / "caption.txt").read_text()
     assert f"on {ground} " in caption and caption.rstrip().endswith(backdrop.replace("_", " "))
+
+
+def test_pretraining_scenes_of_other_textures_are_made_anew_and_the_others_keep_theirs(tmp_path):
+    """``pretrain_textures`` gives A's scenes other statistics than the benchmark's: every surface of a pretraining
+    scene is one of those photographs, a training scene keeps its own, and a folder made under another palette
+    is never reused."""
+    other = ["checkerboard", "retina"]
+    base = SyntheticConfig(root=str(tmp_path), train_seeds=[0], test_seeds=[], val_seeds=[], pretrain_seeds=[300],
+                           num_views=2, height=12, width=16, num_objects=2, gaussians_per_unit_area=20.0,
+                           init_points=50)
+    plain = (generate_scene(300, base, tmp_path) / "caption.txt").read_text()
+    shifted = replace(base, pretrain_textures=other)
+    caption = (generate_scene(300, shifted, tmp_path) / "caption.txt").read_text()
+    assert caption != plain
+    named = [name for name in TEXTURES if f"{name} " in caption or caption.rstrip().endswith(name.replace("_", " "))]
+    assert set(named) <= set(other), caption
+    assert json.loads((tmp_path / "scene_300" / "scene.json").read_text())["textures"] == other
+    training = (generate_scene(0, shifted, tmp_path) / "caption.txt").read_text()
+    assert training == (generate_scene(0, base, tmp_path, force=True) / "caption.txt").read_text()
+    assert (generate_scene(300, base, tmp_path) / "caption.txt").read_text() == plain
+
+
+def test_an_unknown_pretraining_texture_is_refused_naming_the_field(hydra_context):
+    with pytest.raises(ConfigError, match=r"data\.synthetic\.pretrain_textures.*'marble'"):
+        validate(compose(config_name="prepare", overrides=["data.prepare.split=pretrain",
+                                                          "data.synthetic.pretrain_textures=[grass,marble]"]))

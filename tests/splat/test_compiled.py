@@ -4,6 +4,12 @@ degenerate, crowded tiles) and a whole fit."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 from support.scenes import PARAMETER_NAMES, psnr, random_scene, ring_cameras
@@ -12,7 +18,7 @@ from tracegs.errors import ConfigError
 from tracegs.splat.config import DensificationConfig, GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
-from tracegs.splat.rasterize_compiled import compiled_unavailable, rasterize_compiled
+from tracegs.splat.rasterize_compiled import compiled_unavailable, library, rasterize_compiled
 from tracegs.splat.render import render, require_available, resolve_backend
 
 pytestmark = pytest.mark.skipif(compiled_unavailable() is not None, reason="no C++ compiler: the compiled backend is off")
@@ -196,3 +202,17 @@ def test_auto_refuses_to_fall_back_to_torch_when_the_build_fails(tmp_path, monke
     finally:
         rasterize_compiled.library.cache_clear()
         rasterize_compiled.compiled_unavailable.cache_clear()
+
+
+def test_a_build_lock_left_by_a_killed_builder_does_not_stop_the_next_process(tmp_path):
+    """torch's build lock is a file: a builder killed mid-build left it, and every later command waited on it
+    forever. The next process now takes the build over."""
+    built = Path(library()._name).parent
+    extensions = tmp_path / "extensions"
+    shutil.copytree(built, extensions / built.name)
+    (extensions / built.name / "lock").touch()  # what a killed builder leaves
+    run = subprocess.run([sys.executable, "-c", "from tracegs.splat.rasterize_compiled import library; library()"],
+                         env={**os.environ, "TORCH_EXTENSIONS_DIR": str(extensions)}, timeout=120,
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert not (extensions / built.name / "lock").exists()

@@ -17,7 +17,7 @@ from omegaconf.errors import ConfigKeyError
 from tracegs.data.colmap import require_training_source
 from tracegs.data.config import clip_target, overlapping_seeds
 from tracegs.data.sources import is_procedural
-from tracegs.data.synthetic import benchmark_scene_names
+from tracegs.data.synthetic import TEXTURES, benchmark_scene_names
 from tracegs.deploy.config import METHODS
 from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
@@ -119,6 +119,9 @@ def _validate_data(cfg: DictConfig) -> None:
     _require(not overlap, "data.synthetic.test_seeds",
              f"train_seeds, val_seeds, test_seeds and pretrain_seeds must be disjoint, seeds in more than one: "
              f"{overlap}")
+    unknown = [name for name in synthetic.get("pretrain_textures") or [] if name not in TEXTURES]
+    _require(not unknown, "data.synthetic.pretrain_textures",
+             f"{unknown} are not among the photographs a scene can be textured with: {sorted(TEXTURES)}")
     _require(
         _is_8k_plus_1(prepare.frames_per_clip),
         "data.prepare.frames_per_clip",

@@ -85,6 +85,10 @@ class SyntheticConfig:
     # a seed range of their own, disjoint from the three lists above.
     pretrain_seeds: list[int] = reads(PREPARE, BASELINE, split=Split.pretrain,
                                       factory=lambda: list(range(200, 212)), range=each(SEED, non_empty=False))
+    # Photographs (scikit-image's) that texture every surface of a pretraining scene, in place of the benchmark's:
+    # A's scenes of other statistics, as GSFixer's training scenes are not TRACE-GS's (paper, Sec. 4.1). None: the
+    # benchmark's textures, so A's scenes differ from the training scenes by seed only.
+    pretrain_textures: list[str] | None = reads(PREPARE, BASELINE, split=Split.pretrain, default=None)
     num_views: int = reads(PREPARE, BASELINE, default=32, range=at_least(1))
     height: int = reads(PREPARE, BASELINE, default=48, range=at_least(1))
     width: int = reads(PREPARE, BASELINE, default=72, range=at_least(1))

@@ -35,6 +35,10 @@ GROUND_TEXTURES = ("grass", "gravel", "brick")
 BACKDROP_TEXTURES = ("coffee", "astronaut", "chelsea", "rocket", "hubble_deep_field", "cat")
 OBJECT_TEXTURES = ("brick", "text", "coins", "camera", "moon", "page", "colorwheel", "immunohistochemistry",
                    "clock", "coffee")
+# Photographs of scikit-image's that load without a download and texture none of the benchmark's scenes: the
+# pretraining scenes' other statistics (data.synthetic.pretrain_textures).
+OTHER_TEXTURES = ("retina", "microaneurysms", "logo", "cell", "checkerboard", "horse", "shepp_logan_phantom")
+TEXTURES = frozenset(GROUND_TEXTURES + BACKDROP_TEXTURES + OBJECT_TEXTURES + OTHER_TEXTURES)
 GT_PLY = "gt_scene.ply"
 TEXTURE_SIZE = 96  # textures are band-limited first: a Gaussian samples one colour at its centre
 OPAQUE_LOGIT = 5.0
@@ -151,16 +155,37 @@ def gaussians_from_surfaces(surfaces: list[Surface]) -> GaussianModel:
     )
 
 
-def draw_surroundings(rng: np.random.Generator) -> tuple[str, str]:
+@dataclass(frozen=True)
+class Palette:
+    """The photographs a scene's ground, backdrop and objects are textured with."""
+
+    grounds: tuple[str, ...] = GROUND_TEXTURES
+    backdrops: tuple[str, ...] = BACKDROP_TEXTURES
+    objects: tuple[str, ...] = OBJECT_TEXTURES
+
+
+def scene_palette(seed: int, cfg: SyntheticConfig) -> Palette:
+    """Scene ``seed``'s textures: a pretraining scene draws every surface from ``cfg.pretrain_textures`` when set
+    (variant A's scenes of other statistics, as GSFixer's training scenes are not TRACE-GS's), any other the
+    benchmark's lists."""
+    if cfg.pretrain_textures and seed in cfg.pretrain_seeds:
+        names = tuple(cfg.pretrain_textures)
+        return Palette(names, names, names)
+    return Palette()
+
+
+def draw_surroundings(rng: np.random.Generator, palette: Palette = Palette()) -> tuple[str, str]:
     """The (ground, backdrop) textures of a scene: the first two draws of its generator."""
-    return GROUND_TEXTURES[rng.integers(len(GROUND_TEXTURES))], BACKDROP_TEXTURES[rng.integers(len(BACKDROP_TEXTURES))]
+    return (palette.grounds[rng.integers(len(palette.grounds))],
+            palette.backdrops[rng.integers(len(palette.backdrops))])
 
 
 def build_scene(seed: int, cfg: SyntheticConfig, style: str) -> tuple[GaussianModel, str]:
     """The ground-truth Gaussians of scene ``seed`` and its caption."""
     rng = np.random.default_rng(seed)
     spacing = 1.0 / math.sqrt(cfg.gaussians_per_unit_area)
-    ground_name, backdrop_name = draw_surroundings(rng)
+    palette = scene_palette(seed, cfg)
+    ground_name, backdrop_name = draw_surroundings(rng, palette)
     surfaces = [ground_disc(3.2, spacing * 1.6, load_texture(ground_name, rng), rng)]
     if style == "orbit":
         surfaces.append(cylinder_wall(3.2, 2.2, spacing * 1.8, load_texture(backdrop_name, rng)))
@@ -174,7 +199,7 @@ def build_scene(seed: int, cfg: SyntheticConfig, style: str) -> tuple[GaussianMo
         xy = rng.uniform(-spread, spread, 2)
         if any(np.linalg.norm(xy - p[:2]) < 0.55 * (size + s) + 0.1 for p, s in placed):
             continue
-        texture_name = OBJECT_TEXTURES[rng.integers(len(OBJECT_TEXTURES))]
+        texture_name = palette.objects[rng.integers(len(palette.objects))]
         texture = load_texture(texture_name, rng)
         if rng.random() < 0.5:
             surfaces.append(box(np.array([xy[0], xy[1], 0.0]), size, spacing, texture))
@@ -282,8 +307,11 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
     directory means a finished scene; existing scenes are kept unless ``force``.
     """
     target = Path(root) / scene_name(seed)
+    textures = cfg.pretrain_textures if scene_palette(seed, cfg) != Palette() else None
     if (target / "scene.json").is_file() and not force:
-        return target
+        if json.loads((target / "scene.json").read_text()).get("textures") == textures:
+            return target  # else the seed's folder holds the scene of another palette: made anew, never reused
+
     style = cfg.path_styles[seed % len(cfg.path_styles)]
     model, caption = build_scene(seed, cfg, style)
     cameras = camera_path(cfg, style, seed)
@@ -307,8 +335,8 @@ def generate_scene(seed: int, cfg: SyntheticConfig, root: Path, force: bool = Fa
         write_colmap_model(tmp / "sparse" / "0", cameras, names, points.numpy(), colors.numpy(), tracks)
         save_ply(model, tmp / GT_PLY)
         (tmp / "caption.txt").write_text(caption + "\n")
-        (tmp / "scene.json").write_text(json.dumps({"seed": seed, "style": style, "num_gaussians": len(model),
-                                                       "background": list(cfg.background)}))
+        record = {"seed": seed, "style": style, "num_gaussians": len(model), "background": list(cfg.background)}
+        (tmp / "scene.json").write_text(json.dumps(record | ({"textures": textures} if textures else {})))
     return target
 
 

@@ -31,7 +31,9 @@ Where the library cannot be built (no compiler, no writable folder), `compiled_u
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import fcntl
 import functools
 import hashlib
 import logging
@@ -40,6 +42,7 @@ import re
 import shutil
 import stat
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -98,6 +101,26 @@ def writable_extension_cache() -> None:
     os.environ["TORCH_EXTENSIONS_DIR"] = str(fallback)
 
 
+@contextlib.contextmanager
+def one_builder(name: str) -> Iterator[Path]:
+    """The extension's build folder, held by one process at a time.
+
+    torch's own build lock is a file that exists while a process builds (``FileBaton``): a builder killed mid-build
+    leaves it behind, and every later process then waits on it forever (seen when a test run was stopped during a
+    build). An OS lock ends with the process that holds it, so under it a baton left behind can only be a dead
+    builder's, and is removed."""
+    from torch.utils.cpp_extension import _get_build_directory  # torch's rule for the folder, not a copy of it
+
+    build_directory = Path(_get_build_directory(name, verbose=False))
+    with open(build_directory / "tracegs.flock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        try:
+            (build_directory / "lock").unlink(missing_ok=True)
+            yield build_directory
+        finally:
+            fcntl.flock(held, fcntl.LOCK_UN)
+
+
 @functools.cache
 def library() -> ctypes.CDLL:
     """The compiled library (rasterizer and preprocessing), built at first use."""
@@ -112,9 +135,11 @@ def library() -> ctypes.CDLL:
     torch_log = logging.getLogger("torch.utils.cpp_extension")
     level = torch_log.level
     torch_log.setLevel(logging.ERROR)
+    name = f"tracegs_rasterize_{key}"
     try:
-        path = load(f"tracegs_rasterize_{key}", [str(source) for source in SOURCES], extra_cflags=COMPILE_FLAGS,
-                    is_python_module=False)
+        with one_builder(name) as build_directory:
+            path = load(name, [str(source) for source in SOURCES], extra_cflags=COMPILE_FLAGS,
+                        build_directory=str(build_directory), is_python_module=False)
     finally:
         torch_log.setLevel(level)
     compiled = ctypes.CDLL(path)

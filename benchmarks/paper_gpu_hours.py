@@ -44,7 +44,7 @@ from tracegs.config.schema import register_configs
 from tracegs.config.tree import ConfigTree
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
-from tracegs.data.prepare import (
+from tracegs.data.preparation.plan import (
     captures_held_out,
     clip_condition_keys,
     clip_view_counts,

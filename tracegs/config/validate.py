@@ -198,7 +198,8 @@ def _validate_training_data(cfg: DictConfig) -> None:
 def _validate_training(cfg: DictConfig) -> None:
     teacher, prepare = cfg.teacher, cfg.data.prepare
     student_max = max(cfg.data.datamodule.student_views)
-    # Of the sparse sets only the smallest is fitted to its final snapshot (variant B's teacher, tracegs.data.prepare).
+    # Of the sparse sets only the smallest is fitted to its final snapshot (variant B's teacher,
+    # tracegs.data.preparation.plan).
     available = {*([min(prepare.student_views)] if prepare.student_final_fits else []), *prepare.dense_views}
     fix = ("set data.prepare.student_final_fits=true" if teacher.views == min(prepare.student_views)
            else "a sparse teacher is the smallest student set" if teacher.views in prepare.student_views

@@ -23,6 +23,7 @@ from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
 from tracegs.location import CONF_DIR
 from tracegs.ranges import ranges
+from tracegs.stages import Product
 
 __all__ = ["ConfigError", "validate", "validate_names", "validate_ranges"]
 
@@ -163,7 +164,7 @@ def _validate_data(cfg: DictConfig) -> None:
     )
     if prepare.split == "train":  # the datamodule reads the train split's cache, whatever split a run prepares
         # ... or, for A under the paper's data protocol, its pretraining split's (data.prepare.pretrain_views).
-        pretrained = cfg.stage.name == "baseline" and cfg.experiment.baseline_split == "pretrain"
+        pretrained = cfg.stage.name == Product.baseline and cfg.experiment.baseline_split == "pretrain"
         field = "data.prepare.pretrain_views" if pretrained and prepare.pretrain_views else "data.prepare.student_views"
         unknown = sorted(set(datamodule.student_views) - set(OmegaConf.select(cfg, field)))
         _require(not unknown, "data.datamodule.student_views", f"{unknown} are not prepared ({field})")

@@ -183,3 +183,14 @@ def ranges(schema: type) -> dict[str, FieldRange]:
 
     visit(schema, "")
     return found
+
+
+def check_ranges(config: Any, section: str = "") -> None:
+    """Refuse a field of the config dataclass instance ``config`` whose value is outside its declared range (its
+    own fields; each nested section checks its own), naming it under ``section`` (e.g. ``stage``): the same check
+    the composed config passes, for a config built in Python."""
+    for path, declared in ranges(type(config)).items():
+        if "." not in path:
+            problem = declared.problem(getattr(config, path))
+            if problem is not None:
+                raise ConfigError(f"{section}.{path}" if section else path, problem)

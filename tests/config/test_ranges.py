@@ -19,7 +19,7 @@ from tracegs.errors import ConfigError
 from tracegs.products import BASELINE, execution, reads
 from tracegs.ranges import FieldRange, at_least, ranges
 from tracegs.splat.config import TrajectoryConfig
-from tracegs.training.config import HeldOutEvalConfig, StageConfig
+from tracegs.training.config import StageConfig
 
 DECLARED = ranges(TraceGSConfig)  # refuses, at collection, a numeric field of the schema that declares none
 
@@ -136,8 +136,6 @@ def test_a_range_on_a_field_that_is_not_numeric_is_refused():
 
 @pytest.mark.parametrize(("build", "field"), [
     (lambda: StageConfig(keep_checkpoints=2), "stage.keep_checkpoints"),
-    (lambda: StageConfig(ema_decay=1.0), "stage.ema_decay"),
-    (lambda: HeldOutEvalConfig(every_n_steps=0), "stage.held_out_eval.every_n_steps"),
     (lambda: RefinementConfig(clip_batch=0).validate(), "clip_batch"),
     (lambda: RefinementConfig(repair_iters=[]).validate(), "repair_iters"),
     (lambda: RefinementConfig(trajectory=TrajectoryConfig(pitch_degrees=[])).validate(), "trajectory.pitch_degrees"),

@@ -8,7 +8,7 @@ import torch
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
 from tracegs.data.preparation.plan import clip_cameras, plan_scene, trajectory_seed
-from tracegs.data.preparation.render import render_conditions
+from tracegs.data.preparation.renders import render_conditions
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.refine import render_round_clips
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig

@@ -16,8 +16,8 @@ from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, Split
 from tracegs.data.held_out import NAME_ORDER, between_in_capture_order
 from tracegs.data.images import to_uint8
+from tracegs.data.preparation.driver import run_prepare
 from tracegs.data.preparation.plan import PrepareError, plan_scene
-from tracegs.data.preparation.run import run_prepare
 from tracegs.data.preparation.shards import shard_is_valid
 from tracegs.data.splits import split_scene
 from tracegs.eval.clips import (

@@ -18,7 +18,7 @@ atomically, finished units are skipped, and ``force`` redoes them. Runs can be s
 into the cache's manifest (``merge_manifests``).
 
 Modules, in the order a run uses them: ``plan`` (scenes, view sets and clips to make), ``fits`` (the 3DGS fits),
-``render`` (each clip's conditions along its trajectory), ``encode`` (pseudo-target and frozen encoders),
-``shards`` (a clip's files and their validity), ``manifests`` (the cache's index) and ``run`` (the worker pool and
+``renders`` (each clip's conditions along its trajectory), ``encode`` (pseudo-target and frozen encoders),
+``shards`` (a clip's files and their validity), ``manifests`` (the cache's index) and ``driver`` (the worker pool and
 the run end to end, ``run_prepare``).
 """

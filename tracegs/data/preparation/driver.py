@@ -30,7 +30,7 @@ from tracegs.data.preparation.plan import (
     require_inputs,
     shard_scenes,
 )
-from tracegs.data.preparation.render import SceneClips, render_scene_clips
+from tracegs.data.preparation.renders import SceneClips, render_scene_clips
 from tracegs.data.preparation.shards import read_shard_psnr, remove_unindexed_scene_files
 from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark
 from tracegs.errors import require_writable_dir

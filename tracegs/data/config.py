@@ -283,7 +283,7 @@ class SfmConfig:
     # images after each one a sequential matcher pairs it with
     sequential_overlap: int = reads(RESTORE, default=10, range=at_least(1))
     # longest side structure-from-motion sees: a larger photo is downsized to it once, before SIFT, so memory is
-    # bounded by this size, not the photos' (8 photos of 6000x4000: 0.4 GiB peak, measured)
+    # bounded by this size, not the photos'
     max_image_size: int = reads(RESTORE, default=1600, range=at_least(1))
     # longest side of the scene's undistorted images (aspect kept), what the fit and the scores can use at most:
     # the paper's frames are 720 wide

@@ -183,7 +183,7 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
                                                       "use SIMPLE_RADIAL, OPENCV, PINHOLE, ...")
     work = scene / ".work"  # inside the staging folder, so a refused reconstruction takes it along
     work.mkdir(parents=True)
-    images = _working_photos(images, names, work / "photos", cfg.max_image_size)
+    images = working_photos(images, names, work / "photos", cfg.max_image_size)
     database = work / "database.db"
     started = time.perf_counter()
     matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
@@ -231,7 +231,7 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     write_json_atomic(record, scene / RECORD)
 
 
-def _working_photos(images: Path, names: list[str], out: Path, longest: int) -> Path:
+def working_photos(images: Path, names: list[str], out: Path, longest: int) -> Path:
     """The folder of ``names`` as SfM reads them: ``images`` itself, or ``out`` with links to the photos kept as
     they are and a working copy of each other one.
 
@@ -286,7 +286,7 @@ def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> 
 
     by_size: dict[tuple[int, int], list[str]] = {}
     for name in names:
-        with Image.open(images / name) as image:  # decoded whole already (_working_photos)
+        with Image.open(images / name) as image:  # decoded whole already (working_photos)
             by_size.setdefault(image.size, []).append(name)  # as stored, as COLMAP reads it
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
@@ -334,6 +334,8 @@ def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], cap
     refused in one line naming the sizes."""
     pycolmap = import_keeping_sigterm("pycolmap")
 
+    # Pairs whose relative pose comes from an essential matrix (a homography's decomposition is ambiguous).
+    epipolar = (pycolmap.TwoViewGeometryConfiguration.CALIBRATED, pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED)
     size_of = {camera_id: (camera.width, camera.height) for camera_id, camera in model.cameras.items()}
     errors: dict[tuple[int, int], list[float]] = {}
     for image in model.images.values():
@@ -347,7 +349,8 @@ def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], cap
     disagreement: dict[str, list[float]] = {}
     for pair, geometry in zip(pairs, geometries):
         first, second = pycolmap.pair_id_to_image_pair(pair)
-        if first not in placed or second not in placed or geometry.cam2_from_cam1 is None:
+        if first not in placed or second not in placed or geometry.cam2_from_cam1 is None or (
+                geometry.config not in epipolar):
             continue
         model_relative = (placed[second].cam_from_world().rotation.matrix()
                           @ placed[first].cam_from_world().rotation.matrix().T)

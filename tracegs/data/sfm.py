@@ -276,7 +276,9 @@ def _write_working_copy(photo: Image.Image, path: Path, longest: int) -> None:
         upright = upright.resize((max(1, round(upright.size[0] * scale)), max(1, round(upright.size[1] * scale))),
                                  Image.Resampling.LANCZOS)
     path.parent.mkdir(exist_ok=True)
-    upright.save(path, format=photo.format, quality=95)
+    # The EXIF kept (less the orientation, applied): COLMAP's prior focal length comes from the lens and sensor it
+    # names, a fraction of the image width that the downsizing does not change.
+    upright.save(path, format=photo.format, quality=95, exif=upright.getexif())
 
 
 def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> list[tuple[int, int]]:

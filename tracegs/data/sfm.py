@@ -59,9 +59,10 @@ PROGRESS_EVERY = 10  # registered images between two progress lines of the mappe
 # reproject worse than this is fitted wrongly (COLMAP's mapper filters observations at 4 px).
 MAX_CAMERA_REPROJECTION_PX = 2.0
 # A view whose rotation, relative to the views it was matched with, differs from each pair's own two-view
-# estimate by more than this (median over its pairs) is misplaced: the pairs' own estimates scatter by a
-# fraction of a degree on photos SfM places well.
-MAX_ROTATION_DISAGREEMENT_DEG = 5.0
+# estimate by more than this (median over its pairs) is misplaced. A pair's estimate uses the guessed focal length
+# of photos without EXIF, which biases it by a few degrees; a camera with a wrong focal length puts its views tens
+# of degrees off (views about 55 degrees off were seen with photos of two sizes).
+MAX_ROTATION_DISAGREEMENT_DEG = 10.0
 
 
 def _names(paths: list[str]) -> str:

@@ -5,7 +5,14 @@ features, exhaustive or sequential matching with geometric verification, increme
 to a PINHOLE camera, the only model the loader reads (tracegs.data.colmap). The scene folder it writes
 (``images/`` + ``sparse/0``, COLMAP's image_undistorter layout, and ``sfm.json``, what the reconstruction found)
 is a product like any other: keyed by the names and bytes of the photos (a video: its bytes and the frame count)
-and the settings that shape it, assembled in a temporary folder and renamed into place, reused by a rerun.
+and the settings that shape it, assembled in a temporary folder and renamed into place, reused by a rerun (and
+copied for the same photos in a folder of another name). Its images are undistorted at ``scene_size`` on the long
+side, the most a fit of it can use.
+
+The photos are checked before they are trusted (:func:`working_photos`): each is decoded whole, turned upright by
+its EXIF orientation and, when longer than the size SfM works at, downsized once. Photos of several sizes get a
+camera each, and the model they give is checked against each pair's own two-view geometry
+(:func:`_require_consistent`).
 
 A video is reduced to photos first: ``frames`` equal windows of it, the sharpest frame of each by the variance of
 its Laplacian (Pech-Pacheco et al., "Diatom autofocusing in brightfield microscopy", ICPR 2000), so motion-blurred

@@ -124,7 +124,8 @@ def _copied_twin(target: Path, staging: Path) -> bool:
     """Whether a finished reconstruction of the same photos under another folder name was copied into ``staging``.
     A renamed capture then gets the very same cameras and points: COLMAP's multithreaded mapping and bundle
     adjustment do not repeat to the bit, and a restore's numbers would follow the name instead of the photos."""
-    twins = sorted(p for p in target.parent.iterdir() if p != target and (p / RECORD).is_file())
+    twins = sorted(p for p in target.parent.iterdir()  # finished folders only, not another run's staging
+                   if p != target and not p.name.startswith(".") and (p / RECORD).is_file())
     if not twins:
         return False
     shutil.copytree(twins[0], staging, dirs_exist_ok=True)

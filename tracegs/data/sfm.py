@@ -115,7 +115,9 @@ def reconstruct_photos(capture: Path, cfg: SfmConfig, views: int, test_every: in
     target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg) / capture.name
     if not _reused(target, views, test_every):
         with atomic_directory(target) as staging:
-            if not _copied_twin(target, staging):
+            if _copied_twin(target, staging):
+                _require_registered(json.loads((staging / RECORD).read_text()), capture, views, test_every)
+            else:
                 _reconstruct(staging, folder, names, cfg, views, test_every, capture, sequential=False)
     return target
 

@@ -22,7 +22,7 @@ from support.training_runs import config, product_bytes, train_baseline_and_stag
 
 from tracegs.errors import OutputPathError
 from tracegs.training.baseline import BaselineRestorerModule
-from tracegs.training.checkpoints import ConfirmedCheckpoint
+from tracegs.training.checkpoints import ConfirmedCheckpoint, requeue_checkpoints
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.run import resume_checkpoint, train_stage
 
@@ -188,4 +188,65 @@ def test_a_slurm_requeue_resumes_to_identical_bytes(uninterrupted, end):
     assert requeued.returncode == 0, stderr[-2000:]
     assert f"Restoring states from the checkpoint path at {resumed_from}" in stderr, stderr[-3000:]
     assert scontrol_calls.read_text().count("requeue") == 1  # the requeued job ran to its end
+    assert product_bytes(run_dir / "student_adapter") == expected
+
+
+# SCRIPT with every optimiser step slowed by argv[2] seconds: a step slower than a fixed signal lead.
+SLOW_SCRIPT = (
+    "import sys, time, torch\n"
+    "step = torch.optim.AdamW.step\n"
+    "def slow(self, *args, **kwargs):\n"
+    "    time.sleep(float(sys.argv[2]))\n"
+    "    return step(self, *args, **kwargs)\n"
+    "torch.optim.AdamW.step = slow\n"
+) + SCRIPT
+
+
+@pytest.mark.slow  # three training processes with slowed steps
+def test_a_requeue_with_the_derived_lead_outlives_a_slow_step(uninterrupted):
+    """SLURM's side played by the test: SIGUSR2 in the middle of a step slower than a fixed lead (the lead that
+    the old 90 s was against a 112 s H200 iteration), SIGKILL at the derived lead (``signal_lead_seconds`` of the
+    measured step, this machine's save time in place of the paper-scale one). The requeue checkpoint lands before
+    the kill, only the newest requeue checkpoint stays, and two requeues resume to the uninterrupted run's bytes."""
+    from tracegs.cluster.jobs import signal_lead_seconds
+
+    tmp, stage2, expected = uninterrupted
+    cfg = stage2("slurm_slow")
+    cfg.stage.checkpoint_every_n_steps = 1
+    run_dir = Path(cfg.output_dir)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    env, scontrol_calls = slurm_job(tmp, "4244")
+    spec = tmp / "slurm_slow.pickle"
+    spec.write_bytes(pickle.dumps(cfg))
+    slowed = 1.5
+
+    def job() -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", SLOW_SCRIPT, str(spec), str(slowed)], stderr=subprocess.PIPE,
+                                text=True, env={**os.environ, "OMP_NUM_THREADS": "1", **env})
+
+    def requeues() -> int:
+        return scontrol_calls.read_text().count("requeue") if scontrol_calls.exists() else 0
+
+    # The step is at least the slowed optimiser step; a save here takes well under a step.
+    lead = signal_lead_seconds(slowed, save_seconds=slowed)
+    for requeue in (1, 2):
+        process = job()
+        wait_for_saves(last, 2, process)  # a step finished in this job (the first job: two)
+        time.sleep(0.05)  # into the next step
+        assert process.poll() is None, f"training ended before the signal: {process.stderr.read()[-2000:]}"
+        signalled = time.monotonic()
+        process.send_signal(signal.SIGUSR2)
+        while requeues() < requeue:
+            assert time.monotonic() - signalled < lead and process.poll() is None, process.stderr.read()[-2000:]
+            time.sleep(0.01)
+        saved_after = time.monotonic() - signalled
+        process.send_signal(signal.SIGKILL)  # SLURM at the limit (or KillWait's end): nothing more is saved
+        process.wait()
+        process.stderr.close()
+        assert saved_after > slowed / 2  # a lead of half a step would have killed it first
+        assert [p.name for p in requeue_checkpoints(run_dir)] == [f"hpc_ckpt_{requeue}.ckpt"]
+        assert global_step(run_dir / f"hpc_ckpt_{requeue}.ckpt") < STEPS
+    finished = job()
+    _, stderr = finished.communicate(timeout=600)
+    assert finished.returncode == 0, stderr[-2000:]
     assert product_bytes(run_dir / "student_adapter") == expected

@@ -32,7 +32,7 @@ import math
 import shlex
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -48,7 +48,7 @@ from paper_gpu_hours import (  # noqa: E402
     train_work,
 )
 
-from tracegs.cluster.jobs import JOB_KINDS, memory_gb, measured_iteration, shard_count, signal_lead_seconds  # noqa: E402
+from tracegs.cluster.jobs import JOB_KINDS, measured_iteration, memory_gb, shard_count, signal_lead_seconds  # noqa: E402
 from tracegs.cluster.weights import MANIFEST  # noqa: E402
 
 GPU_CHECK_HOURS = 1.0  # the check itself: 8 min on an H200 (its JSON) plus the manifest's hashes of ~40 GB
@@ -96,8 +96,18 @@ def sharded(units: int, hours_per_unit: float, limit_h: float) -> tuple[int, flo
     return shards, math.ceil(units / shards) * hours_per_unit
 
 
+def cluster_units(record: dict, factor: float) -> UnitSeconds:
+    """The GPU check's measured seconds per unit times ``factor`` (the cluster's GPU against the measured one); the
+    assumed units are already one A100's, and the training factor is a ratio: both left as they are."""
+    unit, sources = UnitSeconds.measured(record)
+    scaled = {name: getattr(unit, name) * factor for name, source in sources.items()
+              if source.startswith("measured") and name != "training_forward_factor"}
+    return replace(unit, **scaled)
+
+
 def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
-    """The scope's jobs in order (compose() inside an initialised config directory)."""
+    """The scope's jobs in order (compose() inside an initialised config directory); ``unit``: the cluster GPU's
+    seconds per unit, ``step_s``: the measured Stage-2 iteration's."""
     from tracegs.config.tree import ConfigTree
     from tracegs.location import CONF_DIR
     from tracegs.pipeline.runner import override
@@ -108,7 +118,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     common = [*PAPER_JOB, f"paths.weights_dir={args.weights_dir}"]
     teachers = [override(k, v) for k, v in variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["F"])).items()]
     prepare_cfg = compose(config_name="prepare", overrides=[*common, "trainer=gpu", *teachers])
-    per_scene = prepare_work(prepare_cfg, 1).gpu_hours(unit) * factor
+    per_scene = prepare_work(prepare_cfg, 1).gpu_hours(unit)
     shards, shard_hours = sharded(args.train_scenes, per_scene, limit)
     prepare = ("tracegs-prepare " + " ".join([*common, "trainer=gpu", *teachers, f"data.prepare.num_shards={shards}"]))
     jobs = [Job("gpu-check", "prepare", f"sh -c {shlex.quote(gpu_check_command(args.weights_dir))}",
@@ -119,7 +129,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     lead = signal_lead_seconds(step_s * factor)
     for stage in ("stage1", "stage2"):
         cfg = compose(config_name="train", overrides=[*common, f"stage={stage}", "ablation=F"])
-        hours = train_work(cfg).gpu_hours(unit) * factor / DDP_GPUS
+        hours = train_work(cfg).gpu_hours(unit) / DDP_GPUS
         command = " ".join([f"stage={stage}", "ablation=F", f"paths.weights_dir={args.weights_dir}"])
         jobs.append(Job(stage, "train", command, min(hours, limit * 0.8), gpus=DDP_GPUS, ddp=True, lead_s=lead))
     report = compose(config_name="report", overrides=common)
@@ -129,7 +139,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
         label = step.label.split(" (")[0].replace(" ", "-").replace(",", "").replace("/", "")
         if step.app == "evaluate":
             scenes = test_scenes(cfg, args.dl3dv_test_scenes)
-            shards, hours = sharded(scenes, evaluate_work(cfg, 1).gpu_hours(unit) * factor, limit)
+            shards, hours = sharded(scenes, evaluate_work(cfg, 1).gpu_hours(unit), limit)
             command = " ".join(["tracegs-evaluate", *overrides, f"evaluation.num_shards={shards}",
                                 "evaluation.shard_index=$SLURM_ARRAY_TASK_ID"])
             jobs.append(Job(label, "evaluate", command, hours, array=shards))
@@ -138,7 +148,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     # Fig. 6 as the Table 3 sweep declares it: held-out Mip-NeRF 360 clips, then the per-step report.
     held_out, figure = sweep_steps(["A", "F"], ["F"], common, ["mipnerf360"])[-2:]
     cfg = compose(config_name="report", overrides=list(figure.overrides))
-    hours = per_step_work(cfg, test_scenes(cfg, args.dl3dv_test_scenes)).gpu_hours(unit) * factor
+    hours = per_step_work(cfg, test_scenes(cfg, args.dl3dv_test_scenes)).gpu_hours(unit)
     jobs += [Job("fig6-held-out", "prepare", " ".join(["tracegs-prepare", *held_out.overrides]), FIG6_PREPARE_HOURS),
              Job("fig6", "report", " ".join(["tracegs-report", *figure.overrides]), hours)]
     return jobs
@@ -168,7 +178,7 @@ def main(argv: list[str] | None = None) -> list[str]:
     parser.add_argument("--dl3dv-test-scenes", type=int, default=28)
     args = parser.parse_args(argv)
     try:
-        unit, _ = UnitSeconds.measured(json.loads(args.measured.read_text()))
+        unit = cluster_units(json.loads(args.measured.read_text()), args.gpu_factor)
         step_s, origin = measured_iteration(args.measured)
     except Exception as error:  # noqa: BLE001 (one line for any unreadable record)
         parser.exit(2, f"launch/paper_scope.sh: error: --measured {args.measured}: {error}\n")

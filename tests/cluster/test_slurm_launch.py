@@ -81,3 +81,17 @@ def test_a_lead_shorter_than_the_measured_iteration_is_refused(tmp_path):
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "'hydra.launcher.signal_delay_s'" in lines[0] and "at least 231" in lines[0], lines
     assert not (tmp_path / "submitted").exists()
+
+
+@pytest.mark.parametrize(("trainer", "kind", "tasks"), [("ddp", "train", 4), ("gpu", "prepare", 1)])
+def test_the_trainers_ask_slurm_for_the_measured_memory(trainer, kind, tasks):
+    from hydra import compose, initialize_config_dir
+
+    from tracegs.cluster.jobs import memory_gb
+    from tracegs.config.schema import register_configs
+    from tracegs.location import CONF_DIR
+
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cluster = compose(config_name="train", overrides=["experiment=paper", f"trainer={trainer}"]).trainer.cluster
+    assert cluster.mem_gb == memory_gb(kind, tasks) >= memory_gb("prepare")

@@ -152,7 +152,7 @@ def test_a_checkpoint_that_did_not_reach_the_disk_stops_the_run(tmp_path, read_o
 @pytest.mark.slow  # two training processes per case
 @pytest.mark.parametrize("end", ["SIGTERM", "SIGKILL"], ids=["SIGTERM", "KillWait-SIGKILL"])
 def test_a_slurm_requeue_resumes_to_identical_bytes(uninterrupted, end):
-    """The SLURM time-limit path of the cluster scripts (``#SBATCH --signal=SIGUSR2@90``): SIGUSR2 makes
+    """The SLURM time-limit path of the cluster scripts (``#SBATCH --signal=SIGUSR2@600``): SIGUSR2 makes
     Lightning's SLURMEnvironment save hpc_ckpt_1.ckpt and call ``scontrol requeue``; SLURM then ends the job with
     SIGTERM (a checkpoint after the step in flight), or with SIGKILL when the job outlives KillWait; the requeued
     job (same command, same environment) resumes from the newest checkpoint to the uninterrupted run's bytes.

@@ -78,12 +78,12 @@ FRAMES_GB = 3.4  # one DL3DV scene's frames in float32 while its 3DGS is fitted 
 JOB_KINDS = {
     "prepare": JobKind("prepare", TRANSFORMER_GB + ENCODERS_GB + BLIP2_GB + FRAMES_GB,
                        "restorer + T5/VGGT/DINOv2/VAE + BLIP-2 + one scene's frames", 4,
-                       "3DGS fits and encoders run on the GPU; a loader and the main process"),
+                       "assumed: 3DGS fits and encoders run on the GPU; the CPU reads images and writes shards"),
     "evaluate": JobKind("evaluate", TRANSFORMER_GB + ENCODERS_GB + BLIP2_GB + FRAMES_GB,
                         "restorer + T5/VGGT/DINOv2/VAE + BLIP-2 + one scene's frames", 4,
                         "as prepare: deployment's fits and restorations run on the GPU"),
-    "train": JobKind("train", TRANSFORMER_GB, "the restorer (ranks read cached latents and tokens)", 6,
-                     "data.datamodule workers (4) + the rank's main process + one spare"),
+    "train": JobKind("train", TRANSFORMER_GB, "the restorer (ranks read cached latents and tokens)", 8,
+                     "assumed: the rank's intra-op threads (the loader runs in-process, num_workers 0)"),
     "report": JobKind("report", TRANSFORMER_GB + ENCODERS_GB, "restorer + encoders (Fig. 6 rollouts)", 4,
                       "as evaluate"),
 }

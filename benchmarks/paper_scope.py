@@ -67,7 +67,7 @@ class Job:
     command: str  # run through launch/requeue_on_signal.sh, or the DDP sbatch script's arguments
     hours: float  # estimated hours of one task (the longest shard)
     gpus: int = 1
-    array: int = 1  # shards
+    array: int | None = None  # shards of a SLURM array (SLURM_ARRAY_TASK_ID), or one job
     ddp: bool = False
     lead_s: int = PREPARE_LEAD_S
 
@@ -78,7 +78,7 @@ class Job:
                    "--nodes=1", f"--ntasks-per-node={tasks}", f"--gpus-per-node={self.gpus}",
                    f"--cpus-per-task={JOB_KINDS[self.kind].cpus}", f"--mem={memory_gb(self.kind, tasks)}G",
                    f"--time={limit_min // 60:d}:{limit_min % 60:02d}:00", "--requeue"]
-        if self.array > 1:
+        if self.array is not None:
             options.append(f"--array=0-{self.array - 1}")
         if number > 1:
             options.append(f"--dependency=afterok:$JOB_{number - 1}")
@@ -115,12 +115,16 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     from tracegs.pipeline.variants import table3_configs, variants_teachers
 
     factor, limit = args.gpu_factor, args.time_limit_h
-    common = [*PAPER_JOB, f"paths.weights_dir={args.weights_dir}"]
+    weights = f"paths.weights_dir={args.weights_dir}"
+    # Every command composes the paper's DDP trainer, as the pipeline's steps do: the products' identities (which
+    # the evaluations locate the students by) follow it; a one-process command still runs on one GPU.
+    common = [*PAPER_JOB, weights]
     teachers = [override(k, v) for k, v in variants_teachers(table3_configs(ConfigTree.at(CONF_DIR), ["F"])).items()]
-    prepare_cfg = compose(config_name="prepare", overrides=[*common, "trainer=gpu", *teachers])
+    prepare_cfg = compose(config_name="prepare", overrides=[*common, *teachers])
     per_scene = prepare_work(prepare_cfg, 1).gpu_hours(unit)
     shards, shard_hours = sharded(args.train_scenes, per_scene, limit)
-    prepare = ("tracegs-prepare " + " ".join([*common, "trainer=gpu", *teachers, f"data.prepare.num_shards={shards}"]))
+    shards = max(shards, 2)  # one shard timed alone, the others after it
+    prepare = ("tracegs-prepare " + " ".join([*common, *teachers, f"data.prepare.num_shards={shards}"]))
     jobs = [Job("gpu-check", "prepare", f"sh -c {shlex.quote(gpu_check_command(args.weights_dir))}",
                 GPU_CHECK_HOURS),
             Job("prepare-shard0", "prepare", f"{prepare} data.prepare.shard_index=0", shard_hours),
@@ -130,7 +134,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     for stage in ("stage1", "stage2"):
         cfg = compose(config_name="train", overrides=[*common, f"stage={stage}", "ablation=F"])
         hours = train_work(cfg).gpu_hours(unit) / DDP_GPUS
-        command = " ".join([f"stage={stage}", "ablation=F", f"paths.weights_dir={args.weights_dir}"])
+        command = " ".join([f"stage={stage}", "ablation=F", weights])  # the sbatch script adds PAPER_JOB
         jobs.append(Job(stage, "train", command, min(hours, limit * 0.8), gpus=DDP_GPUS, ddp=True, lead_s=lead))
     report = compose(config_name="report", overrides=common)
     for step in main_table_steps(report.report.main_datasets, report.training_data):

@@ -41,7 +41,7 @@ def test_dry_run_lists_every_repository_offline():
     for release in RELEASES:
         assert f"{release.repo or release.url}" in run.stdout
     assert "vgg16-397923af.pth  553,433,881 B (declared)" in run.stdout
-    assert "VGGT-1B/model.safetensors  unknown (unknown)" in run.stdout
+    assert "VGGT-1B/model.safetensors  size unknown" in run.stdout
     assert run.stdout.splitlines()[-1].startswith("total: 553,433,881 B known;")
 
 

@@ -128,8 +128,8 @@ def print_plan(plan: list[dict]) -> None:
         if not release["files"]:
             print("  (no files declared: the whole listing is the Hub's)")
         for item in release["files"]:
-            size = "unknown" if item["bytes"] is None else f"{item['bytes']:,} B"
-            print(f"  {item['path']}  {size} ({item['size']})")
+            size = "size unknown" if item["bytes"] is None else f"{item['bytes']:,} B ({item['size']})"
+            print(f"  {item['path']}  {size}")
             total += item["bytes"] or 0
             unknown += item["bytes"] is None
     print(f"total: {total:,} B known; {unknown} file(s) of unknown size")

@@ -48,7 +48,14 @@ from paper_gpu_hours import (  # noqa: E402
     train_work,
 )
 
-from tracegs.cluster.jobs import JOB_KINDS, measured_iteration, memory_gb, shard_count, signal_lead_seconds  # noqa: E402
+from tracegs.cluster.jobs import (  # noqa: E402
+    JOB_KINDS,
+    SHARD_FILL,
+    measured_iteration,
+    memory_gb,
+    shard_count,
+    signal_lead_seconds,
+)
 from tracegs.cluster.weights import MANIFEST  # noqa: E402
 
 GPU_CHECK_HOURS = 1.0  # the check itself: 8 min on an H200 (its JSON) plus the manifest's hashes of ~40 GB
@@ -65,14 +72,19 @@ class Job:
     label: str
     kind: str  # tracegs.cluster.jobs.JOB_KINDS
     command: str  # run through launch/requeue_on_signal.sh, or the DDP sbatch script's arguments
-    hours: float  # estimated hours of one task (the longest shard)
+    hours: float  # estimated hours of one task (the longest shard); beyond the limit it requeues and resumes
     gpus: int = 1
     array: int | None = None  # shards of a SLURM array (SLURM_ARRAY_TASK_ID), or one job
     ddp: bool = False
     lead_s: int = PREPARE_LEAD_S
 
-    def sbatch(self, number: int, partition: str, account: str) -> str:
-        limit_min = math.ceil(self.hours * 60 / 0.8)  # the plan fills 80% of the limit (tracegs.cluster.jobs)
+    def runs(self, limit_h: float) -> int:
+        """How many runs of the time limit (requeues + 1) the task takes at its estimated hours."""
+        return math.ceil(self.hours / (limit_h * SHARD_FILL))
+
+    def sbatch(self, number: int, partition: str, account: str, limit_h: float) -> str:
+        # the plan fills SHARD_FILL of the limit; a task longer than that runs the whole limit, then requeues
+        limit_min = math.ceil(min(self.hours / SHARD_FILL, limit_h) * 60)
         tasks = self.gpus if self.ddp else 1
         options = [f"--job-name=tracegs-{number}-{self.label}", f"--partition={partition}", f"--account={account}",
                    "--nodes=1", f"--ntasks-per-node={tasks}", f"--gpus-per-node={self.gpus}",
@@ -135,7 +147,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
         cfg = compose(config_name="train", overrides=[*common, f"stage={stage}", "ablation=F"])
         hours = train_work(cfg).gpu_hours(unit) / DDP_GPUS
         command = " ".join([f"stage={stage}", "ablation=F", weights])  # the sbatch script adds PAPER_JOB
-        jobs.append(Job(stage, "train", command, min(hours, limit * 0.8), gpus=DDP_GPUS, ddp=True, lead_s=lead))
+        jobs.append(Job(stage, "train", command, hours, gpus=DDP_GPUS, ddp=True, lead_s=lead))
     report = compose(config_name="report", overrides=common)
     for step in main_table_steps(report.report.main_datasets, report.training_data):
         overrides = [*common, *step.overrides]
@@ -191,11 +203,12 @@ def main(argv: list[str] | None = None) -> list[str]:
         jobs = chain(args, unit, step_s)
     print(f"# Stage-2 iteration {step_s:.0f} s ({origin}) x {args.gpu_factor} (assumed cluster GPU factor): "
           f"requeue lead {jobs[3].lead_s} s", file=sys.stderr)
-    lines = [job.sbatch(number, args.partition, args.account) for number, job in enumerate(jobs, 1)]
+    lines = [job.sbatch(number, args.partition, args.account, args.time_limit_h) for number, job in enumerate(jobs, 1)]
     ids: dict[str, str] = {}
     for number, (job, line) in enumerate(zip(jobs, lines), 1):
         if args.dry_run:
-            print(f"JOB_{number}=$({line})  # {job.label}: {job.hours:.1f} h per task")
+            print(f"JOB_{number}=$({line})  # {job.label}: {job.hours:.1f} h per task, "
+                  f"{job.runs(args.time_limit_h)} run(s) of the limit")
             continue
         for key, value in ids.items():
             line = line.replace(f"${key}", value)

@@ -63,6 +63,8 @@ GPU_CHECK_HOURS = 1.0  # the check itself: 8 min on an H200 (its JSON) plus the 
 FIG6_PREPARE_HOURS = 2.0
 PREPARE_LEAD_S = 120  # a prepare or evaluate shard saves nothing on the signal: the lead covers scontrol requeue
 DDP_GPUS = 4
+REPORT_HOURS = 1.0  # assumed: a report merges evaluations (Tables 1/2): minutes
+BIN = ".venv/bin/"  # the project's environment, as launch/slurm_ddp.sbatch runs it
 
 
 @dataclass
@@ -136,7 +138,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     per_scene = prepare_work(prepare_cfg, 1).gpu_hours(unit)
     shards, shard_hours = sharded(args.train_scenes, per_scene, limit)
     shards = max(shards, 2)  # one shard timed alone, the others after it
-    prepare = ("tracegs-prepare " + " ".join([*common, *teachers, f"data.prepare.num_shards={shards}"]))
+    prepare = (f"{BIN}tracegs-prepare " + " ".join([*common, *teachers, f"data.prepare.num_shards={shards}"]))
     jobs = [Job("gpu-check", "prepare", f"sh -c {shlex.quote(gpu_check_command(args.weights_dir))}",
                 GPU_CHECK_HOURS),
             Job("prepare-shard0", "prepare", f"{prepare} data.prepare.shard_index=0", shard_hours),
@@ -156,22 +158,22 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
         if step.app == "evaluate":
             scenes = test_scenes(cfg, args.dl3dv_test_scenes)
             shards, hours = sharded(scenes, evaluate_work(cfg, 1).gpu_hours(unit), limit)
-            command = " ".join(["tracegs-evaluate", *overrides, f"evaluation.num_shards={shards}",
+            command = " ".join([f"{BIN}tracegs-evaluate", *overrides, f"evaluation.num_shards={shards}",
                                 "evaluation.shard_index=$SLURM_ARRAY_TASK_ID"])
             jobs.append(Job(label, "evaluate", command, hours, array=shards))
         else:
-            jobs.append(Job(label, "report", " ".join([f"tracegs-{step.app}", *overrides]), 1.0))
+            jobs.append(Job(label, "report", " ".join([f"{BIN}tracegs-{step.app}", *overrides]), REPORT_HOURS))
     # Fig. 6 as the Table 3 sweep declares it: held-out Mip-NeRF 360 clips, then the per-step report.
     held_out, figure = sweep_steps(["A", "F"], ["F"], common, ["mipnerf360"])[-2:]
     cfg = compose(config_name="report", overrides=list(figure.overrides))
     hours = per_step_work(cfg, test_scenes(cfg, args.dl3dv_test_scenes)).gpu_hours(unit)
-    jobs += [Job("fig6-held-out", "prepare", " ".join(["tracegs-prepare", *held_out.overrides]), FIG6_PREPARE_HOURS),
-             Job("fig6", "report", " ".join(["tracegs-report", *figure.overrides]), hours)]
+    jobs += [Job("fig6-held-out", "prepare", " ".join([f"{BIN}tracegs-prepare", *held_out.overrides]), FIG6_PREPARE_HOURS),
+             Job("fig6", "report", " ".join([f"{BIN}tracegs-report", *figure.overrides]), hours)]
     return jobs
 
 
 def gpu_check_command(weights_dir: str) -> str:
-    return (f"tracegs-weights --check --weights-dir {shlex.quote(weights_dir)} && "
+    return (f"{BIN}tracegs-weights --check --weights-dir {shlex.quote(weights_dir)} && "
             f"launch/gpu_check.sh paths.weights_dir={shlex.quote(weights_dir)}")
 
 

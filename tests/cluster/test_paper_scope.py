@@ -40,7 +40,7 @@ def test_the_chain_depends_step_by_step(lines):
         assert option(line, "dependency") == f"afterok:$JOB_{number - 1}", line
     assert all(option(line, "partition") == "gpu" and option(line, "account") == "lab" for line in lines)
     assert all(" --requeue" in line for line in lines)  # every job resumes after a requeue
-    assert "tracegs-weights --check" in lines[0]
+    assert ".venv/bin/tracegs-weights --check" in lines[0]
 
 
 def test_each_line_is_sized_by_the_measured_rules(lines):
@@ -59,7 +59,7 @@ def test_each_line_is_sized_by_the_measured_rules(lines):
         else:
             assert tasks == 1 and option(line, "gpus-per-node") == "1"
             assert option(line, "signal") == f"B:USR2@{paper_scope.PREPARE_LEAD_S}"
-            assert "launch/requeue_on_signal.sh tracegs-" in line or "launch/requeue_on_signal.sh sh -c" in line
+            assert "launch/requeue_on_signal.sh .venv/bin/tracegs-" in line or "requeue_on_signal.sh sh -c" in line
 
 
 def test_the_prepare_shards_fill_the_array(lines):

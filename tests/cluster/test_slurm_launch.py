@@ -53,7 +53,7 @@ def test_the_lead_covers_the_measured_h200_iteration():
 
 def test_no_shard_exceeds_the_limit():
     assert shard_count(112, 3600, 48 * 3600) == 3  # 38 scenes of an hour fit in 80% of 48 h
-    assert shard_count(112, 3 * 3600, 48 * 3600) == 9
+    assert shard_count(112, 3 * 3600, 48 * 3600) == 10  # 12 scenes of 3 h per shard
     with pytest.raises(ConfigError, match="no shard fits"):
         shard_count(4, 40 * 3600, 48 * 3600)
 

@@ -95,10 +95,11 @@ def memory_gb(kind: str, tasks: int = 1) -> int:
     return math.ceil(tasks * (BASE_RSS_GB + job.models_gb) * MEMORY_MARGIN)
 
 
-def shard_count(units: int, unit_seconds: float, time_limit_s: float) -> int:
-    """Shards of ``units`` (scenes) so that none exceeds ``SHARD_FILL`` of the time limit at ``unit_seconds``."""
-    per_shard = max(1, math.floor(time_limit_s * SHARD_FILL / unit_seconds))
-    if unit_seconds > time_limit_s * SHARD_FILL:
-        raise ConfigError("time limit", f"one unit takes {unit_seconds / 3600:.1f} h, more than "
-                                        f"{SHARD_FILL:.0%} of the {time_limit_s / 3600:.0f} h limit: no shard fits")
+def shard_count(units: int, unit_seconds: float, time_limit_s: float, field: str = "--time-limit-h") -> int:
+    """Shards of ``units`` (scenes) so that none exceeds ``SHARD_FILL`` of the time limit (``field``) at
+    ``unit_seconds``."""
+    per_shard = math.floor(time_limit_s * SHARD_FILL / unit_seconds)
+    if per_shard < 1:
+        raise ConfigError(field, f"one unit takes {unit_seconds / 3600:.1f} h, more than "
+                                 f"{SHARD_FILL:.0%} of the {time_limit_s / 3600:.0f} h limit: no shard fits")
     return math.ceil(units / per_shard)

@@ -207,7 +207,8 @@ def test_a_requeue_with_the_derived_lead_outlives_a_slow_step(uninterrupted):
     """SLURM's side played by the test: SIGUSR2 in the middle of a step slower than a fixed lead (the lead that
     the old 90 s was against a 112 s H200 iteration), SIGKILL at the derived lead (``signal_lead_seconds`` of the
     measured step, this machine's save time in place of the paper-scale one). The requeue checkpoint lands before
-    the kill, only the newest requeue checkpoint stays, and two requeues resume to the uninterrupted run's bytes."""
+    the kill, only the newest requeue checkpoint stays, and two requeues resume to the uninterrupted run's bytes.
+    The step's time is not measured here (this machine's speed varies): the slowed optimiser step bounds it."""
     from tracegs.cluster.jobs import signal_lead_seconds
 
     tmp, stage2, expected = uninterrupted
@@ -237,16 +238,20 @@ def test_a_requeue_with_the_derived_lead_outlives_a_slow_step(uninterrupted):
         signalled = time.monotonic()
         process.send_signal(signal.SIGUSR2)
         while requeues() < requeue:
-            assert time.monotonic() - signalled < lead and process.poll() is None, process.stderr.read()[-2000:]
+            if process.poll() is not None or time.monotonic() - signalled > lead:
+                process.kill()
+                pytest.fail(f"no requeue within the {lead} s lead: {process.communicate()[1][-2000:]}")
             time.sleep(0.01)
         saved_after = time.monotonic() - signalled
         process.send_signal(signal.SIGKILL)  # SLURM at the limit (or KillWait's end): nothing more is saved
         process.wait()
         process.stderr.close()
         assert saved_after > slowed / 2  # a lead of half a step would have killed it first
-        assert [p.name for p in requeue_checkpoints(run_dir)] == [f"hpc_ckpt_{requeue}.ckpt"]
-        assert global_step(run_dir / f"hpc_ckpt_{requeue}.ckpt") < STEPS
+        newest = requeue_checkpoints(run_dir)[-1]
+        assert newest.name == f"hpc_ckpt_{requeue}.ckpt" and global_step(newest) < STEPS
     finished = job()
     _, stderr = finished.communicate(timeout=600)
     assert finished.returncode == 0, stderr[-2000:]
+    # Pruned after the save, or (killed first) when the next job resumed: the newest alone is left.
+    assert [p.name for p in requeue_checkpoints(run_dir)] == ["hpc_ckpt_2.ckpt"]
     assert product_bytes(run_dir / "student_adapter") == expected

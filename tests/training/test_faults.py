@@ -204,10 +204,11 @@ SLOW_SCRIPT = (
 
 @pytest.mark.slow  # three training processes with slowed steps
 def test_a_requeue_with_the_derived_lead_outlives_a_slow_step(uninterrupted):
-    """SLURM's side played by the test: SIGUSR2 in the middle of a step slower than a fixed lead (the lead that
-    the old 90 s was against a 112 s H200 iteration), SIGKILL at the derived lead (``signal_lead_seconds`` of the
-    measured step, this machine's save time in place of the paper-scale one). The requeue checkpoint lands before
-    the kill, only the newest requeue checkpoint stays, and two requeues resume to the uninterrupted run's bytes.
+    """SLURM's side played by the test: SIGUSR2 in the middle of a step slower than a fixed lead (as the old 90 s
+    was against a 112 s H200 iteration); the requeue (checkpoint saved, ``scontrol requeue`` called) must come
+    within the derived lead (``signal_lead_seconds`` of the step, this machine's save time in place of the
+    paper-scale one), and SIGKILL follows at once. Only the newest requeue checkpoint stays, and two requeues
+    resume to the uninterrupted run's bytes.
     The step's time is not measured here (this machine's speed varies): the slowed optimiser step bounds it."""
     from tracegs.cluster.jobs import signal_lead_seconds
 

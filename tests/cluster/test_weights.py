@@ -19,7 +19,7 @@ WEIGHTS = "/weights"
 
 
 def tracegs_weights(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tracegs.cluster.weights", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "tracegs.cli.weights", *args], capture_output=True, text=True,
                           env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=120)
 
 

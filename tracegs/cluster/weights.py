@@ -1,11 +1,9 @@
-"""`tracegs-weights`: fetch the released models the paper scale reads (supplement A.1-A.3: GSFixer's restorer on
-CogVideoX-5B-I2V, DINOv2 + VGGT reference encoders, T5; BLIP-2 captions; VGG16 for LPIPS) into the folders
-``paths.weights_dir`` expects, record each file's bytes and SHA-256 in ``<weights_dir>/MANIFEST.json``, and verify a
+"""The released models the paper scale reads (supplement A.1-A.3: GSFixer's restorer on CogVideoX-5B-I2V, DINOv2 +
+VGGT reference encoders, T5; BLIP-2 captions; VGG16 for LPIPS), as ``tracegs-weights`` (tracegs/cli/weights.py)
+handles them: fetch them into the folders ``paths.weights_dir`` expects, record each file's bytes and SHA-256 in ``<weights_dir>/MANIFEST.json``, and verify a
 tree against it without network.
 
-Usage::
-
-    tracegs-weights [--weights-dir weights] [--dry-run [--offline]] [--check [--sizes-only]] [--record]
+Modes of ``tracegs-weights``:
 
 - (no flag) fetch with huggingface_hub (the Hub's repositories) and torch.hub (torchvision's VGG16 file), then
   write the manifest;
@@ -23,16 +21,13 @@ only where a repository ships both formats).
 
 from __future__ import annotations
 
-import argparse
 import fnmatch
 import hashlib
 import json
-import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from tracegs.errors import InputFileError, TraceGSError
+from tracegs.errors import InputFileError
 
 MANIFEST = "MANIFEST.json"
 CHUNK = 16 * 2**20
@@ -219,33 +214,3 @@ def fetch(weights_dir: Path) -> dict:
             torch.hub.download_url_to_file(release.url, str(partial), hash_prefix=prefix)
             partial.replace(weights_dir / release.target)
     return record_manifest(weights_dir)
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="tracegs-weights", description=__doc__.splitlines()[0])
-    parser.add_argument("--weights-dir", type=Path, default=Path(os.environ.get("TRACEGS_WEIGHTS", "weights")),
-                        help="paths.weights_dir of the runs (default: weights, or $TRACEGS_WEIGHTS)")
-    mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--dry-run", action="store_true", help="list repositories, files and bytes; fetch nothing")
-    mode.add_argument("--check", action="store_true", help="verify the tree against its manifest (no network)")
-    mode.add_argument("--record", action="store_true", help="write the manifest of a tree fetched another way")
-    parser.add_argument("--offline", action="store_true", help="--dry-run from the declared list only")
-    parser.add_argument("--sizes-only", action="store_true", help="--check bytes, not SHA-256")
-    args = parser.parse_args(argv)
-    try:
-        if args.dry_run:
-            print_plan(dry_run(args.offline))
-        elif args.check:
-            verified = check_tree(args.weights_dir, args.sizes_only)
-            print(f"{args.weights_dir}: {verified['files']} files, {verified['bytes']:,} B match the manifest "
-                  f"({verified['verified']})")
-        else:
-            manifest = record_manifest(args.weights_dir) if args.record else fetch(args.weights_dir)
-            print(f"{args.weights_dir / MANIFEST}: {len(manifest['files'])} files recorded")
-    except TraceGSError as error:
-        print(f"tracegs-weights: error: {error}", file=sys.stderr)
-        sys.exit(2)
-
-
-if __name__ == "__main__":
-    main()

@@ -138,7 +138,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     per_scene = prepare_work(prepare_cfg, 1).gpu_hours(unit)
     shards, shard_hours = sharded(args.train_scenes, per_scene, limit)
     shards = max(shards, 2)  # one shard timed alone, the others after it
-    prepare = (f"{BIN}tracegs-prepare " + " ".join([*common, *teachers, f"data.prepare.num_shards={shards}"]))
+    prepare = shell(f"{BIN}tracegs-prepare", *common, *teachers, f"data.prepare.num_shards={shards}")
     jobs = [Job("gpu-check", "prepare", f"sh -c {shlex.quote(gpu_check_command(args.weights_dir))}",
                 GPU_CHECK_HOURS),
             Job("prepare-shard0", "prepare", f"{prepare} data.prepare.shard_index=0", shard_hours),
@@ -148,7 +148,7 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
     for stage in ("stage1", "stage2"):
         cfg = compose(config_name="train", overrides=[*common, f"stage={stage}", "ablation=F"])
         hours = train_work(cfg).gpu_hours(unit) / DDP_GPUS
-        command = " ".join([f"stage={stage}", "ablation=F", weights])  # the sbatch script adds PAPER_JOB
+        command = shell(f"stage={stage}", "ablation=F", weights)  # the sbatch script adds PAPER_JOB
         jobs.append(Job(stage, "train", command, hours, gpus=DDP_GPUS, ddp=True, lead_s=lead))
     report = compose(config_name="report", overrides=common)
     for step in main_table_steps(report.report.main_datasets, report.training_data):
@@ -158,18 +158,24 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
         if step.app == "evaluate":
             scenes = test_scenes(cfg, args.dl3dv_test_scenes)
             shards, hours = sharded(scenes, evaluate_work(cfg, 1).gpu_hours(unit), limit)
-            command = " ".join([f"{BIN}tracegs-evaluate", *overrides, f"evaluation.num_shards={shards}",
-                                "evaluation.shard_index=$SLURM_ARRAY_TASK_ID"])
+            command = (shell(f"{BIN}tracegs-evaluate", *overrides, f"evaluation.num_shards={shards}")
+                       + " evaluation.shard_index=$SLURM_ARRAY_TASK_ID")
             jobs.append(Job(label, "evaluate", command, hours, array=shards))
         else:
-            jobs.append(Job(label, "report", " ".join([f"{BIN}tracegs-{step.app}", *overrides]), REPORT_HOURS))
+            jobs.append(Job(label, "report", shell(f"{BIN}tracegs-{step.app}", *overrides), REPORT_HOURS))
     # Fig. 6 as the Table 3 sweep declares it: held-out Mip-NeRF 360 clips, then the per-step report.
     held_out, figure = sweep_steps(["A", "F"], ["F"], common, ["mipnerf360"])[-2:]
     cfg = compose(config_name="report", overrides=list(figure.overrides))
     hours = per_step_work(cfg, test_scenes(cfg, args.dl3dv_test_scenes)).gpu_hours(unit)
-    jobs += [Job("fig6-held-out", "prepare", " ".join([f"{BIN}tracegs-prepare", *held_out.overrides]), FIG6_PREPARE_HOURS),
-             Job("fig6", "report", " ".join([f"{BIN}tracegs-report", *figure.overrides]), hours)]
+    jobs += [Job("fig6-held-out", "prepare", shell(f"{BIN}tracegs-prepare", *held_out.overrides), FIG6_PREPARE_HOURS),
+             Job("fig6", "report", shell(f"{BIN}tracegs-report", *figure.overrides), hours)]
     return jobs
+
+
+def shell(*words: str) -> str:
+    """A command line the job's shell reads back word for word (Hydra's ${...} and [...] stay literal); the shard
+    index, which the shell expands from SLURM's array variable, is appended unquoted by the caller."""
+    return shlex.join(words)
 
 
 def gpu_check_command(weights_dir: str) -> str:

@@ -67,3 +67,12 @@ def test_the_prepare_shards_fill_the_array(lines):
     assert shards > 1 and "data.prepare.shard_index=0" in lines[1]
     assert option(lines[2], "array") == f"0-{shards - 2}"
     assert "data.prepare.shard_index=$((SLURM_ARRAY_TASK_ID + 1))" in lines[2]
+
+
+def test_the_job_shell_reads_hydra_values_back_word_for_word(lines):
+    import shlex
+
+    (wrap,) = [word.removeprefix("--wrap=") for word in shlex.split(lines[-1]) if word.startswith("--wrap=")]
+    words = shlex.split(wrap)
+    assert words[:2] == ["launch/requeue_on_signal.sh", ".venv/bin/tracegs-report"]
+    assert "evaluation.held_out_cache=${data.prepare.cache_dir}" in words and "report.kind=per_step" in words

@@ -211,6 +211,9 @@ class ClusterResources:
     cpus_per_task: int = execution(default=2, range=at_least(1))
     mem_gb: int = execution(default=8, range=at_least(1))
     timeout_min: int = execution(default=240, range=at_least(1))
+    # The GPU check's JSON (launch/gpu_check.sh on this cluster's GPU) whose Stage-2 iteration the SLURM launcher's
+    # requeue signal must leave time for (refused at launch otherwise); None: not checked.
+    gpu_check: str | None = execution(default=None)
 
 
 @dataclass

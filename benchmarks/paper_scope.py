@@ -57,6 +57,7 @@ from tracegs.cluster.jobs import (  # noqa: E402
     signal_lead_seconds,
 )
 from tracegs.cluster.weights import MANIFEST  # noqa: E402
+from tracegs.stages import Product  # noqa: E402
 
 GPU_CHECK_HOURS = 1.0  # the check itself: 8 min on an H200 (its JSON) plus the manifest's hashes of ~40 GB
 # Assumed: held-out clips through captured cameras need no 3DGS fit or restoration, only renders and encodes.
@@ -145,11 +146,11 @@ def chain(args, unit: UnitSeconds, step_s: float) -> list[Job]:
             Job("prepare", "prepare", f"{prepare} data.prepare.shard_index=$((SLURM_ARRAY_TASK_ID + 1))",
                 shard_hours, array=shards - 1)]
     lead = signal_lead_seconds(step_s * factor)
-    for stage in ("stage1", "stage2"):
+    for stage in (Product.stage1, Product.stage2):
         cfg = compose(config_name="train", overrides=[*common, f"stage={stage}", "ablation=F"])
         hours = train_work(cfg).gpu_hours(unit) / DDP_GPUS
         command = shell(f"stage={stage}", "ablation=F", weights)  # the sbatch script adds PAPER_JOB
-        jobs.append(Job(stage, "train", command, hours, gpus=DDP_GPUS, ddp=True, lead_s=lead))
+        jobs.append(Job(str(stage), "train", command, hours, gpus=DDP_GPUS, ddp=True, lead_s=lead))
     report = compose(config_name="report", overrides=common)
     for step in main_table_steps(report.report.main_datasets, report.training_data):
         overrides = [*common, *step.overrides]

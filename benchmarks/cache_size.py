@@ -46,14 +46,9 @@ from tracegs.data import cache_keys, datamodule
 from tracegs.data.cache_keys import MANIFEST
 from tracegs.data.config import DataModuleConfig, PrepareConfig
 from tracegs.data.datamodule import PairedClipDataModule
-from tracegs.data.prepare import (
-    EncodedClip,
-    clip_condition_keys,
-    clip_view_counts,
-    frames_stored,
-    manifest_header,
-    write_clip,
-)
+from tracegs.data.preparation.manifests import manifest_header
+from tracegs.data.preparation.plan import clip_condition_keys, clip_view_counts, frames_stored
+from tracegs.data.preparation.shards import EncodedClip, write_clip
 from tracegs.restorer.encoders import reference_grid
 from tracegs.splat.trajectory import reference_pairs
 

@@ -41,8 +41,7 @@ from tracegs.data import datamodule
 from tracegs.data.cache_keys import MANIFEST
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.datamodule import PairedClipDataModule, read_manifest
-
-STAGES = ("baseline", "stage1", "stage2")
+from tracegs.stages import STAGES
 
 
 def stage_reads(stage: str) -> tuple[int, int, int]:
@@ -106,7 +105,7 @@ def main() -> None:
     print(f"cache {cache}: {clips} shards of {shard_mb:.2f} MB")
     totals = {"verify": 0.0, "load": 0.0}
     figures = {}
-    for stage in STAGES:
+    for stage in STAGES.names():
         steps, batch_size, demo_clips = stage_reads(stage)
         batches = max(1, round(steps * clips / demo_clips))  # each shard read as often as in the demo
         setup_with, setup_without, serving = [], [], []

@@ -12,7 +12,8 @@ minutes on a GPU are few, one failure must not cost the rest):
   forwards) and one unguided rollout step (one forward, no gradient);
 - ``vae``: the VAE's encode and decode of one clip (49 x 480 x 720);
 - ``weights``: every released model the paper scale reads under ``paths.weights_dir`` (GSFixer, CogVideoX's VAE, T5
-  and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing; when the restorer's are all present,
+  and tokenizer, DINOv2, VGGT, BLIP-2, VGG16 for LPIPS), present or missing, and the tree checked against the
+  manifest ``tracegs-weights`` wrote (file sizes); when the restorer's are all present,
   they are loaded through the pipeline's own loaders and one clip is restored (seconds);
 - ``rasterizer``: one 3DGS fit of a procedural scene (embedded resolution) at the paper's fit settings
   (``conf/splat/paper.yaml``) with every iteration-based schedule scaled to ``--fit-iterations``, once on the GPU
@@ -59,10 +60,12 @@ from stage2_memory import (  # noqa: E402
     stage2_module,
 )
 
+from tracegs.cluster.weights import check_tree, weight_paths  # noqa: E402
 from tracegs.data.colmap import load_scene, test_indices_for  # noqa: E402
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig  # noqa: E402
 from tracegs.data.splits import every_nth_test  # noqa: E402
 from tracegs.data.synthetic import generate_scene, scene_name  # noqa: E402
+from tracegs.errors import TraceGSError  # noqa: E402
 from tracegs.eval.clips import mean_psnr  # noqa: E402
 from tracegs.splat.config import GaussianFitConfig  # noqa: E402
 from tracegs.splat.fit import View, fit_gaussians  # noqa: E402
@@ -289,19 +292,6 @@ def vae_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, 
     yield "vae_decode", clock.measure(lambda: codec.decode(latents))
 
 
-def weight_paths(cfg) -> dict[str, str | None]:
-    """Every released model the paper scale reads, by name: its configured local path (None where not used)."""
-    backbone, deploy, evaluation = cfg.backbone, cfg.deploy, cfg.evaluation
-    return {"gsfixer_transformer": backbone.transformer.pretrained_path,
-            "cogvideox_vae": backbone.codec.pretrained_path,
-            "t5_text_encoder": backbone.text_encoder.pretrained_path,
-            "t5_tokenizer": backbone.text_encoder.tokenizer_path,
-            "dinov2": backbone.reference_encoder.dino_path,
-            "vggt": backbone.reference_encoder.vggt_path,
-            "blip2_captioner": deploy.captions.blip2_path,
-            "vgg16_lpips": evaluation.lpips_weights}
-
-
 def weights_section(cfg, device: torch.device, clock: Clock) -> dict:
     """Which released models are on disk; with the restorer's all present, load them and restore one clip."""
     from omegaconf import OmegaConf
@@ -313,6 +303,10 @@ def weights_section(cfg, device: torch.device, clock: Clock) -> dict:
     present = {name: path is not None and Path(path).exists() for name, path in paths.items()}
     missing = sorted(name for name, path in paths.items() if path is not None and not present[name])
     figures: dict = {"paths": paths, "missing": missing}
+    try:  # bytes only: hashing ~40 GB would take minutes of the lease (tracegs-weights --check hashes them)
+        figures["manifest"] = check_tree(Path(cfg.paths.weights_dir), sizes_only=True)
+    except TraceGSError as error:
+        figures["manifest"] = {"error": str(error)}
     restorer = ("gsfixer_transformer", "cogvideox_vae", "t5_text_encoder", "t5_tokenizer", "dinov2", "vggt")
     if any(name in missing for name in restorer):
         log.info("weights missing under %s: %s (nothing loaded)", cfg.paths.weights_dir, ", ".join(missing))

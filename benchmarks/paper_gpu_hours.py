@@ -44,7 +44,7 @@ from tracegs.config.schema import register_configs
 from tracegs.config.tree import ConfigTree
 from tracegs.data.colmap import read_scene_list
 from tracegs.data.config import PrepareConfig
-from tracegs.data.prepare import (
+from tracegs.data.preparation.plan import (
     captures_held_out,
     clip_condition_keys,
     clip_view_counts,
@@ -56,6 +56,7 @@ from tracegs.pipeline.runner import Step, override
 from tracegs.pipeline.steps import main_table_steps, sweep_steps
 from tracegs.pipeline.variants import per_step_variants, table3_configs, table3_variants, variants_teachers
 from tracegs.splat.trajectory import clips_per_round, reference_pairs
+from tracegs.stages import Product
 
 HOUR = 3600.0
 PAPER_JOB = ("experiment=paper", "trainer=ddp")  # what every counted command composes (a cluster job at paper scale)
@@ -180,9 +181,9 @@ def train_work(cfg: DictConfig) -> Work:
     gradient, Eq. supp-stage1; Stage 2: N student forwards with gradient and N teacher forwards without)."""
     exp, stage = cfg.experiment, cfg.stage.name
     samples_per_step = cfg.stage.batch_size * int(cfg.trainer.devices) * cfg.trainer.num_nodes
-    if stage == "baseline":
+    if stage == Product.baseline:
         return Work(training_forwards=exp.baseline_steps * samples_per_step)
-    if stage == "stage1":
+    if stage == Product.stage1:
         return Work(training_forwards=2 * exp.stage1_steps * samples_per_step)
     rollout = cfg.stage.rollout_steps * guided(cfg.stage.guidance_scale)
     return Work(training_forwards=exp.stage2_steps * samples_per_step * rollout,

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig, SyntheticConfig
-from tracegs.data.prepare import run_prepare
+from tracegs.data.preparation.driver import run_prepare
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 

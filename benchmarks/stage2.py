@@ -182,13 +182,14 @@ def _make_adapter(path: Path) -> None:
     import torch
 
     from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
+    from tracegs.stages import Product
 
     cfg, transformer = _base()
     add_adapter(transformer, "aligned", cfg.lora)
     with torch.no_grad():
         for p in adapter_parameters(transformer, "aligned"):
             p.normal_(0.0, 0.02)
-    save_adapter(transformer, "aligned", path, stage="stage1")
+    save_adapter(transformer, "aligned", path, stage=Product.stage1)
 
 
 def _run_worker(mode: str, rollout: int, args, adapter: Path, mmap_threshold: bool) -> dict:

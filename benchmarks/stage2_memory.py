@@ -148,6 +148,7 @@ def make_random_adapter(backbone, path: Path, device: str) -> None:
     import torch
 
     from tracegs.restorer.adapters import adapter_parameters, add_adapter, save_adapter
+    from tracegs.stages import Product
 
     model = random_base_transformer(backbone, device)
     add_adapter(model, "aligned", backbone.lora)
@@ -155,7 +156,7 @@ def make_random_adapter(backbone, path: Path, device: str) -> None:
     with torch.no_grad():
         for param in adapter_parameters(model, "aligned"):
             param.normal_(0.0, 0.02)
-    save_adapter(model, "aligned", path, stage="stage1")
+    save_adapter(model, "aligned", path, stage=Product.stage1)
     del model
     if device == "cuda":
         torch.cuda.empty_cache()

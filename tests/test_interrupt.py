@@ -1,6 +1,7 @@
 """Ctrl-C through a real console script: the terminal sends SIGINT to the whole process group (the command and
 its worker processes); the command stops within seconds with one line and the shell's code for SIGINT, leaves no
-worker behind and no half-written product, and the same command then goes on."""
+worker behind and no half-written product, and the same command then goes on to the bytes an uninterrupted run
+makes."""
 
 from __future__ import annotations
 
@@ -55,3 +56,23 @@ def test_ctrl_c_during_the_fits_stops_in_one_line_with_code_130(tmp_path):
     time.sleep(1)
     assert living_members(process.pid) == []  # no worker outlived the command
     assert not list((tmp_path / "data" / "cache").glob("*/manifest.json"))  # the cache is not declared finished
+
+    finish(tmp_path)
+    whole = tmp_path / "uninterrupted"
+    whole.mkdir()
+    finish(whole)
+    assert data_files(tmp_path) == data_files(whole)
+
+
+def finish(root: Path) -> None:
+    """The prepare command run to its end on ``root``."""
+    process = start_in_own_group(PREPARE, root)
+    _, stderr = process.communicate(timeout=900)
+    assert process.returncode == 0, stderr[-3000:]
+
+
+def data_files(root: Path) -> dict[str, bytes]:
+    """The bytes of every product under ``root/data`` (the scenes, the fits and the cache), by relative path; a
+    temporary of ``atomic_write`` left by the interrupted run would show here."""
+    data = root / "data"
+    return {path.relative_to(data).as_posix(): path.read_bytes() for path in sorted(data.rglob("*")) if path.is_file()}

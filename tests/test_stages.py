@@ -4,10 +4,13 @@ products made from it), and the real table gives the graph the configs and produ
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+from pathlib import Path
 
 import pytest
 
+import tracegs
 from tracegs.products import DEPLOYMENT, Product, reads
 from tracegs.stages import STAGES, Stage, StageName, StageTable
 
@@ -58,3 +61,15 @@ def test_an_unknown_stage_or_artifact_is_named():
         STAGES.stage("stage9")
     with pytest.raises(KeyError, match="artifacts.nothing"):
         STAGES.producer("nothing")
+
+
+def test_a_trained_stage_is_spelled_in_the_table_alone():
+    """The package and its benchmarks name Stage 1 through the table (``Product.stage1``), never by its string:
+    renaming or adding a stage then changes one row, not every module that spells it."""
+    package = Path(tracegs.__file__).parent
+    sources = [*package.rglob("*.py"), *(package.parent / "benchmarks").glob("*.py")]
+    spelled = [f"{path.relative_to(package.parent)}:{node.lineno}" for path in sources
+               if path != package / "stages.py"
+               for node in ast.walk(ast.parse(path.read_text(), filename=str(path)))
+               if isinstance(node, ast.Constant) and node.value == Product.stage1.value]
+    assert spelled == []

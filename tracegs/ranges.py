@@ -183,3 +183,22 @@ def ranges(schema: type) -> dict[str, FieldRange]:
 
     visit(schema, "")
     return found
+
+
+def _interpolation(value: Any) -> bool:
+    """Whether ``value`` (or an item of it) is an OmegaConf interpolation, as in the schema's own defaults."""
+    items = value if isinstance(value, (list, tuple)) else [value]
+    return any(isinstance(item, str) and "${" in item for item in items)
+
+
+def check_ranges(config: Any, section: str = "") -> None:
+    """Refuse a field of the config dataclass instance ``config`` whose value is outside its declared range (its
+    own fields; each nested section checks its own), naming it under ``section`` (e.g. ``stage``): the same check
+    the composed config passes, for a config built in Python. An interpolation is left to that check, which sees
+    the value it resolves to."""
+    for path, declared in ranges(type(config)).items():
+        value = getattr(config, path, None)
+        if "." not in path and not _interpolation(value):
+            problem = declared.problem(value)
+            if problem is not None:
+                raise ConfigError(f"{section}.{path}" if section else path, problem)

@@ -19,7 +19,8 @@ CONF = Path(CONF_DIR)
 # Every config group outside hydra/, found on disk so that a new group must show up in the help.
 GROUPS = sorted(p.name for p in CONF.iterdir() if p.is_dir() and p.name not in ("hydra", "__pycache__"))
 # The scripts that compose no config (plain argparse), so their help has no config groups to list.
-NO_CONFIG = {"tracegs-view": "serves a finished run folder as it is"}
+NO_CONFIG = {"tracegs-view": "serves a finished run folder as it is",
+             "tracegs-weights": "fetches and verifies files, before any config is run"}
 
 
 def console_scripts() -> dict[str, str]:

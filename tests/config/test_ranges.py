@@ -14,9 +14,12 @@ from omegaconf import OmegaConf
 
 from tracegs.config.schema import TraceGSConfig, register_configs
 from tracegs.config.validate import validate, validate_ranges
+from tracegs.deploy.config import RefinementConfig
 from tracegs.errors import ConfigError
 from tracegs.products import BASELINE, execution, reads
 from tracegs.ranges import FieldRange, at_least, ranges
+from tracegs.splat.config import TrajectoryConfig
+from tracegs.training.config import StageConfig
 
 DECLARED = ranges(TraceGSConfig)  # refuses, at collection, a numeric field of the schema that declares none
 
@@ -129,3 +132,17 @@ def test_a_numeric_field_without_a_range_is_refused_at_registration():
 def test_a_range_on_a_field_that_is_not_numeric_is_refused():
     with pytest.raises(ConfigError, match="config field 'name': declares the range '>= 1'"):
         ranges(Misplaced)
+
+
+@pytest.mark.parametrize(("build", "field"), [
+    (lambda: StageConfig(keep_checkpoints=2), "stage.keep_checkpoints"),
+    (lambda: RefinementConfig(clip_batch=0).validate(), "clip_batch"),
+    (lambda: RefinementConfig(repair_iters=[]).validate(), "repair_iters"),
+    (lambda: RefinementConfig(trajectory=TrajectoryConfig(pitch_degrees=[])).validate(), "trajectory.pitch_degrees"),
+])
+def test_a_config_built_in_python_is_checked_against_the_same_ranges(build, field):
+    """A section built without Hydra (an engine's caller, a benchmark) is refused by the ranges its fields declare,
+    not by a second hand-written copy of them."""
+    with pytest.raises(ConfigError, match=f"config field '{field}': .* is out of range"):
+        build()
+    assert StageConfig(keep_checkpoints=-1, ema_decay=0.0).keep_checkpoints == -1  # each end and sentinel admitted

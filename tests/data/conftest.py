@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from scene_builders import tiny_configs, write_scene
 
-from tracegs.data.prepare import run_prepare
+from tracegs.data.preparation.driver import run_prepare
 from tracegs.restorer.build import build_backbone
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.cameras import Camera

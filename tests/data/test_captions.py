@@ -16,7 +16,7 @@ from scene_builders import tiny_configs
 from tracegs.data.captions import clip_caption
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import CaptionConfig, SceneSourceConfig
-from tracegs.data.prepare import run_prepare
+from tracegs.data.preparation.driver import run_prepare
 from tracegs.data.splits import split_scene
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.refine import render_round_clips

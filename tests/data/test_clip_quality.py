@@ -7,7 +7,7 @@ import shutil
 import pytest
 
 from tracegs.data.datamodule import CacheError
-from tracegs.data.prepare import read_shard_psnr
+from tracegs.data.preparation.shards import read_shard_psnr
 from tracegs.eval.clips import (
     INPUT,
     clip_restoration_psnr,

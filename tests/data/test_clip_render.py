@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import clip_cameras, plan_scene, render_conditions, trajectory_seed
+from tracegs.data.preparation.plan import clip_cameras, plan_scene, trajectory_seed
+from tracegs.data.preparation.renders import render_conditions
 from tracegs.deploy.config import RefinementConfig
 from tracegs.deploy.refine import render_round_clips
 from tracegs.splat.config import GaussianFitConfig, TrajectoryConfig

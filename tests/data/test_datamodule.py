@@ -229,7 +229,7 @@ def test_clips_of_the_listed_student_view_counts_are_served(tmp_path):
     """A cache with a 3-view and a 6-view clip (written by prepare's writer): each clip serves its own K's
     snapshot, ``student_views`` picks the clips and ``clips_per_scene`` keeps only each scene's first ones."""
     from tracegs.data.cache_keys import CACHE_VERSION
-    from tracegs.data.prepare import EncodedClip, write_clip
+    from tracegs.data.preparation.shards import EncodedClip, write_clip
 
     g = torch.Generator().manual_seed(0)
     paths = []

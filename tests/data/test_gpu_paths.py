@@ -11,7 +11,7 @@ from scene_builders import tiny_configs
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.prepare import run_prepare
+from tracegs.data.preparation.driver import run_prepare
 from tracegs.data.synthetic import benchmark_scene_names, generate_benchmark, ground_truth_model
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig
 from tracegs.deploy.restorers import GroundTruthRestorer

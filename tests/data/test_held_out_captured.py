@@ -16,7 +16,9 @@ from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, Split
 from tracegs.data.held_out import NAME_ORDER, between_in_capture_order
 from tracegs.data.images import to_uint8
-from tracegs.data.prepare import PrepareError, plan_scene, run_prepare, shard_is_valid
+from tracegs.data.preparation.driver import run_prepare
+from tracegs.data.preparation.plan import PrepareError, plan_scene
+from tracegs.data.preparation.shards import shard_is_valid
 from tracegs.data.splits import split_scene
 from tracegs.eval.clips import (
     INPUT,

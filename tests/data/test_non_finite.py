@@ -15,7 +15,8 @@ from support.inputs import overwrite_tensor_bytes
 
 from tracegs.data.config import DataModuleConfig
 from tracegs.data.datamodule import PairedClipDataModule
-from tracegs.data.prepare import run_prepare, shard_is_valid
+from tracegs.data.preparation.driver import run_prepare
+from tracegs.data.preparation.shards import shard_is_valid
 from tracegs.errors import NonFiniteError
 from tracegs.io import read_safetensors, save_safetensors_atomic, seal_header
 

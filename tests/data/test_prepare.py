@@ -21,7 +21,9 @@ from safetensors.torch import load_file
 from scene_builders import all_files, differing_files, tiny_configs, write_scene
 
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import PrepareError, merge_manifests, run_prepare, teacher_view_counts
+from tracegs.data.preparation.driver import run_prepare
+from tracegs.data.preparation.manifests import merge_manifests
+from tracegs.data.preparation.plan import PrepareError, teacher_view_counts
 
 
 def test_prepare_builds_the_cache_from_nothing(prepared):
@@ -69,7 +71,7 @@ PREPARE_SCRIPT = (
     "from dataclasses import replace\n"
     "from pathlib import Path\n"
     "from scene_builders import tiny_configs\n"
-    "from tracegs.data.prepare import run_prepare\n"
+    "from tracegs.data.preparation.driver import run_prepare\n"
     "from tracegs.restorer.build import build_backbone\n"
     "from tracegs.restorer.config import BackboneConfig\n"
     "if __name__ == '__main__':\n"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -18,7 +19,15 @@ from support.inputs import TINY_RESTORE, assert_refused, files_under
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import SceneSourceConfig, SfmConfig
-from tracegs.data.sfm import RECORD, reconstruct_photos, sample_frames, sharpness
+from tracegs.data.sfm import (
+    MAX_ROTATION_DISAGREEMENT_DEG,
+    RECORD,
+    reconstruct_photos,
+    sample_frames,
+    sharpness,
+    working_photos,
+)
+from tracegs.errors import InputFileError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from sfm import camera_errors, orbit, render_frames, textured_scene, write_photos  # noqa: E402
@@ -88,26 +97,62 @@ def test_a_rerun_reuses_the_reconstruction_and_a_changed_photo_makes_another(thi
     assert first != second and first.is_dir() and (second / RECORD).is_file()
 
 
-def test_other_files_are_ignored_aloud_and_each_image_size_gets_its_camera(model, tmp_path, caplog):
+def files_of(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_renamed_capture_gets_the_same_reconstruction_without_making_it_again(thirty_photos, reconstructed,
+                                                                               tmp_path, caplog):
+    """The reconstruction is keyed by the photos, not the folder's name: a renamed copy gets the same cameras and
+    points, byte for byte (a second run of COLMAP on several threads would not repeat to the bit)."""
+    capture, _ = thirty_photos
+    renamed = tmp_path / "salon"
+    shutil.copytree(capture, renamed)
+    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"):
+        scene = reconstruct_photos(renamed, SfmConfig(dir=str(reconstructed.parents[1]), **SFM), views=6,
+                                   test_every=8)
+    assert scene.parent == reconstructed.parent and scene.name == "salon" and "copied from" in caplog.text
+    assert files_of(scene) == files_of(reconstructed)
+
+
+def test_a_large_photo_is_downsized_once_and_a_truncated_one_is_named(model, tmp_path):
+    """Photos longer than the size SfM works at are read reduced (JPEG draft) and written at it, upright; a photo
+    that does not decode whole is refused, named, before COLMAP could read its top and fill the rest with grey."""
+    photos = tmp_path / "photos"
+    write_photos(photos, model, orbit(2, arc_deg=20.0))
+    large = Image.open(photos / "photo_000.png").resize((1600, 1200))
+    exif = large.getexif()
+    exif[0x0112] = 6  # held upright
+    large.save(photos / "photo_000.jpg", exif=exif, quality=95)
+    (photos / "photo_000.png").unlink()
+    names = ["photo_000.jpg", "photo_001.png"]
+    working = working_photos(photos, names, tmp_path / "working", longest=400)
+    assert Image.open(working / "photo_000.jpg").size == (300, 400)  # upright, downsized
+    assert (working / "photo_001.png").resolve() == photos / "photo_001.png"  # small enough: linked as it is
+    data = (photos / "photo_000.jpg").read_bytes()
+    (photos / "photo_000.jpg").write_bytes(data[: len(data) * 2 // 5])
+    with pytest.raises(InputFileError, match="photo_000.jpg: cannot decode the photo"):
+        working_photos(photos, names, tmp_path / "again", longest=2000)
+
+
+def test_other_files_are_ignored_aloud_and_photos_of_two_sizes_are_checked_before_they_are_trusted(
+        model, tmp_path, caplog):
+    """Each size gets its camera, and the model of two cameras is checked (each camera's reprojection, each view
+    against its photo pairs' own rotations): here COLMAP places views where their pairs disagree, so the capture
+    is refused in one line naming the sizes (the slow test of 720x480 photos below holds the check
+    against known cameras)."""
     capture = tmp_path / "mixed" / "images"  # photos in an images/ folder of the capture
     write_photos(capture, model, orbit(14, arc_deg=140.0))
     for photo in sorted(capture.iterdir())[1::2]:  # every other photo at another size (another camera)
         Image.open(photo).resize((400, 300)).save(photo)
     (capture / "notes.txt").write_text("taken at noon")
     Image.open(capture / "photo_000.png").save(capture / "extra.webp")  # a format COLMAP's reader skips
-    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"):
-        scene = reconstruct_photos(capture.parent, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3,
-                                   test_every=8)
+    with caplog.at_level(logging.INFO, logger="tracegs.data.sfm"), pytest.raises(InputFileError) as refused:
+        reconstruct_photos(capture.parent, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3, test_every=8)
     assert "ignored 2 file(s) that are not photos (extra.webp, notes.txt)" in caplog.text
-    record = json.loads((scene / RECORD).read_text())
-    assert record["cameras"] == [[320, 240], [400, 300]] and record["images"] == 14
-    import pycolmap
-
-    model_ = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
-    sizes = {image.name: (image.camera.width, image.camera.height) for image in model_.images.values()}
-    assert len(model_.cameras) == 2 and len(sizes) >= 12
-    # Undistortion crops a few pixels; the two sizes stay apart.
-    assert all((w > 360) == (int(name[6:9]) % 2 == 1) for name, (w, h) in sizes.items()), sizes
+    assert "photos of 2 sizes (320x240, 400x300), one camera each" in str(refused.value)
+    assert f"(over {MAX_ROTATION_DISAGREEMENT_DEG}" in str(refused.value)
+    assert not list((tmp_path / "captures").glob("*/sparse"))  # nothing half-written
 
 
 def test_photos_taken_upright_are_reconstructed_as_the_loader_reads_them(model, tmp_path):
@@ -121,9 +166,11 @@ def test_photos_taken_upright_are_reconstructed_as_the_loader_reads_them(model, 
         exif[0x0112] = 6  # rotated 90 degrees clockwise to view
         image.save(photo.with_suffix(".jpg"), exif=exif, quality=95)
         photo.unlink()
-    scene = reconstruct_photos(capture, SfmConfig(dir=str(tmp_path / "captures"), **SFM), views=3, test_every=8)
+    scene = reconstruct_photos(capture, SfmConfig(dir=str(tmp_path / "captures"), scene_size=200, **SFM), views=3,
+                               test_every=8)
     loaded = load_scene(SceneSourceConfig(root=str(scene.parent), preset="custom"), scene.name)
     assert len(loaded) == 12 and {(c.width < c.height) for c in loaded.cameras} == {True}
+    assert max(c.height for c in loaded.cameras) <= 200  # undistorted at the scene's size, not the photos'
     assert loaded.load_image(0).shape[1:] == (loaded.cameras[0].height, loaded.cameras[0].width)
 
 
@@ -246,7 +293,19 @@ def path_and_video(model, inputs: Path):
         "config field 'capture.video': set either capture.path"
 
 
-BAD = {f.__name__: f for f in (two_photos, too_few_registered, too_little_overlap, nothing_to_start_from,
+def truncated_photo(model, inputs: Path):
+    """A JPEG cut to 40% of its bytes: COLMAP would read its top, fill the rest with grey and register it."""
+    folder = inputs / "cut"
+    write_photos(folder, model, orbit(5, arc_deg=50.0))
+    photo = folder / "photo_002.jpg"
+    Image.open(folder / "photo_002.png").save(photo, quality=95)
+    (folder / "photo_002.png").unlink()
+    photo.write_bytes(photo.read_bytes()[: photo.stat().st_size * 2 // 5])
+    return ([f"capture.path={folder}", "capture.views=3"],
+            f"{photo}: cannot decode the photo (image file is truncated")
+
+
+BAD = {f.__name__: f for f in (truncated_photo, two_photos, too_few_registered, too_little_overlap, nothing_to_start_from,
                                fewer_photos_than_views, video_of_two_frames, video_too_short, not_a_video,
                                path_and_video)}
 
@@ -305,3 +364,49 @@ def test_a_video_restores_end_to_end(model, tmp_path, entry_point):
     assert len(unit["captured"]) == 3 and "sequential matching" in result.stdout
     (frames,) = (tmp_path / "data" / "captures").glob("*/frames")
     assert len(list(frames.iterdir())) == 24
+
+
+def halved(capture: Path) -> None:
+    for photo in sorted(capture.iterdir())[1::2]:
+        Image.open(photo).resize((360, 240)).save(photo)
+
+
+@pytest.mark.slow  # structure-from-motion of 12 photos at 720x480, then a restore: ~20 s on an idle core
+def test_photos_of_two_sizes_give_a_checked_model_or_a_refusal_naming_the_sizes(model, tmp_path, entry_point):
+    """12 photos of 720x480, every other one halved: two cameras, and the model they give is either right (every
+    camera within a degree of its true orientation) or refused in one line naming the sizes, with nothing kept;
+    never a wrong model in silence."""
+    capture = tmp_path / "inputs" / "room"
+    truth = write_photos(capture, model, orbit(12, 720, 480, arc_deg=140.0))
+    halved(capture)
+    root = tmp_path / "root"
+    root.mkdir()
+    result = entry_point("restore", [*SMALLEST, f"capture.path={capture}", f"paths.root_dir={root}"], root)
+    if result.returncode == 2:
+        (line,) = result.stderr_lines()
+        assert "photos of 2 sizes (360x240, 720x480), one camera each" in line
+        assert list(root.iterdir()) == []
+        return
+    assert_restored(result, root, "room")
+    (scene,) = (root / "data" / "captures").glob("*/room")
+    assert json.loads((scene / RECORD).read_text())["cameras"] == [[360, 240], [720, 480]]
+    assert camera_errors(scene, truth)["rotation_error_deg"] <= 1.0
+
+
+@pytest.mark.slow  # structure-from-motion of 12 photos and two restores: ~25 s on an idle core
+def test_a_renamed_capture_restores_to_the_same_bytes(model, tmp_path, entry_point):
+    """Only the photos' content and the seeds drive a restore: the same photos in a folder of another name give
+    the same scores and the same refined 3DGS, byte for byte."""
+    first = tmp_path / "inputs" / "garden"
+    write_photos(first, model, orbit(12, arc_deg=140.0))
+    second = tmp_path / "inputs" / "jardin"
+    shutil.copytree(first, second)
+    units = []
+    for capture in (first, second):
+        result = entry_point("restore", [*SMALLEST, f"capture.path={capture}", f"paths.root_dir={tmp_path}"],
+                             tmp_path)
+        units.append(assert_restored(result, tmp_path, capture.name))
+    (run,) = (tmp_path / "outputs" / "embedded" / "restore" / "A").iterdir()
+    assert units[0]["methods"] == units[1]["methods"]
+    assert all((run / units[0]["models"][m]).read_bytes() == (run / units[1]["models"][m]).read_bytes()
+               for m in units[0]["models"])

@@ -5,7 +5,7 @@ from scene_builders import write_scene
 
 from tracegs.data.colmap import load_scene
 from tracegs.data.config import PrepareConfig, SceneSourceConfig
-from tracegs.data.prepare import plan_scene
+from tracegs.data.preparation.plan import plan_scene
 from tracegs.data.splits import SplitError, make_split, split_scene
 from tracegs.deploy.scenes import load_unit
 from tracegs.errors import ConfigError

@@ -84,3 +84,22 @@ def test_chromium_shows_the_tables_and_the_plot_from_disk(tmp_path):
     pixels = iio.imread(shot)[..., :3].astype(int)
     plot_blue = (abs(pixels - np.array([31, 119, 180])).sum(axis=-1) < 30).sum()
     assert plot_blue > 200
+
+
+def test_a_capture_page_is_titled_by_it_names_its_photos_and_says_each_label_once(tmp_path):
+    """One capture restored: the page's title is the capture's name, its views are its photos' file names (escaped),
+    no interval of one value is shown, and the LPIPS note does not repeat its own name."""
+    folder = tmp_path / "seed0-0123abcd"
+    methods = {m: {"per_view": [{"psnr": 20.0, "ssim": 0.5, "lpips": None}],
+                   "mean": {"psnr": 20.0, "ssim": 0.5, "lpips": None}} for m in ("3dgs", "baseline")}
+    write_json_atomic({"scene": "Mes photos d'été", "views": 2, "captured": [0, 2], "test": [1],
+                       "names": {"0": "<a>.jpg", "1": "b & c.jpg", "2": "IMG_2.jpg"},
+                       "lpips": "LPIPS n/a: VGG16 ImageNet weights not found", "methods": methods,
+                       "media": {"grid": "media/grid.png"}},
+                      unit_path(folder, "Mes photos d'été", 2))
+    merge_results(folder)
+    text = report_html(folder)
+    assert "<title>Mes photos d&#x27;été: tracegs results</title>" in text and "0123abcd" not in text
+    assert "Fitted from &lt;a&gt;.jpg, IMG_2.jpg, scored on held-out b &amp; c.jpg." in text
+    assert "[n/a" not in text and "95% intervals" not in text
+    assert "LPIPS n/a: VGG16" in text and "LPIPS: LPIPS" not in text

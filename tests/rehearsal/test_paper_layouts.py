@@ -13,7 +13,7 @@ from support.rehearsal import rehearsal_config
 from tracegs.data import colmap
 from tracegs.data.colmap import SceneFormatError, list_scenes, load_scene
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig
-from tracegs.data.prepare import plan_scene
+from tracegs.data.preparation.plan import plan_scene
 from tracegs.data.splits import make_split
 from tracegs.data.synthetic import camera_path
 

@@ -21,7 +21,7 @@ from support.training import (
 )
 from tracegs.data.cache_keys import CACHE_VERSION, MANIFEST, condition_key
 from tracegs.data.config import DataModuleConfig
-from tracegs.data.prepare import EncodedClip, write_clip
+from tracegs.data.preparation.shards import EncodedClip, write_clip
 from tracegs.data.splits import view_set_key
 from tracegs.restorer.config import BackboneConfig, CodecConfig, ReferenceEncoderConfig, TextEncoderConfig
 from tracegs.training.config import OptimizerConfig, StageConfig, TrainConfig, TrainerConfig

@@ -22,7 +22,7 @@ from support.training_runs import config, product_bytes, train_baseline_and_stag
 
 from tracegs.errors import OutputPathError
 from tracegs.training.baseline import BaselineRestorerModule
-from tracegs.training.checkpoints import ConfirmedCheckpoint
+from tracegs.training.checkpoints import ConfirmedCheckpoint, requeue_checkpoints
 from tracegs.training.config import OptimizerConfig
 from tracegs.training.run import resume_checkpoint, train_stage
 
@@ -152,7 +152,7 @@ def test_a_checkpoint_that_did_not_reach_the_disk_stops_the_run(tmp_path, read_o
 @pytest.mark.slow  # two training processes per case
 @pytest.mark.parametrize("end", ["SIGTERM", "SIGKILL"], ids=["SIGTERM", "KillWait-SIGKILL"])
 def test_a_slurm_requeue_resumes_to_identical_bytes(uninterrupted, end):
-    """The SLURM time-limit path of the cluster scripts (``#SBATCH --signal=SIGUSR2@90``): SIGUSR2 makes
+    """The SLURM time-limit path of the cluster scripts (``#SBATCH --signal=SIGUSR2@600``): SIGUSR2 makes
     Lightning's SLURMEnvironment save hpc_ckpt_1.ckpt and call ``scontrol requeue``; SLURM then ends the job with
     SIGTERM (a checkpoint after the step in flight), or with SIGKILL when the job outlives KillWait; the requeued
     job (same command, same environment) resumes from the newest checkpoint to the uninterrupted run's bytes.
@@ -188,4 +188,71 @@ def test_a_slurm_requeue_resumes_to_identical_bytes(uninterrupted, end):
     assert requeued.returncode == 0, stderr[-2000:]
     assert f"Restoring states from the checkpoint path at {resumed_from}" in stderr, stderr[-3000:]
     assert scontrol_calls.read_text().count("requeue") == 1  # the requeued job ran to its end
+    assert product_bytes(run_dir / "student_adapter") == expected
+
+
+# SCRIPT with every optimiser step slowed by argv[2] seconds: a step slower than a fixed signal lead.
+SLOW_SCRIPT = (
+    "import sys, time, torch\n"
+    "step = torch.optim.AdamW.step\n"
+    "def slow(self, *args, **kwargs):\n"
+    "    time.sleep(float(sys.argv[2]))\n"
+    "    return step(self, *args, **kwargs)\n"
+    "torch.optim.AdamW.step = slow\n"
+) + SCRIPT
+
+
+@pytest.mark.slow  # three training processes with slowed steps
+def test_a_requeue_with_the_derived_lead_outlives_a_slow_step(uninterrupted):
+    """SLURM's side played by the test: SIGUSR2 in the middle of a step slower than a fixed lead (as the old 90 s
+    was against a 112 s H200 iteration); the requeue (checkpoint saved, ``scontrol requeue`` called) must come
+    within the derived lead (``signal_lead_seconds`` of the step, this machine's save time in place of the
+    paper-scale one), and SIGKILL follows at once. Only the newest requeue checkpoint stays, and two requeues
+    resume to the uninterrupted run's bytes.
+    The step's time is not measured here (this machine's speed varies): the slowed optimiser step bounds it."""
+    from tracegs.cluster.jobs import signal_lead_seconds
+
+    tmp, stage2, expected = uninterrupted
+    cfg = stage2("slurm_slow")
+    cfg.stage.checkpoint_every_n_steps = 1
+    run_dir = Path(cfg.output_dir)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    env, scontrol_calls = slurm_job(tmp, "4244")
+    spec = tmp / "slurm_slow.pickle"
+    spec.write_bytes(pickle.dumps(cfg))
+    slowed = 1.5
+
+    def job() -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", SLOW_SCRIPT, str(spec), str(slowed)], stderr=subprocess.PIPE,
+                                text=True, env={**os.environ, "OMP_NUM_THREADS": "1", **env})
+
+    def requeues() -> int:
+        return scontrol_calls.read_text().count("requeue") if scontrol_calls.exists() else 0
+
+    # The step is at least the slowed optimiser step; a save here takes well under a step.
+    lead = signal_lead_seconds(slowed, save_seconds=slowed)
+    for requeue in (1, 2):
+        process = job()
+        wait_for_saves(last, 2, process)  # a step finished in this job (the first job: two)
+        time.sleep(0.05)  # into the next step
+        assert process.poll() is None, f"training ended before the signal: {process.stderr.read()[-2000:]}"
+        signalled = time.monotonic()
+        process.send_signal(signal.SIGUSR2)
+        while requeues() < requeue:
+            if process.poll() is not None or time.monotonic() - signalled > lead:
+                process.kill()
+                pytest.fail(f"no requeue within the {lead} s lead: {process.communicate()[1][-2000:]}")
+            time.sleep(0.01)
+        saved_after = time.monotonic() - signalled
+        process.send_signal(signal.SIGKILL)  # SLURM at the limit (or KillWait's end): nothing more is saved
+        process.wait()
+        process.stderr.close()
+        assert saved_after > slowed / 2  # a lead of half a step would have killed it first
+        newest = requeue_checkpoints(run_dir)[-1]
+        assert newest.name == f"hpc_ckpt_{requeue}.ckpt" and global_step(newest) < STEPS
+    finished = job()
+    _, stderr = finished.communicate(timeout=600)
+    assert finished.returncode == 0, stderr[-2000:]
+    # Pruned after the save, or (killed first) when the next job resumed: the newest alone is left.
+    assert [p.name for p in requeue_checkpoints(run_dir)] == ["hpc_ckpt_2.ckpt"]
     assert product_bytes(run_dir / "student_adapter") == expected

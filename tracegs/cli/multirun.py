@@ -8,6 +8,7 @@ which ones failed and why.
 
 from __future__ import annotations
 
+import shutil
 import sys
 from dataclasses import dataclass
 from typing import Any
@@ -23,7 +24,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from tracegs.cli.failures import USER_ERRORS, exit_with_one_line
+from tracegs.cluster.jobs import measured_iteration, require_lead
 from tracegs.config.validate import validate
+from tracegs.errors import ConfigError
 
 
 @dataclass
@@ -53,6 +56,13 @@ class MultirunSummary(Callback):
     def __init__(self) -> None:
         self.outcomes: list[tuple[str, str]] = []
 
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if config.hydra.launcher._target_.endswith(".SlurmLauncher"):
+            try:
+                require_slurm_launch(config)
+            except USER_ERRORS as error:
+                exit_with_one_line(config.hydra.help.app_name.removeprefix("tracegs-"), error)
+
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         overrides = " ".join(job_return.overrides or []) or "(no overrides)"
         if job_return.status == JobStatus.FAILED:
@@ -74,6 +84,23 @@ class MultirunSummary(Callback):
             print(f"  #{number} {overrides}: {outcome}", file=sys.stderr)
         if failed:
             sys.exit(2)
+
+
+def require_slurm_launch(config: DictConfig) -> None:
+    """What submitting to SLURM needs, checked before the first job is submitted: the account and partition it is
+    billed to, SLURM's commands on this machine, and a requeue signal early enough for the measured iteration."""
+    launcher = config.hydra.launcher
+    unset = [f"hydra.launcher.{key}" for key in ("partition", "account") if not launcher.get(key)]
+    if unset:
+        raise ConfigError(" and ".join(unset), "required at hydra/launcher=slurm (the cluster bills and places "
+                                               "each job by them); set them on the command line")
+    if shutil.which("sbatch") is None:
+        raise ConfigError("hydra/launcher=slurm", "no SLURM on this machine (sbatch is not on PATH): submit from "
+                                                  "the cluster's login node, or run here with hydra/launcher=local")
+    gpu_check = config.trainer.cluster.get("gpu_check")
+    if gpu_check is not None:
+        seconds, origin = measured_iteration(gpu_check)
+        require_lead(launcher.signal_delay_s, seconds, origin, "hydra.launcher.signal_delay_s")
 
 
 def print_configs(config_dir: str, config_name: str, argv: list[str]) -> bool:

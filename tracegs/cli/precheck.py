@@ -8,6 +8,7 @@ are parsed and the job's config composed and validated first (the task validates
 
 from __future__ import annotations
 
+import shlex
 import sys
 
 from hydra import compose, initialize_config_dir
@@ -25,6 +26,31 @@ _NOT_ONE_JOB = {"-m", "--multirun", "--help", "-h", "--hydra-help", "--info", "-
 _CFG_FLAGS = {"--cfg", "-c"}
 QUOTE_HINT = ("quote a value holding ',', '=', spaces or brackets (a path pasted from a log, say): "
               "key='/path/with,commas'; in a shell wrap the whole override in double quotes")
+# Characters bash still reads inside double quotes (and '!', history expansion in an interactive shell).
+_BASH_DOUBLE_QUOTED = set('"$`\\!')
+_QUOTES = ("'", '"')
+
+
+def shell_override(override: str) -> str | None:
+    """``key=value`` as one bash word that reaches Hydra as a quoted value it reads back exactly (None when the
+    override is not ``key=value``): Hydra's single quotes, with each quote in the value escaped (``\\'``), inside
+    bash's double quotes, which keep that backslash; where the value holds a character bash reads inside double
+    quotes, bash's single quotes (shlex) instead."""
+    key, equals, value = override.partition("=")
+    if not equals or not key:
+        return None
+    if len(value) >= 2 and value[0] == value[-1] and value[0] in _QUOTES:  # quoted already, but not as Hydra reads it
+        value = value[1:-1]
+    # Hydra reads a backslash as an escape before a quote only: a trailing one, before the closing quote, doubled.
+    body = value.rstrip("\\")
+    hydra = f"{key}='" + body.replace("'", "\\'") + "\\" * 2 * (len(value) - len(body)) + "'"
+    return shlex.quote(hydra) if set(value) & _BASH_DOUBLE_QUOTED else f'"{hydra}"'
+
+
+def quote_hint(override: str) -> str:
+    """The advice for an override Hydra's grammar refuses: the override itself as it must be typed in bash."""
+    typed = shell_override(override)
+    return QUOTE_HINT if typed is None else f"quote it for Hydra and the shell, in bash: {typed}"
 
 
 def overrides_of(argv: list[str]) -> list[str]:
@@ -52,11 +78,12 @@ def parse_error(overrides: list[str], multirun: bool) -> str | None:
         try:
             (parsed,) = parser.parse_overrides([override])
             if parsed.is_sweep_override() and not multirun:
-                return f"the override {override!r} reads as a sweep over several values: {QUOTE_HINT}"
+                return f"the override {override!r} reads as a sweep over several values: {quote_hint(override)}"
         except OverrideParseException as error:
             reasons = [line.strip() for line in str(error).splitlines()
                        if line.strip() and not line.startswith(("Error parsing", "See "))]
-            return f"cannot parse the override {override!r} ({(reasons or ['syntax error'])[0]}): {QUOTE_HINT}"
+            return (f"cannot parse the override {override!r} ({(reasons or ['syntax error'])[0]}): "
+                    f"{quote_hint(override)}")
     return None
 
 

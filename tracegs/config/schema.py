@@ -202,7 +202,8 @@ class ReportConfig:
     # instead of evaluating them again (this command's own evaluation then holds 3DGS only).
     main_from_sweep: bool = execution(default=False)
     # report.kind=diagnostics and privileged: also restore with the Stage-1 adapter alone (the students' starting
-    # point, row "stage1"), and give each student's final sample against it, paired over scenes.
+    # point, a row named by the Stage-1 product), and give each student's final sample against it, paired over
+    # scenes.
     stage1_row: bool = execution(default=False)
     output_dir: str = execution(default="${paths.experiment_dir}/report")
 

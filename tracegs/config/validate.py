@@ -23,6 +23,7 @@ from tracegs.errors import ConfigError, require_plain_name
 from tracegs.eval.metrics import require_lpips
 from tracegs.location import CONF_DIR
 from tracegs.ranges import ranges
+from tracegs.stages import Product
 
 __all__ = ["ConfigError", "validate", "validate_names", "validate_ranges"]
 
@@ -166,7 +167,7 @@ def _validate_data(cfg: DictConfig) -> None:
     )
     if prepare.split == "train":  # the datamodule reads the train split's cache, whatever split a run prepares
         # ... or, for A under the paper's data protocol, its pretraining split's (data.prepare.pretrain_views).
-        pretrained = cfg.stage.name == "baseline" and cfg.experiment.baseline_split == "pretrain"
+        pretrained = cfg.stage.name == Product.baseline and cfg.experiment.baseline_split == "pretrain"
         field = "data.prepare.pretrain_views" if pretrained and prepare.pretrain_views else "data.prepare.student_views"
         unknown = sorted(set(datamodule.student_views) - set(OmegaConf.select(cfg, field)))
         _require(not unknown, "data.datamodule.student_views", f"{unknown} are not prepared ({field})")
@@ -201,7 +202,8 @@ def _validate_training_data(cfg: DictConfig) -> None:
 def _validate_training(cfg: DictConfig) -> None:
     teacher, prepare = cfg.teacher, cfg.data.prepare
     student_max = max(cfg.data.datamodule.student_views)
-    # Of the sparse sets only the smallest is fitted to its final snapshot (variant B's teacher, tracegs.data.prepare).
+    # Of the sparse sets only the smallest is fitted to its final snapshot (variant B's teacher,
+    # tracegs.data.preparation.plan).
     available = {*([min(prepare.student_views)] if prepare.student_final_fits else []), *prepare.dense_views}
     fix = ("set data.prepare.student_final_fits=true" if teacher.views == min(prepare.student_views)
            else "a sparse teacher is the smallest student set" if teacher.views in prepare.student_views

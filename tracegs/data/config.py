@@ -286,8 +286,12 @@ class SfmConfig:
     matcher: Matcher = reads(RESTORE, default=Matcher.auto)
     # images after each one a sequential matcher pairs it with
     sequential_overlap: int = reads(RESTORE, default=10, range=at_least(1))
-    # longest side SIFT sees (photos downscaled for extraction only)
+    # longest side structure-from-motion sees: a larger photo is downsized to it once, before SIFT, so memory is
+    # bounded by this size, not the photos'
     max_image_size: int = reads(RESTORE, default=1600, range=at_least(1))
+    # longest side of the scene's undistorted images (aspect kept), what the fit and the scores can use at most:
+    # the paper's frames are 720 wide
+    scene_size: int = reads(RESTORE, default=720, range=at_least(1))
     max_features: int = reads(RESTORE, default=8192, range=at_least(1))  # SIFT features per image
     # The lens model fitted, then undone: the images the scene is made of are undistorted to PINHOLE.
     camera_model: str = reads(RESTORE, default="SIMPLE_RADIAL")

@@ -5,7 +5,14 @@ features, exhaustive or sequential matching with geometric verification, increme
 to a PINHOLE camera, the only model the loader reads (tracegs.data.colmap). The scene folder it writes
 (``images/`` + ``sparse/0``, COLMAP's image_undistorter layout, and ``sfm.json``, what the reconstruction found)
 is a product like any other: keyed by the names and bytes of the photos (a video: its bytes and the frame count)
-and the settings that shape it, assembled in a temporary folder and renamed into place, reused by a rerun.
+and the settings that shape it, assembled in a temporary folder and renamed into place, reused by a rerun (and
+copied for the same photos in a folder of another name). Its images are undistorted at ``scene_size`` on the long
+side, the most a fit of it can use.
+
+The photos are checked before they are trusted (:func:`working_photos`): each is decoded whole, turned upright by
+its EXIF orientation and, when longer than the size SfM works at, downsized once. Photos of several sizes get a
+camera each, and the model they give is checked against each pair's own two-view geometry
+(:func:`_require_consistent`).
 
 A video is reduced to photos first: ``frames`` equal windows of it, the sharpest frame of each by the variance of
 its Laplacian (Pech-Pacheco et al., "Diatom autofocusing in brightfield microscopy", ICPR 2000), so motion-blurred
@@ -22,6 +29,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import shutil
 import time
 from collections.abc import Iterator
@@ -54,6 +62,14 @@ EXECUTION_FIELDS = ("dir", "threads")
 NAMES_SHOWN = 5
 EXIF_ORIENTATION = 0x0112  # the EXIF tag saying how a camera was held
 PROGRESS_EVERY = 10  # registered images between two progress lines of the mapper
+# A reconstruction from photos of several sizes (tracegs.data.sfm._require_consistent). A camera whose points
+# reproject worse than this is fitted wrongly (COLMAP's mapper filters observations at 4 px).
+MAX_CAMERA_REPROJECTION_PX = 2.0
+# A view whose rotation, relative to the views it was matched with, differs from each pair's own two-view
+# estimate by more than this (median over its pairs) is misplaced. A pair's estimate uses the guessed focal length
+# of photos without EXIF, which biases it by a few degrees; a camera with a wrong focal length puts its views tens
+# of degrees off (views about 55 degrees off were seen with photos of two sizes).
+MAX_ROTATION_DISAGREEMENT_DEG = 10.0
 
 
 def _names(paths: list[str]) -> str:
@@ -78,8 +94,7 @@ def _quiet_colmap(least: str = "ERROR") -> Iterator[None]:
 
 
 def _product_key(inputs: str, cfg: SfmConfig, **more: object) -> str:
-    """The digest naming a reconstruction's folder: of its inputs' content, its name and the settings that shape it
-    (the name too, so two copies of a capture under other names never replace each other's folder)."""
+    """The digest naming a reconstruction's folder: of its inputs' content and the settings that shape it."""
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in EXECUTION_FIELDS}
     payload = json.dumps({"inputs": inputs, **settings, **more}, sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()[:DIGEST_CHARS]
@@ -96,11 +111,28 @@ def reconstruct_photos(capture: Path, cfg: SfmConfig, views: int, test_every: in
                  _names([p.name for p in others]), " ".join(PHOTO_SUFFIXES))
     names = [p.name for p in photos]
     _require_images(folder, names, "photos", views, test_every)
-    target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg, name=capture.name) / capture.name
+    # Keyed by the photos' names and bytes, not the folder's name; the scene inside is named by the folder.
+    target = Path(cfg.dir) / _product_key(capture_digest(capture), cfg) / capture.name
     if not _reused(target, views, test_every):
-        with atomic_directory(target.parent) as staging:
-            _reconstruct(staging / target.name, folder, names, cfg, views, test_every, capture, sequential=False)
+        with atomic_directory(target) as staging:
+            if _copied_twin(target, staging):
+                _require_registered(json.loads((staging / RECORD).read_text()), capture, views, test_every)
+            else:
+                _reconstruct(staging, folder, names, cfg, views, test_every, capture, sequential=False)
     return target
+
+
+def _copied_twin(target: Path, staging: Path) -> bool:
+    """Whether a finished reconstruction of the same photos under another folder name was copied into ``staging``.
+    A renamed capture then gets the very same cameras and points: COLMAP's multithreaded mapping and bundle
+    adjustment do not repeat to the bit, and a restore's numbers would follow the name instead of the photos."""
+    twins = sorted(p for p in target.parent.iterdir()  # finished folders only, not another run's staging
+                   if p != target and not p.name.startswith(".") and (p / RECORD).is_file())
+    if not twins:
+        return False
+    shutil.copytree(twins[0], staging, dirs_exist_ok=True)
+    log.info("%s: the same photos were reconstructed as %s: copied from %s", target.name, twins[0].name, twins[0])
+    return True
 
 
 def reconstruct_video(video: Path, frames: int, cfg: SfmConfig, views: int, test_every: int) -> Path:
@@ -160,9 +192,9 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     if cfg.camera_model not in pycolmap.CameraModelId.__members__:
         raise ConfigError("capture.sfm.camera_model", f"{cfg.camera_model!r} is not a COLMAP camera model; "
                                                       "use SIMPLE_RADIAL, OPENCV, PINHOLE, ...")
-    work = scene.parent / ".work"
+    work = scene / ".work"  # inside the staging folder, so a refused reconstruction takes it along
     work.mkdir(parents=True)
-    images = _upright(images, names, work / "upright")
+    images = working_photos(images, names, work / "photos", cfg.max_image_size)
     database = work / "database.db"
     started = time.perf_counter()
     matcher = Matcher.parse(cfg.matcher, "capture.sfm.matcher")
@@ -173,7 +205,8 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
         sizes = _extract(database, images, names, cfg)
         log.info("%s: %d images, %d camera(s) (one per image size: %s); %s matching", scene.name, len(names),
                  len(sizes), ", ".join(f"{w}x{h}" for w, h in sizes), matcher.value)
-        _match(database, matcher, cfg)
+        # Photos of several sizes: each pair's own relative pose is kept, to check the model against it.
+        _match(database, matcher, cfg, relative_poses=len(sizes) > 1)
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads, options.min_model_size, options.random_seed = cfg.threads, cfg.min_model_size, cfg.seed
         placed = 0
@@ -193,11 +226,15 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
         _log_findings(scene.name, record)
         _require_registered(record, capture, views, test_every)
         largest = max(models.values(), key=lambda model: model.num_reg_images())
+        if len(sizes) > 1:
+            record["consistency"] = _require_consistent(largest, database, sizes, capture)
         (work / "model").mkdir()
         largest.write(work / "model")
         undistorted = work / "undistorted"
-        pycolmap.undistort_images(undistorted, work / "model", images, num_threads=cfg.threads)
-    scene.mkdir(parents=True, exist_ok=True)
+        undistortion = pycolmap.UndistortCameraOptions()
+        undistortion.max_image_size = cfg.scene_size
+        pycolmap.undistort_images(undistorted, work / "model", images, undistort_options=undistortion,
+                                  num_threads=cfg.threads)
     (scene / "sparse").mkdir()
     (undistorted / "images").rename(scene / "images")
     (undistorted / "sparse").rename(scene / "sparse" / "0")
@@ -205,31 +242,54 @@ def _reconstruct(scene: Path, images: Path, names: list[str], cfg: SfmConfig, vi
     write_json_atomic(record, scene / RECORD)
 
 
-def _upright(images: Path, names: list[str], out: Path) -> Path:
-    """The folder of ``names`` as the loader sees them: ``images`` itself, or, when a photo carries an EXIF
-    orientation (a phone held upright), ``out`` with that photo turned upright and links to the others. COLMAP reads
-    the stored pixels and its undistorted images keep the tag, which the loader applies (tracegs.data.images), so a
-    turned photo would no longer fit its camera."""
-    turned = []
+def working_photos(images: Path, names: list[str], out: Path, longest: int) -> Path:
+    """The folder of ``names`` as SfM reads them: ``images`` itself, or ``out`` with links to the photos kept as
+    they are and a working copy of each other one.
+
+    Every photo is decoded whole first: COLMAP reads what a truncated file holds and fills the rest with grey, and
+    the undistorted copy it writes is a valid image, so no later check would see the damage; a photo that does not
+    decode is refused, named. A photo with an EXIF orientation (a phone held upright) is turned upright, as the
+    loader reads it (tracegs.data.images), since COLMAP reads the stored pixels and its undistorted images keep the
+    tag. A photo longer than ``longest`` pixels on its long side is downsized to it once, here, with the JPEG
+    decoder's own reduction (PIL's draft mode), so no full-size copy is held or written: SIFT, the mapper and
+    the undistortion then all read the working size, which bounds memory by it rather than by the photos."""
+    changed = []
     for name in names:
         try:
             with Image.open(images / name) as photo:
-                if photo.getexif().get(EXIF_ORIENTATION, 1) != 1:
-                    turned.append(name)
-        except OSError as error:
-            raise InputFileError(images / name, f"cannot read the photo ({one_line(error)})",
-                                 "replace or remove it") from error
-    if not turned:
+                turned = photo.getexif().get(EXIF_ORIENTATION, 1) != 1
+                large = max(photo.size) > longest
+                if large:  # a reduced decode: at least ``longest`` on the long side, a power of two smaller
+                    scale = longest / max(photo.size)
+                    photo.draft("RGB", (round(photo.size[0] * scale), round(photo.size[1] * scale)))
+                photo.load()
+                if turned or large:
+                    _write_working_copy(photo, out / name, longest)
+                    changed.append(name)
+        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:  # PIL's decode errors
+            raise InputFileError(images / name, f"cannot decode the photo ({one_line(error)})",
+                                 "replace it with an intact copy or remove it from the capture") from error
+    if not changed:
         return images
-    out.mkdir()
     for name in names:
-        if name in turned:
-            with Image.open(images / name) as photo:
-                ImageOps.exif_transpose(photo).save(out / name, format=photo.format, quality=95)
-        else:
+        if name not in changed:
             (out / name).symlink_to(images / name)
-    log.info("%d photos turned upright by their EXIF orientation (%s)", len(turned), _names(turned))
+    log.info("%d photos turned upright by their EXIF orientation or downsized to %d px on the long side (%s)",
+             len(changed), longest, _names(changed))
     return out
+
+
+def _write_working_copy(photo: Image.Image, path: Path, longest: int) -> None:
+    """``photo`` upright and at most ``longest`` pixels on its long side, in its own format, at ``path``."""
+    upright = ImageOps.exif_transpose(photo)
+    if max(upright.size) > longest:
+        scale = longest / max(upright.size)
+        upright = upright.resize((max(1, round(upright.size[0] * scale)), max(1, round(upright.size[1] * scale))),
+                                 Image.Resampling.LANCZOS)
+    path.parent.mkdir(exist_ok=True)
+    # The EXIF kept (less the orientation, applied): COLMAP's prior focal length comes from the lens and sensor it
+    # names, a fraction of the image width that the downsizing does not change.
+    upright.save(path, format=photo.format, quality=95, exif=upright.getexif())
 
 
 def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> list[tuple[int, int]]:
@@ -239,7 +299,7 @@ def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> 
 
     by_size: dict[tuple[int, int], list[str]] = {}
     for name in names:
-        with Image.open(images / name) as image:  # read once already (_upright)
+        with Image.open(images / name) as image:  # decoded whole already (working_photos)
             by_size.setdefault(image.size, []).append(name)  # as stored, as COLMAP reads it
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
@@ -252,13 +312,16 @@ def _extract(database: Path, images: Path, names: list[str], cfg: SfmConfig) -> 
     return sorted(by_size)
 
 
-def _match(database: Path, matcher: Matcher, cfg: SfmConfig) -> None:
+def _match(database: Path, matcher: Matcher, cfg: SfmConfig, relative_poses: bool) -> None:
+    """Match and verify pairs into ``database``; with ``relative_poses``, each verified pair's relative pose too
+    (from its essential matrix), which :func:`_require_consistent` checks the model against."""
     pycolmap = import_keeping_sigterm("pycolmap")
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.threads
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed
+    verification.compute_relative_pose = relative_poses
     if matcher == Matcher.sequential:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap, pairing.num_threads = cfg.sequential_overlap, cfg.threads
@@ -266,6 +329,63 @@ def _match(database: Path, matcher: Matcher, cfg: SfmConfig) -> None:
                                   verification_options=verification)
     else:
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
+
+
+def _rotation_angle_deg(rotation: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], capture: Path) -> dict:
+    """Check a reconstruction of photos of several sizes (one camera each), and return what was measured.
+
+    Cameras of different sizes share no intrinsics, so the mapper can settle on a wrong focal length for one of
+    them and place its views wrongly while every reprojection error stays small. Two measures that such a model
+    fails: each camera's mean reprojection error (at most :data:`MAX_CAMERA_REPROJECTION_PX`), and rotation
+    consistency: the relative rotation the model gives each verified pair of registered views against the one
+    the pair's own essential matrix gives (two-view geometry, independent of the mapper); a view whose median
+    disagreement over its pairs exceeds :data:`MAX_ROTATION_DISAGREEMENT_DEG` is misplaced. Either failure is
+    refused in one line naming the sizes."""
+    pycolmap = import_keeping_sigterm("pycolmap")
+
+    # Pairs whose relative pose comes from an essential matrix (a homography's decomposition is ambiguous).
+    epipolar = (pycolmap.TwoViewGeometryConfiguration.CALIBRATED, pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED)
+    size_of = {camera_id: (camera.width, camera.height) for camera_id, camera in model.cameras.items()}
+    errors: dict[tuple[int, int], list[float]] = {}
+    for image in model.images.values():
+        for point in image.points2D:
+            if point.has_point3D():
+                errors.setdefault(size_of[image.camera_id], []).append(model.points3D[point.point3D_id].error)
+    per_camera = {f"{w}x{h}": float(np.mean(values)) for (w, h), values in sorted(errors.items())}
+    placed = {image_id: image for image_id, image in model.images.items() if image.has_pose}
+    with pycolmap.Database.open(database) as db:
+        pairs, geometries = db.read_two_view_geometries()
+    disagreement: dict[str, list[float]] = {}
+    for pair, geometry in zip(pairs, geometries):
+        first, second = pycolmap.pair_id_to_image_pair(pair)
+        if first not in placed or second not in placed or geometry.cam2_from_cam1 is None or (
+                geometry.config not in epipolar):
+            continue
+        model_relative = (placed[second].cam_from_world().rotation.matrix()
+                          @ placed[first].cam_from_world().rotation.matrix().T)
+        angle = _rotation_angle_deg(geometry.cam2_from_cam1.rotation.matrix() @ model_relative.T)
+        for image_id in (first, second):
+            disagreement.setdefault(placed[image_id].name, []).append(angle)
+    medians = {name: float(np.median(angles)) for name, angles in disagreement.items()}
+    misplaced = sorted(name for name, median in medians.items() if median > MAX_ROTATION_DISAGREEMENT_DEG)
+    shown = ", ".join(f"{w}x{h}" for w, h in sizes)
+    advice = "resize the photos to one size, or keep those of one size only"
+    worst = max(per_camera.items(), key=lambda item: item[1])
+    if worst[1] > MAX_CAMERA_REPROJECTION_PX:
+        raise InputFileError(capture, f"photos of {len(sizes)} sizes ({shown}), one camera each, give a model whose "
+                                      f"{worst[0]} camera reprojects with a mean error of {worst[1]:.2f} px (at most "
+                                      f"{MAX_CAMERA_REPROJECTION_PX} px)", advice)
+    if misplaced:
+        raise InputFileError(capture, f"photos of {len(sizes)} sizes ({shown}), one camera each, give a model that "
+                                      f"places {len(misplaced)} view(s) at rotations their photo pairs disagree with "
+                                      f"by a median of {max(medians[name] for name in misplaced):.0f} deg at most "
+                                      f"(over {MAX_ROTATION_DISAGREEMENT_DEG} deg): {_names(misplaced)}", advice)
+    return {"reprojection_error_px": per_camera,
+            "rotation_disagreement_deg": max(medians.values()) if medians else None}
 
 
 def _findings(database: Path, names: list[str], models: dict, options) -> dict:

@@ -14,7 +14,7 @@ from tracegs.data.config import CaptionConfig, SfmConfig, ViewRule
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
-from tracegs.ranges import SEED, at_least, each
+from tracegs.ranges import SEED, at_least, check_ranges, each
 from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
@@ -87,24 +87,17 @@ class RefinementConfig:
     view_rule: ViewRule | None = reads(DEPLOYMENT, default=None)
 
     def validate(self) -> None:
+        check_ranges(self)  # repair_iters: not empty, each >= 1
         repairs = list(self.repair_iters)
-        if not repairs:
-            raise ConfigError("repair_iters", "must list at least one repair iteration")
         if any(b <= a for a, b in zip(repairs, repairs[1:])):
             raise ConfigError("repair_iters", f"must be strictly increasing, got {repairs}")
-        if repairs[0] <= 0 or repairs[-1] >= self.total_iters:
+        if repairs[-1] >= self.total_iters:
             raise ConfigError("repair_iters", f"{repairs} must lie strictly inside (0, total_iters={self.total_iters})")
-        if self.steps is not None and self.steps < 1:
-            raise ConfigError("steps", f"must be >= 1 or null (full schedule), got {self.steps}")
-        if self.max_clips_per_round is not None and self.max_clips_per_round < 1:
-            raise ConfigError("max_clips_per_round", f"must be >= 1 or null, got {self.max_clips_per_round}")
         if self.resolution == Resolution.dataset and self.clip_size is None:
             raise ConfigError("clip_size", "resolution=dataset fits at the dataset's own image size, so the "
                                            "restorer's clips need a size: set [height, width]")
         if self.clip_size is not None and len(self.clip_size) != 2:
             raise ConfigError("clip_size", f"must be [height, width] or null, got {list(self.clip_size)}")
-        if self.clip_batch < 1:
-            raise ConfigError("clip_batch", f"must be >= 1, got {self.clip_batch}")
         try:
             self.trajectory.validate()
         except ConfigError as error:

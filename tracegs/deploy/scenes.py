@@ -20,7 +20,7 @@ from tracegs.console import PlainProgress
 from tracegs.data.captions import require_captioner
 from tracegs.data.colmap import Scene, load_scene
 from tracegs.data.config import SceneSourceConfig
-from tracegs.data.prepare import MIN_INIT_POINTS
+from tracegs.data.preparation.fits import MIN_INIT_POINTS
 from tracegs.data.splits import split_scene
 from tracegs.deploy.config import EvaluationConfig, RefinementConfig, Resolution
 from tracegs.deploy.refine import cold_start, refine

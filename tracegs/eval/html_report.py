@@ -17,14 +17,15 @@ from pathlib import Path
 from urllib.parse import quote
 
 from tracegs.eval.conclusions import HOLDS, REVERSED
-from tracegs.eval.merge import unit_records
+from tracegs.eval.merge import unit_records, view_names
 from tracegs.io import atomic_write
 
 REPORT_PAGE = "report.html"
 # A demo's tables.md holds the evaluation's tables beside the run that made them; the parts it is made of show
 # only where it is absent (an evaluation's or a restore's folder). tracegs-replicate's tables are in replicate.md.
 COMBINED = ("tables.md", "replicate.md")
-PARTS = {"table.md": "Results", "intervals.md": "95% intervals and the paper's orderings",
+INTERVALS = "intervals.md"
+PARTS = {"table.md": "Results", INTERVALS: "95% intervals and the paper's orderings",
          "held_out_clips.md": "Held-out clips", "per_step_intervals.md": "Fig. 6 at each reverse step"}
 FIG6 = "fig6_per_step.png"
 # The verdicts that settle an ordering, coloured so a reader finds them in a long table (each is its CSS class).
@@ -140,11 +141,19 @@ def _run_header(record: dict) -> list[str]:
 
 
 def _documents(folder: Path) -> list[tuple[str | None, Path]]:
-    """(section heading, markdown file) of the folder's tables in reading order."""
+    """(section heading, markdown file) of the folder's tables in reading order. The intervals over scenes are
+    left out of the page of one scene (a capture restored): an interval of one value says nothing."""
     combined = [folder / name for name in COMBINED if (folder / name).is_file()]
     if combined:
         return [(None, path) for path in combined]
-    return [(heading, folder / name) for name, heading in PARTS.items() if (folder / name).is_file()]
+    one_scene = len(_scenes(folder)) == 1
+    return [(heading, folder / name) for name, heading in PARTS.items()
+            if (folder / name).is_file() and not (one_scene and name == INTERVALS)]
+
+
+def _scenes(folder: Path) -> list[str]:
+    """The scenes the folder's evaluation units are of, in order."""
+    return sorted({unit["scene"] for unit in unit_records(folder)})
 
 
 def _media(path: str) -> str:
@@ -163,7 +172,8 @@ def _units(folder: Path) -> list[str]:
             continue
         out.append(f"<h3>{html.escape(unit['scene'])}, {unit['views']} input views</h3>")
         if "captured" in unit and "test" in unit:
-            out.append(f"<p>Fitted from views {unit['captured']}, scored on held-out views {unit['test']}.</p>")
+            out.append(f"<p>Fitted from {html.escape(view_names(unit, 'captured'))}, scored on held-out "
+                       f"{html.escape(view_names(unit, 'test'))}.</p>")
         out += [f"<figure>{_media(media[kind])}</figure>" for kind in ("grid", "video") if kind in media]
         if models:
             out.append("<p>Refined 3DGS: " + ", ".join(
@@ -185,7 +195,9 @@ def _nested(folder: Path) -> list[str]:
 def report_html(folder: str | Path) -> str:
     """The page of ``folder`` (see the module docstring)."""
     folder = Path(folder)
-    title = html.escape(f"{folder.name}: tracegs results")
+    scenes = _scenes(folder)
+    # A capture restored is one scene: the page is titled by it, not by the run folder's digest.
+    title = html.escape(f"{scenes[0] if len(scenes) == 1 else folder.name}: tracegs results")
     body: list[str] = [f"<h1>{title}</h1>"]
     record = folder / "run.json"
     if record.is_file():

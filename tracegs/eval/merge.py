@@ -62,6 +62,16 @@ def with_methods_from(units: dict[tuple[str, int], dict], sources: Mapping[str, 
     return merged
 
 
+def view_names(unit: Mapping, kind: str) -> str:
+    """The ``kind`` views of a unit record ("captured" or "test") by their images' file names (records written
+    before the names were kept: by index)."""
+    names = unit.get("names", {})
+    views = unit[kind]
+    if all(str(view) in names for view in views):
+        return ", ".join(names[str(view)] for view in views)
+    return f"views {views}"
+
+
 def merge_results(out_dir: str | Path, scenes: Sequence[str] | None = None, views: Sequence[int] | None = None,
                   methods: Sequence[str] | None = None, sources: Mapping[str, Path] | None = None) -> dict:
     """Merge unit files (from one or many shards) into ``results.json``, ``per_scene.json`` and the table.

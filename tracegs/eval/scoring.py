@@ -225,7 +225,9 @@ class _UnitJob:
         cfg = self.cfg
         methods: dict[str, MethodResult] = {m: parts[m] for m in cfg.methods}
         record: dict = {"scene": unit.scene.name, "views": unit.views, "captured": unit.captured_ids,
-                        "test": unit.test_ids, "lpips": self.metrics.lpips_label, "ssim": self.metrics.ssim_label,
+                        "test": unit.test_ids,
+                        "names": {str(view): unit.scene.image_names[view] for view in unit.captured_ids + unit.test_ids},
+                        "lpips": self.metrics.lpips_label, "ssim": self.metrics.ssim_label,
                         "methods": {m: result.scores for m, result in methods.items()}}
         if PER_STEP in parts:
             record["per_step"] = parts[PER_STEP]

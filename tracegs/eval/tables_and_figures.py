@@ -39,9 +39,15 @@ def _fmt(value: float | None, metric: str) -> str:
     return f"{value:.{METRIC_DECIMALS[metric]}f}"
 
 
+def _labelled(metric: str, label: str) -> str:
+    """``label`` after ``metric``'s name, said once: a label that begins with the name already ("LPIPS n/a: ...",
+    "LPIPS-VGG ...") stands alone."""
+    return label if label.startswith(metric) else f"{metric}: {label}"
+
+
 def _footnote(results: Mapping) -> str:
     meta = results.get(META_KEY, {})
-    lines = [f"SSIM: {meta.get('ssim', 'not recorded')}.", f"LPIPS: {meta.get('lpips', 'not recorded')}."]
+    lines = [f"SSIM: {meta.get('ssim', 'not recorded')}.", f"{_labelled('LPIPS', meta.get('lpips', 'not recorded'))}."]
     scenes = meta.get("scenes")
     if scenes:
         lines.append(
@@ -172,7 +178,7 @@ def write_ablation_table(dataset_files: Mapping[str, Mapping[str, str | Path]], 
         md.append(f"| {variant} | " + " | ".join(cells) + " |")
     md += ["", "Each cell: the variant's mean over the view counts evaluated ("
            + "; ".join(f"{label[d]}: {_views_note(rows[d])}" for d in rows) + ").",
-           "LPIPS: " + "; ".join(sorted(lpips_notes)) + "."]
+           _labelled("LPIPS", "; ".join(sorted(lpips_notes))) + "."]
     paths = {"md": out_dir / f"{stem}.md", "csv": out_dir / f"{stem}.csv"}
     with atomic_write(paths["md"]) as tmp:
         tmp.write_text("\n".join(md) + "\n")

@@ -8,7 +8,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from tracegs.data.config import PseudoTarget, as_prepared, is_procedural
-from tracegs.data.prepare import require_inputs, run_prepare
+from tracegs.data.preparation.driver import run_prepare
+from tracegs.data.preparation.plan import require_inputs
 from tracegs.data.sources import SceneSource
 from tracegs.devices import accelerator
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record

@@ -39,6 +39,7 @@ from tracegs.pipeline.runner import Commands, Step, Sweep, run_steps
 from tracegs.pipeline.steps import BASELINE_RUN, baseline_steps, data_steps, in_protocol_order
 from tracegs.pipeline.variants import table3_configs, table3_names, teacher_settings
 from tracegs.provenance import describe, peak_rss_gib
+from tracegs.stages import Product
 from tracegs.training.run import PRODUCTS
 
 log = logging.getLogger("tracegs")
@@ -138,7 +139,7 @@ def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
         def multirun(kind: str, seed: int = seed) -> dict[str, Path]:
             return {"hydra.sweep.dir": out_dir / "multirun" / f"seed{seed}" / kind}
 
-        steps.append(Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": "stage1"}, takes=frozen_a))
+        steps.append(Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": Product.stage1}, takes=frozen_a))
         if trained.values:
             steps.append(Step.of("train", f"seed {seed}: train Stage 2 ({','.join(trained.values)})",
                                  multirun("stage2"), common, {"stage": "stage2", "ablation": trained},

@@ -15,7 +15,7 @@ from tracegs.data.sfm import reconstruct_photos, reconstruct_video
 from tracegs.data.splits import SplitError
 from tracegs.errors import ConfigError
 from tracegs.eval.html_report import write_report_page
-from tracegs.eval.merge import unit_path
+from tracegs.eval.merge import unit_path, view_names
 from tracegs.eval.scoring import score_units
 from tracegs.eval.tables_and_figures import results_table_markdown
 from tracegs.pipeline.records import product_lock
@@ -66,7 +66,7 @@ def restore(cfg: DictConfig) -> Path:
     unit = json.loads(unit_path(evaluation.out_dir, capture.name, cfg.capture.views).read_text())
     out = Path(evaluation.out_dir).resolve()  # the unit names its files relative to the evaluation folder
     show(results_table_markdown(results, views=[str(cfg.capture.views)]))
-    show(f"\n{capture.name}: fitted from views {unit['captured']}, scored on held-out views {unit['test']}")
+    show(f"\n{capture.name}: fitted from {view_names(unit, 'captured')}, scored on held-out {view_names(unit, 'test')}")
     for method, ply in unit["models"].items():
         show(f"refined 3DGS ({method}): {out / ply}")
     show(f"grid: {out / unit['media']['grid']}\nvideo: {out / unit['media']['video']}")

@@ -27,6 +27,7 @@ from tracegs.errors import TraceGSError
 from tracegs.location import CONF_DIR
 from tracegs.pipeline.runner import NO_SETTINGS, Commands, Step, Sweep, run_steps
 from tracegs.pipeline.variants import table3_variants
+from tracegs.stages import Product
 
 # The held-out cache: the test scenes prepared like the training clips, read only by evaluation.
 HELD_OUT_SPLIT = {"data.prepare.split": "test"}
@@ -53,7 +54,7 @@ def baseline_steps(pretrain: bool, common: Settings = NO_SETTINGS, user: Sequenc
     trained, handing its run folder on (:data:`BASELINE_RUN`)."""
     prepared = [Step.of("prepare", "prepare (A's pretraining scenes)", common, PRETRAIN_SPLIT).passing(user)]
     return [*(prepared if pretrain else []),
-            Step.of("train", "train A", common, {"stage": "baseline"}, hands={BASELINE_RUN: "run_dir"}).passing(user)]
+            Step.of("train", "train A", common, {"stage": Product.baseline}, hands={BASELINE_RUN: "run_dir"}).passing(user)]
 
 
 def in_protocol_order(pretrain: bool, baseline: list[Step], data: list[Step]) -> list[Step]:
@@ -69,8 +70,8 @@ def restorer_steps(variant: str | Sweep, common: Settings = NO_SETTINGS, evaluat
     evaluate them. A sweep names several variants (a :class:`Sweep`), evaluates ``evaluated`` (default:
     ``variant``) and adds ``stage2`` to its Stage-2 step; ``evaluation_takes`` fills evaluation keys from earlier
     steps' products."""
-    return [Step.of("train", "train Stage 1", common, {"stage": "stage1"}).passing(user),
-            Step.of("train", "train Stage 2", common, {"stage": "stage2", "ablation": variant}, stage2).passing(user),
+    return [Step.of("train", "train Stage 1", common, {"stage": Product.stage1}).passing(user),
+            Step.of("train", "train Stage 2", common, {"stage": Product.stage2, "ablation": variant}, stage2).passing(user),
             Step.of("evaluate", "evaluate", common, {"ablation": evaluated or variant}, evaluation,
                     takes=evaluation_takes or {}).passing(user)]
 

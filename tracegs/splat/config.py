@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import EVERY, reads
-from tracegs.ranges import FINITE, SEED, at_least, each, positive, within
+from tracegs.ranges import FINITE, SEED, at_least, check_ranges, each, positive, within
 
 
 class RenderBackend(Mode):
@@ -151,9 +151,7 @@ class TrajectoryConfig:
     captured_ends: bool = reads(EVERY, default=False)
 
     def validate(self) -> None:
-        for name in ("ellipse_scales", "height_variations", "pitch_degrees"):
-            if not getattr(self, name):
-                raise ConfigError(name, "must list at least one value (one per repair round, cycling)")
+        check_ranges(self)  # the per-round lists: not empty (one value per repair round, cycling)
         if self.clip_rule != ClipRule.gsfixer_windows:
             if any(pitch != 0.0 for pitch in self.pitch_degrees):
                 raise ConfigError("pitch_degrees", f"only clip_rule=gsfixer_windows pitches its poses, got "

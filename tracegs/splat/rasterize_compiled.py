@@ -109,7 +109,9 @@ def one_builder(name: str) -> Iterator[Path]:
     leaves it behind, and every later process then waits on it forever (seen when a test run was stopped during a
     build). An OS lock ends with the process that holds it, so under it a baton left behind can only be a dead
     builder's, and is removed."""
-    from torch.utils.cpp_extension import _get_build_directory  # torch's rule for the folder, not a copy of it
+    from torch.utils.cpp_extension import (
+        _get_build_directory,  # torch's rule for the folder, not a copy of it
+    )
 
     build_directory = Path(_get_build_directory(name, verbose=False))
     with open(build_directory / "tracegs.flock", "w") as held:

@@ -50,6 +50,13 @@ def requeue_checkpoints(run_dir: Path) -> list[Path]:
     return sorted(run_dir.glob("hpc_ckpt_*.ckpt"), key=lambda path: int(path.stem.rpartition("_")[2] or 0))
 
 
+def keep_newest_requeue_checkpoint(run_dir: Path) -> None:
+    """Delete every requeue checkpoint of ``run_dir`` but the newest (each is ~0.8 GB at paper scale and a Stage-2
+    run is requeued several times); called once the newest is on disk."""
+    for older in requeue_checkpoints(run_dir)[:-1]:
+        older.unlink(missing_ok=True)
+
+
 def newest_checkpoint(paths: list[Path], field: str) -> Path | None:
     """The existing file of ``paths`` with the highest ``global_step`` (the first of equals), each checked
     loadable; None when none exists."""
@@ -139,7 +146,9 @@ class CheckpointOnSignal(Callback):
         if self.slurm_requeue is not None and trainer.strategy.reduce_boolean_decision(self.requeue_requested,
                                                                                        all=False):
             self.requeue_requested = False
-            self.slurm_requeue(self.requeue_signal, None)
+            self.slurm_requeue(self.requeue_signal, None)  # saves hpc_ckpt_<n+1>.ckpt, then requeues
+            if trainer.is_global_zero:
+                keep_newest_requeue_checkpoint(Path(trainer.default_root_dir))
         if trainer.received_sigterm:
             trainer.save_checkpoint(self.last_checkpoint)
             raise SIGTERMException()

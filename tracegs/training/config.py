@@ -14,7 +14,7 @@ from tracegs.data.config import DataModuleConfig, SceneSourceConfig
 from tracegs.deploy.config import CAPTURED_VIEWS, RefinementConfig
 from tracegs.modes import Mode
 from tracegs.products import BASELINE, STAGE1, STAGE2, execution, handed_in, reads, via
-from tracegs.ranges import SEED, at_least, each, positive, within
+from tracegs.ranges import SEED, at_least, check_ranges, each, positive, within
 from tracegs.restorer.config import BackboneConfig
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.stages import StageName
@@ -95,8 +95,7 @@ class DeploymentEvalConfig:
     lpips: bool = execution(default=False)  # LPIPS needs the VGG16 weights; PSNR and SSIM need nothing
 
     def __post_init__(self) -> None:
-        if self.every_n_steps is not None and self.every_n_steps < 1:
-            raise ValueError(f"stage.deployment_eval.every_n_steps must be >= 1 or null, got {self.every_n_steps}")
+        check_ranges(self, "stage.deployment_eval")
         if self.scenes and not self.views:
             raise ValueError("stage.deployment_eval.views is empty: name the view counts K to deploy from")
 
@@ -112,8 +111,7 @@ class HeldOutEvalConfig:
     every_n_steps: int = execution(default=25, range=at_least(1))
 
     def __post_init__(self) -> None:
-        if self.every_n_steps < 1:
-            raise ValueError(f"stage.held_out_eval.every_n_steps must be >= 1, got {self.every_n_steps}")
+        check_ranges(self, "stage.held_out_eval")
 
 
 @dataclass
@@ -168,12 +166,7 @@ class StageConfig:
     def __post_init__(self) -> None:
         self.name = StageName.parse(self.name, "stage.name")
         self.memory_mode = MemoryMode.parse(self.memory_mode, "stage.memory_mode")
-        if self.keep_checkpoints not in (-1, 0, 1):
-            raise ValueError(f"stage.keep_checkpoints must be -1, 0 or 1, got {self.keep_checkpoints}")
-        if self.rollout_steps < 1:
-            raise ValueError(f"stage.rollout_steps must be >= 1, got {self.rollout_steps}")
-        if self.ema_decay is not None and not 0.0 <= self.ema_decay < 1.0:
-            raise ValueError(f"stage.ema_decay must be in [0, 1), got {self.ema_decay}")
+        check_ranges(self, "stage")
 
 
 @dataclass
@@ -218,6 +211,9 @@ class ClusterResources:
     cpus_per_task: int = execution(default=2, range=at_least(1))
     mem_gb: int = execution(default=8, range=at_least(1))
     timeout_min: int = execution(default=240, range=at_least(1))
+    # The GPU check's JSON (launch/gpu_check.sh on this cluster's GPU) whose Stage-2 iteration the SLURM launcher's
+    # requeue signal must leave time for (refused at launch otherwise); None: not checked.
+    gpu_check: str | None = execution(default=None)
 
 
 @dataclass

@@ -39,6 +39,7 @@ from tracegs.training.checkpoints import (
     CheckpointOnSignal,
     ConfirmedCheckpoint,
     finished_checkpoint_state,
+    keep_newest_requeue_checkpoint,
     newest_checkpoint,
     requeue_checkpoints,
     require_loadable_checkpoint,
@@ -204,6 +205,7 @@ def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
         # checkpoint ahead of last.ckpt: resuming from last.ckpt would train those steps again.
         newest = newest_checkpoint([output_dir / "checkpoints" / "last.ckpt", *requeue_checkpoints(output_dir)],
                                    "stage.resume_from")
+        keep_newest_requeue_checkpoint(output_dir)  # a job killed before it pruned left older ones
         return None if newest is None else str(newest)
     if not Path(resume).is_file():
         raise FileNotFoundError(f"stage.resume_from: no such checkpoint {resume}")

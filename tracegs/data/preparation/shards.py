@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 from safetensors import SafetensorError, safe_open
 
+from tracegs.content import names_and_bytes_digest
 from tracegs.data import cache_keys
 from tracegs.data.config import PrepareConfig
 from tracegs.data.datamodule import CacheError, clip_record
@@ -51,6 +52,12 @@ def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     made_with = read_values(backbone.cfg, Product.prepare)
     for section in sections_not_in_cache(cfg.pseudo_target):
         made_with.pop(section)
+    generator = made_with.get("transformer", {})
+    if generator.get("pretrained_path"):
+        # The pseudo-target generator (variant A: at the embedded scale a product under the run's root) is known by
+        # its content, not its path: a copied or moved root makes the same clips and finds them finished. At paper
+        # scale this reads GSFixer's transformer once per prepare job.
+        generator["pretrained_path"] = names_and_bytes_digest(generator["pretrained_path"])
     return settings_digest({"prepare": read_values(cfg, Product.prepare), "backbone": made_with})
 
 

@@ -17,7 +17,6 @@ import signal
 from pathlib import Path
 
 import lightning as L
-import torch
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
@@ -268,9 +267,7 @@ def train_stage(cfg) -> Path:
     datamodule = PairedClipDataModule(cfg.data, teacher_views=teacher)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
-    with one_job_of_processes():
-        if cfg.trainer.cpu_threads is not None:
-            torch.set_num_threads(cfg.trainer.cpu_threads)
+    with one_job_of_processes():  # trainer.cpu_threads is set for every command (tracegs.cli.app.run_task)
         trainer = build_trainer(cfg, output_dir, module,
                                 [*deployment_eval(cfg, backbone), *held_out_eval(cfg, backbone, output_dir)])
         finished = finished_checkpoint_state(resume, cfg.stage.max_steps) if resume else None

@@ -5,6 +5,7 @@ finished unit from one to redo.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,13 @@ class EncodedClip:
                 (cache_keys.text_file(self.caption), cache_keys.TEXT, self.text)]
 
 
+@functools.cache
+def generator_digest(path: str) -> str:
+    """The pseudo-target generator's content digest, read once per process: clip_settings runs once per scene, and
+    at paper scale the folder is GSFixer's transformer (about 11 GB)."""
+    return names_and_bytes_digest(path)
+
+
 def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     """Digest of everything a clip shard depends on besides the scene (stored in the shard's metadata): the
     fields a cache reads (tracegs.products), less the backbone sections its pseudo-targets do not need."""
@@ -55,9 +63,8 @@ def clip_settings(cfg: PrepareConfig, backbone: Backbone) -> str:
     generator = made_with.get("transformer", {})
     if generator.get("pretrained_path"):
         # The pseudo-target generator (variant A: at the embedded scale a product under the run's root) is known by
-        # its content, not its path: a copied or moved root makes the same clips and finds them finished. At paper
-        # scale this reads GSFixer's transformer once per prepare job.
-        generator["pretrained_path"] = names_and_bytes_digest(generator["pretrained_path"])
+        # its content, not its path: a copied or moved root makes the same clips and finds them finished.
+        generator["pretrained_path"] = generator_digest(generator["pretrained_path"])
     return settings_digest({"prepare": read_values(cfg, Product.prepare), "backbone": made_with})
 
 

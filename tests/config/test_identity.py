@@ -359,6 +359,7 @@ def test_the_cache_is_named_by_what_it_is_made_with():
     restorer = "data.prepare.pseudo_target=restorer"
     assert cache(restorer, "backbone.schedule.deploy_steps=7") != cache(restorer)
     assert cache(restorer, "data.prepare.pseudo_target_guidance=2") != cache(restorer)
+    assert cache(restorer, "data.prepare.pseudo_target_strength=0.5") != cache(restorer)
     assert cache(restorer, "backbone.transformer.num_layers=3") != cache(restorer)
 
 

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from tracegs.restorer import adapters
-from tracegs.restorer.sampler import RestorationPipeline, sample
+from tracegs.restorer.sampler import RestorationPipeline, partial_start, sample
 
 
 def _count_forwards(model):
@@ -48,6 +48,35 @@ def test_temperature_scales_the_first_state_and_zero_makes_the_restorer_determin
     assert torch.count_nonzero(cold[0]) == 0
     assert all(torch.equal(a, b) for a, b in zip(cold, other_seed))
     assert not torch.allclose(run(7, 1.0)[-1], run(8, 1.0)[-1])
+
+
+def test_partial_start_noises_the_start_to_the_kept_steps_first_time(backbone):
+    """SDEdit's start: strength s keeps the last int(s x M) steps of the grid and noises the clean start to the
+    first of them, with the draw the full trajectory would start from."""
+    grid = backbone.schedule.timesteps(10)
+    start, noise = torch.rand(2, 3, 4, 4, 4), torch.randn(2, 3, 4, 4, 4)
+    z, rest = partial_start(backbone.schedule, grid, start, noise, 0.3)
+    assert torch.equal(rest, grid[7:])
+    assert torch.equal(z, backbone.schedule.add_noise(start, noise, grid[7].expand(2)))
+    assert torch.equal(partial_start(backbone.schedule, grid, start, noise, 0.01)[1], grid[-2:])  # one step at least
+
+
+def test_strength_runs_the_last_steps_from_the_condition_and_one_is_deployment(backbone, make_inputs):
+    """A pseudo-target at strength s < 1 evaluates the restorer int(s x M) times, starting from the condition's
+    own latent; strength 1 is exactly the restoration from noise."""
+    inputs = _inputs(backbone, make_inputs)
+    run = lambda strength: sample(backbone.transformer, backbone.schedule, **inputs, steps=4,  # noqa: E731
+                                  guidance_scale=1.0, generator=torch.Generator().manual_seed(3), strength=strength)
+    calls, handle = _count_forwards(backbone.transformer)
+    try:
+        half, full = run(0.5), run(1.0)
+    finally:
+        handle.remove()
+    assert len(calls) == 2 + 4
+    assert torch.equal(full, sample(backbone.transformer, backbone.schedule, **inputs, steps=4, guidance_scale=1.0,
+                                    generator=torch.Generator().manual_seed(3)))
+    # The partial start is nearer its condition than the restoration from noise.
+    assert (half - inputs["cond"]).norm() < (full - inputs["cond"]).norm()
 
 
 def test_guidance_one_skips_unconditional_pass(backbone, make_inputs):

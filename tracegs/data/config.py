@@ -233,6 +233,12 @@ class PrepareConfig:
     # Classifier-free guidance of the restorer making pseudo-targets (pseudo_target=restorer), its own setting so
     # that a deployment guidance change keeps the cache. Paper silent; 6 is GSFixer's inference default.
     pseudo_target_guidance: float = reads(PREPARE, BASELINE, default=6.0, range=at_least(0))
+    # How far from the noise end the pseudo-target's sampling starts (pseudo_target=restorer): 1 samples from pure
+    # noise conditioned on R_d (GSFixer's release: its video-to-video pipeline's prepare_latents draws pure noise
+    # and its strength-based get_timesteps is never called; the paper is silent); below 1 starts from R_d's own
+    # latent noised to that point of the schedule (SDEdit, ``sampler.partial_start``), so the target keeps what
+    # R_d already has right and the restorer repaints only what the noise covers.
+    pseudo_target_strength: float = reads(PREPARE, BASELINE, default=1.0, range=within(0.0, 1.0, low_open=True))
     # Clip captions (the Hydra configs set every field to deploy.captions'): see tracegs/data/captions.py.
     captions: CaptionConfig = reads(PREPARE, BASELINE, factory=CaptionConfig)
     shard_index: int = execution(default=0, range=at_least(0))

@@ -77,6 +77,18 @@ def first_state(schedule: NoiseSchedule, noise: torch.Tensor, temperature: float
     return schedule.prior(temperature * noise)
 
 
+def partial_start(schedule: NoiseSchedule, grid: torch.Tensor, start: torch.Tensor, noise: torch.Tensor,
+                  strength: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """SDEdit's start (Meng et al., ICLR 2022; diffusers' ``strength``): ``start`` (clean latents) noised to the
+    grid's time ``strength`` of the way from its clean end, and the rest of the grid from there. Strength 1 is the
+    whole grid from the noise end (``first_state``); lower keeps more of ``start``. As diffusers' video-to-video
+    ``get_timesteps`` counts them, int(strength x M) of the M steps remain, here at least one."""
+    steps = grid.numel() - 1
+    kept = max(1, int(strength * steps))
+    rest = grid[steps - kept:]
+    return schedule.add_noise(start, noise, rest[0].expand(start.shape[0]).to(start.device)), rest
+
+
 def solve(
     schedule: NoiseSchedule,
     grid: torch.Tensor,
@@ -121,9 +133,13 @@ def sample(
     progress: bool = False,
     grid: torch.Tensor | None = None,
     uncond_text: torch.Tensor | None = None,
+    strength: float = 1.0,
 ) -> torch.Tensor | tuple[torch.Tensor, list[torch.Tensor]]:
     """Run the M-step solver z_{t_M} -> z_{t_0} (``first_state`` at ``temperature``) conditioned on ``cond``
     latents (B, f, C, h, w); ``uncond_text`` is the guidance's unconditional branch (``guided_prediction``).
+    ``strength`` < 1 starts from ``cond`` itself partly noised instead (``partial_start``: the last
+    int(strength x M) steps), for a condition already near the clean end, such as the dense rendering R_d a
+    pseudo-target restores.
 
     ``grid`` replaces the M-step deployment schedule (e.g. a Stage-2 training grid). bf16 autocast is used
     on CUDA. With ``return_states`` also returns the visited states [z_{t_M}, ..., z_{t_0}].
@@ -140,7 +156,11 @@ def sample(
             return guided_prediction(model, z, cond, t, text, ref_2d, ref_3d, guidance_scale,
                                      uncond_text=uncond_text).velocity
 
-    z = first_state(schedule, initial_noise(cond.shape, generator, cond.device), temperature)
+    noise = initial_noise(cond.shape, generator, cond.device)
+    if strength < 1.0:
+        z, grid = partial_start(schedule, grid, cond, temperature * noise, strength)
+    else:
+        z = first_state(schedule, noise, temperature)
     states = solve(schedule, grid, z, velocity, progress, keep_states=return_states)
     return (states[-1], states) if return_states else states[-1]
 
@@ -219,8 +239,10 @@ class RestorationPipeline:
         steps: int | None = None,
         guidance_scale: float | None = None,
         progress: bool = False,
+        strength: float = 1.0,
     ) -> torch.Tensor:
-        """The same restoration from already encoded inputs (e.g. a prepared cache): clean latents."""
+        """The same restoration from already encoded inputs (e.g. a prepared cache): clean latents. ``strength``:
+        ``sample``'s (1: from noise, as deployment)."""
         cfg, device = self.backbone.cfg, self.device
         generator = torch.Generator().manual_seed(cfg.sampler.seed if seed is None else seed)
         guidance_scale = cfg.sampler.guidance_scale if guidance_scale is None else guidance_scale
@@ -239,4 +261,5 @@ class RestorationPipeline:
                 temperature=cfg.sampler.temperature,
                 progress=progress,
                 uncond_text=uncond_text,
+                strength=strength,
             )

@@ -98,7 +98,8 @@ def pseudo_target(plan: ScenePlan, clip: dict, index: int, conditions: dict[str,
     else:
         seed = scene_seed(cfg.seed, f"{plan.scene.name}/{index}")
     latents = pipeline.restore_latents(dense_latent[None], *references, backbone.text_encoder.encode([caption]),
-                                       seed=seed, guidance_scale=cfg.pseudo_target_guidance)
+                                       seed=seed, guidance_scale=cfg.pseudo_target_guidance,
+                                       strength=cfg.pseudo_target_strength)
     return backbone.codec.decode(latents)[0].clamp(0, 1).cpu()
 
 

@@ -25,7 +25,9 @@ settings of a cache and the fingerprint of an evaluation unit all derive from th
 
 Every numeric field also states its range beside its declaration (``range=``, tracegs.ranges).
 
-The products, and which are made from which, are the product graph's (:mod:`tracegs.stages`). The module
+The products, and which are made from which, are the product graph's (:mod:`tracegs.stages`), read when the
+declarations are (:func:`declarations`): a field keeps the products it names, and the products made from them are
+the table's of the moment. The module
 imports nothing of the project but :mod:`tracegs.stages`, :mod:`tracegs.ranges` and :mod:`tracegs.errors`, so
 every package's config dataclasses use it without depending on ``tracegs.config`` (whose schema imports those
 packages).
@@ -35,14 +37,13 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from collections.abc import Iterable
 from functools import cache
 from typing import Any
 
 from tracegs.errors import ConfigError
 from tracegs.ranges import Range, metadata
 from tracegs.stages import DEPLOYMENT as DEPLOYMENT
-from tracegs.stages import STAGES, Product
+from tracegs.stages import Product, StageTable, stage_table
 
 PREPARE, BASELINE, STAGE1, STAGE2 = Product.prepare, Product.baseline, Product.stage1, Product.stage2
 DEPLOY, EVALUATE, RESTORE = Product.deploy, Product.evaluate, Product.restore
@@ -54,19 +55,20 @@ _KEY = "tracegs.products"
 
 @dataclasses.dataclass(frozen=True)
 class Declaration:
-    """What one field changes: ``products`` (made-from products included); ``split``: the split whose scenes
-    it names, which a cache of another split does not read; ``content``: for an input handed in by path, the
-    files that stand for its content (none: all of it); ``via``: the fields (dotted paths from the root) that
-    interpolate it and through which alone it changes products."""
+    """What one field changes: ``products``, as the field names them (:meth:`changes`: the products made from
+    them too; :func:`declarations`: those, narrowed to its sections'); ``split``: the split whose scenes it names,
+    which a cache of another split does not read; ``content``: for an input handed in by path, the files that
+    stand for its content (none: all of it); ``via``: the fields (dotted paths from the root) that interpolate it
+    and through which alone it changes products."""
 
-    products: frozenset[Product]
+    products: frozenset[str]
     split: str | None = None
     content: tuple[str, ...] | None = None
     via: tuple[str, ...] = ()
 
-
-def _made_from(products: Iterable[Product]) -> frozenset[Product]:
-    return STAGES.made_from(Product(p) for p in products)
+    def changes(self) -> frozenset[str]:
+        """The products the field changes: those it names and every product made from them (the stage table's)."""
+        return stage_table().made_from(self.products)
 
 
 def _flat(products: tuple[Product | tuple[Product, ...], ...]) -> list[Product]:
@@ -86,7 +88,7 @@ def reads(*products: Product | tuple[Product, ...], default: Any = dataclasses.M
     """A field that changes ``products`` and every product made from them; ``split``: a scene list of that split
     (a cache of another split does not read it). ``factory`` builds a mutable default; ``range``: the values a
     numeric field admits (tracegs.ranges), as for every declaration below."""
-    return _field(Declaration(_made_from(_flat(products)), split=split), default, factory, range)
+    return _field(Declaration(frozenset(Product(p) for p in _flat(products)), split=split), default, factory, range)
 
 
 def execution(default: Any = dataclasses.MISSING, factory: Any = None, range: Range | None = None) -> Any:
@@ -104,7 +106,7 @@ def via(*fields: str, default: Any = dataclasses.MISSING, factory: Any = None,
 def handed_in(*products: Product, content: tuple[str, ...] = (), default: Any = dataclasses.MISSING) -> Any:
     """An input given by path: ``products`` (and those made from them) read what ``content`` names inside it
     (none: all of it)."""
-    return _field(Declaration(_made_from(products), content=content), default, None, None)
+    return _field(Declaration(frozenset(Product(p) for p in products), content=content), default, None, None)
 
 
 def declaration(field: dataclasses.Field, where: str) -> Declaration:
@@ -116,22 +118,26 @@ def declaration(field: dataclasses.Field, where: str) -> Declaration:
     return found
 
 
-@cache
 def declarations(schema: type) -> dict[str, Declaration]:
-    """Every field under the config dataclass ``schema`` by dotted path, its products narrowed to its
-    sections'. Refuses a field without a declaration."""
+    """Every field under the config dataclass ``schema`` by dotted path, its products the ones it changes
+    (:meth:`Declaration.changes`) narrowed to its sections'. Refuses a field without a declaration."""
+    return _declarations(schema, stage_table())
+
+
+@cache
+def _declarations(schema: type, table: StageTable) -> dict[str, Declaration]:
     found: dict[str, Declaration] = {}
 
-    def visit(cls: type, prefix: str, products: frozenset[Product]) -> None:
+    def visit(cls: type, prefix: str, products: frozenset[str]) -> None:
         hints = typing.get_type_hints(cls)
         for field in dataclasses.fields(cls):
             path = f"{prefix}{field.name}"
             own = declaration(field, path)
-            found[path] = dataclasses.replace(own, products=own.products & products)
+            found[path] = dataclasses.replace(own, products=table.made_from(own.products) & products)
             if dataclasses.is_dataclass(hints[field.name]):
                 visit(hints[field.name], f"{path}.", found[path].products)
 
-    visit(schema, "", frozenset(Product))
+    visit(schema, "", table.products())
     return found
 
 
@@ -141,7 +147,7 @@ def read_values(section: Any, product: Product) -> dict[str, Any]:
     values = {}
     for field in dataclasses.fields(section):
         own = declaration(field, field.name)
-        if product in own.products and own.content is None:
+        if product in own.changes() and own.content is None:
             value = getattr(section, field.name)
             values[field.name] = read_values(value, product) if dataclasses.is_dataclass(value) else value
     return values
@@ -153,7 +159,7 @@ def blank_unread(section: Any, product: Product) -> Any:
     blanked = {}
     for field in dataclasses.fields(section):
         value = getattr(section, field.name)
-        if product not in declaration(field, field.name).products:
+        if product not in declaration(field, field.name).changes():
             blanked[field.name] = ""
         elif dataclasses.is_dataclass(value):
             blanked[field.name] = blank_unread(value, product)

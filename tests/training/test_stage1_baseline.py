@@ -62,7 +62,7 @@ def test_stage1_starts_equal_to_base_and_trains_only_the_shared_adapter(tmp_path
     assert not torch.equal(evaluate(module.transformer, batch), reference)
     # the saved adapter reproduces the trained model on a fresh copy of the base
     path = tmp_path / "aligned.safetensors"
-    module.save_adapter(path)
+    module.export(path)
     fresh = make_transformer()
     load_adapter(fresh, "aligned", path, trainable=False)
     assert torch.equal(evaluate(fresh, batch), evaluate(module.transformer, batch))

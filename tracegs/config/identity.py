@@ -45,8 +45,9 @@ from tracegs.data.config import (
     is_procedural,
     with_variant_teacher,
 )
-from tracegs.products import BASELINE, PREPARE, Declaration, Product, declarations
+from tracegs.products import BASELINE, PREPARE, Declaration, declarations
 from tracegs.restorer.config import sections_not_in_cache
+from tracegs.stages import stage_table
 
 DIGEST_CHARS = 8
 
@@ -92,18 +93,13 @@ def read_fields(cfg: DictConfig, kind: str, split: str | None = None, unmade: Se
     """The dotted paths of the fields whose values a ``kind`` run's product depends on, as the fields declare
     them (tracegs.products): a cache (of ``split``) reads the scene lists of its split only, and none of the
     backbone sections in ``unmade``. Inputs handed in by path are known by content instead (``_handed_in``)."""
-    product = Product.parse(kind, "run kind")
+    product = stage_table().product(kind, "run kind")
     unmade = tuple(f"backbone.{section}" for section in unmade)
     return frozenset(
         path for path, declared in _declared(cfg).items()
         if product in declared.products and declared.content is None
-        and not (product is PREPARE and declared.split not in (None, split))
+        and not (product == PREPARE and declared.split not in (None, split))
         and not any(path == section or path.startswith(f"{section}.") for section in unmade))
-
-
-# The sections a command's stage option sets (conf/stage/<stage>.yaml) from the experiment's values: variant A's
-# are those values, which the experiment section holds whatever stage the command runs.
-_STAGE_OPTION_SECTIONS = ("stage", "optimizer", "data.datamodule")
 
 
 def _read(cfg: DictConfig, kind: str, split: str | None = None) -> frozenset[str]:
@@ -118,9 +114,13 @@ def _read(cfg: DictConfig, kind: str, split: str | None = None) -> frozenset[str
     fields = read_fields(cfg, kind, split, sections_not_in_cache(target))
     if Split(split) != Split.train or target != PseudoTarget.restorer or not _generator_is_located(cfg):
         return fields
-    own_stage = tuple(f"{section}." for section in _STAGE_OPTION_SECTIONS)
+    # The sections a command's stage option sets (conf/stage/<stage>.yaml) from the experiment's values: variant
+    # A's are those values, which the experiment section holds whatever stage the command runs.
+    table = stage_table()
+    option_sections = (*table.stage_sections, *table.option_also_sets)
+    own_stage = tuple(f"{section}." for section in option_sections)
     return fields | frozenset(path for path in read_fields(cfg, BASELINE.value)
-                              if path not in _STAGE_OPTION_SECTIONS and not path.startswith(own_stage))
+                              if path not in option_sections and not path.startswith(own_stage))
 
 
 def _generator_is_located(cfg: DictConfig) -> bool:
@@ -158,7 +158,7 @@ def _scoped_values(cfg: DictConfig, kind: str, read: frozenset[str]) -> dict[str
 def _handed_in(cfg: DictConfig, kind: str) -> dict[str, str]:
     """The content digests of the inputs handed in by path (``handed_in`` fields) that this run is given
     explicitly (not interpolated)."""
-    product = Product.parse(kind, "run kind")
+    product = stage_table().product(kind, "run kind")
     found = {}
     for key, declared in _declared(cfg).items():
         if declared.content is None or product not in declared.products:

@@ -30,6 +30,7 @@ from tracegs.io import atomic_write, write_json_atomic
 from tracegs.pipeline.upstream import as_variant, locate_artifacts, section
 from tracegs.pipeline.variants import in_table_order, table3_variants
 from tracegs.products import Product
+from tracegs.stages import stage_table
 
 TEACHER = STAGE1  # the adapter name of the frozen Stage-1 teacher on the shared backbone
 
@@ -49,8 +50,11 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     if cfg.report.stage1_row and not distilled:
         raise ConfigError("report.stage1_row", "needs a distilled variant in report.inputs (A alone has no Stage-1 "
                                                "adapter)")
-    # A alone needs A's weights only: a restorer design is judged on its trajectory before any adapter exists.
-    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter"] if distilled else ["baseline_weights"])
+    # The students' inputs (A and the Stage-1 teacher); A alone needs A's weights only: a restorer design is judged
+    # on its trajectory before any adapter exists.
+    table = stage_table()
+    student = table.per_variant()
+    locate_artifacts(cfg, table.stage_inputs(student.product) if distilled else table.artifacts([Product.baseline]))
     files: dict[str, AdapterFile | None] = {TEACHER: None}
     if distilled:
         if not Path(cfg.artifacts.stage1_adapter).exists():
@@ -63,7 +67,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
         if not variant.ablation.train_stage2:
             roles[name] = VariantRoles(student=None)
             continue
-        locate_artifacts(variant, ["student_adapter"])
+        locate_artifacts(variant, [student.artifact])
         student = Path(variant.artifacts.student_adapter)
         if not student.exists():
             raise FileNotFoundError(f"artifacts.student_adapter: no student adapter at {student} (run "

@@ -15,6 +15,7 @@ from tracegs.devices import accelerator
 from tracegs.pipeline.records import check_run_record, product_lock, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts, section
 from tracegs.restorer.build import build_backbone
+from tracegs.stages import Product, stage_table
 
 log = logging.getLogger("tracegs")
 
@@ -49,7 +50,7 @@ def pseudo_target_generator(cfg: DictConfig) -> Path | None:
     # The cache is named before A is located: A's settings name it (tracegs.config.identity), not A's path.
     for key in ("data.prepare.cache_dir", "data.prepare.work_dir"):
         OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
-    locate_artifacts(cfg, ["baseline_weights"])
+    locate_artifacts(cfg, stage_table().record_inputs(Product.prepare))
     weights = Path(str(cfg.data.prepare.pseudo_target_weights))
     if not weights.is_dir():
         raise FileNotFoundError(

@@ -20,7 +20,7 @@ from tracegs.config.identity import current_name, differing_keys, scoped_values
 from tracegs.content import names_and_bytes_digest, root_relative
 from tracegs.errors import ConfigError, require_writable_dir, writable
 from tracegs.io import atomic_write, write_json_atomic
-from tracegs.stages import STAGES
+from tracegs.stages import stage_table
 
 log = logging.getLogger("tracegs")
 
@@ -29,13 +29,15 @@ LOCK_FILE = ".tracegs.lock"
 # How far below the experiment's folder and the data folder product folders lie: ``stage2/<variant>/<run>`` and
 # ``eval/<variant>/<data>-<run>`` (conf/stage/stage2.yaml, conf/evaluation/default.yaml), ``cache/<cache>``.
 PRODUCT_DEPTH = 3
+# The prefix of a record's keys that hold the contents of the earlier products a run loaded.
+CONTENT = "content."
 
 
 def input_digests(cfg: DictConfig, kind: str) -> dict[str, str]:
     """Content digests of the earlier products a ``kind`` run reads (tracegs.content): their content is part of
     the record, so an edit recomputes (the product graph says which, tracegs.stages)."""
-    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in STAGES.record_inputs(kind)}
-    return {f"content.{name}": names_and_bytes_digest(path) for name, path in paths.items()
+    paths = {name: OmegaConf.select(cfg, f"artifacts.{name}") for name in stage_table().record_inputs(kind)}
+    return {f"{CONTENT}{name}": names_and_bytes_digest(path) for name, path in paths.items()
             if path is not None and Path(path).exists()}
 
 
@@ -58,14 +60,14 @@ def check_run_record(cfg: DictConfig, kind: str, folder: str | Path) -> bool:
     inputs = input_digests(cfg, kind)
     # Records made before paths were stored relative to the root name them absolutely.
     root = OmegaConf.select(cfg, "paths.root_dir") or "."
-    settings = {k: root_relative(v, root) for k, v in recorded.items() if not k.startswith("content.")}
+    settings = {k: root_relative(v, root) for k, v in recorded.items() if not k.startswith(CONTENT)}
     differing = differing_keys(settings, scoped_values(cfg, kind))
     if differing:
         raise ConfigError(differing[0], f"{folder} holds a run made with other settings "
                           f"({', '.join(differing[:6])} differ): choose another run_dir")
-    stale = differing_keys({k: v for k, v in recorded.items() if k.startswith("content.")}, inputs)
+    stale = differing_keys({k: v for k, v in recorded.items() if k.startswith(CONTENT)}, inputs)
     if stale:
-        changed = ", ".join(f"artifacts.{key.removeprefix('content.')}" for key in stale)
+        changed = ", ".join(f"artifacts.{key.removeprefix(CONTENT)}" for key in stale)
         log.info("%s: the content of %s changed since this product was made: recomputing it", folder, changed)
         record.unlink()
         shutil.rmtree(Path(folder) / "checkpoints", ignore_errors=True)

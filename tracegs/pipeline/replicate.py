@@ -39,8 +39,7 @@ from tracegs.pipeline.runner import Commands, Step, Sweep, run_steps
 from tracegs.pipeline.steps import BASELINE_RUN, baseline_steps, data_steps, in_protocol_order
 from tracegs.pipeline.variants import table3_configs, table3_names, teacher_settings
 from tracegs.provenance import describe, peak_rss_gib
-from tracegs.stages import Product
-from tracegs.training.run import PRODUCTS
+from tracegs.stages import Product, stage_table
 
 log = logging.getLogger("tracegs")
 
@@ -132,7 +131,7 @@ def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
     steps.append(Step.of("evaluate", "evaluate plain 3DGS", shared, {"seed": root_seed},
                          {"evaluation.methods": ["3dgs"]}, deployment,
                          {"evaluation.out_dir": three_dgs_dir(out_dir)}))
-    frozen_a = {"artifacts.baseline_weights": f"{BASELINE_RUN}/{PRODUCTS['baseline']}"}
+    frozen_a = {"artifacts.baseline_weights": f"{BASELINE_RUN}/{stage_table().stage(Product.baseline).folder}"}
     for seed in training_seeds:
         common = {**shared, "seed": seed, "data.datamodule.cache_dir": train_cache}
 
@@ -142,7 +141,7 @@ def replicate_steps(variants: Sequence[Variant], root_seed: int, training_seeds:
         steps.append(Step.of("train", f"seed {seed}: train Stage 1", common, {"stage": Product.stage1}, takes=frozen_a))
         if trained.values:
             steps.append(Step.of("train", f"seed {seed}: train Stage 2 ({','.join(trained.values)})",
-                                 multirun("stage2"), common, {"stage": "stage2", "ablation": trained},
+                                 multirun("stage2"), common, {"stage": Product.stage2, "ablation": trained},
                                  takes=frozen_a))
         # Each variant is deployed by the method standing for it (A: the baseline restorer; else its student), into
         # the seed's folder of its name.

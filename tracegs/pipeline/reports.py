@@ -35,6 +35,7 @@ from tracegs.pipeline.restorers import restorers_for_run
 from tracegs.pipeline.upstream import as_variant, locate_artifacts, product_folder, section
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 from tracegs.products import Product
+from tracegs.stages import stage_table
 
 
 def report(cfg: DictConfig) -> Path:
@@ -107,7 +108,8 @@ def privileged_report(cfg: DictConfig) -> Path:
     paper's data protocol), the Stage-2 student (this config's variant) and, with ``report.stage1_row``, the
     Stage-1 adapter restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
     require_held_out_cache(cfg)
-    locate_artifacts(cfg, ["baseline_weights", "stage1_adapter", "student_adapter"])
+    student = stage_table().per_variant()  # and the products it is made from
+    locate_artifacts(cfg, stage_table().artifacts([*student.reads, student.product]))
     if not Path(cfg.artifacts.stage1_adapter).exists():
         raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
                                 "(run tracegs-train stage=stage1 with the same settings)")

@@ -13,12 +13,13 @@ from tracegs.deploy.assembly import RestorerArtifacts, restorer_holdings
 from tracegs.deploy.assembly import build_restorers as assemble
 from tracegs.pipeline.upstream import locate_artifacts, section
 from tracegs.restorer.memory import holdings_table, loads_pretrained_components
+from tracegs.stages import stage_table
 
 
 def locate_deployed_artifacts(cfg: DictConfig) -> None:
     """Resolve the restorers' "auto" artifacts to paths (no weights are read), so that a run record, which names
     them by path, can be checked before anything loads."""
-    locate_artifacts(cfg, ["baseline_weights", "student_adapter"])
+    locate_artifacts(cfg, stage_table().deployed_artifacts())
 
 
 def restorers_for_run(cfg: DictConfig, methods: Sequence[str]) -> dict:

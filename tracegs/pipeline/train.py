@@ -12,8 +12,8 @@ from tracegs.data.sources import SceneSource
 from tracegs.eval.held_out_curve import HELD_OUT_CURVE
 from tracegs.pipeline.records import product_lock, reuse_finished, write_run_record
 from tracegs.pipeline.upstream import locate_artifacts, section
-from tracegs.products import BASELINE, STAGE2
-from tracegs.stages import STAGES
+from tracegs.products import BASELINE
+from tracegs.stages import stage_table
 from tracegs.training.config import TrainConfig
 from tracegs.training.run import train_stage
 
@@ -22,8 +22,10 @@ log = logging.getLogger("tracegs")
 
 def train(cfg: DictConfig) -> Path | None:
     """Train ``cfg.stage.name`` into ``cfg.run_dir``; a variant that trains no student (A) trains no Stage 2."""
-    if cfg.stage.name == STAGE2 and not cfg.ablation.train_stage2:
-        log.info("ablation %s is the frozen baseline restorer: Stage 2 has nothing to train", cfg.ablation.name)
+    stage = stage_table().stage(cfg.stage.name)
+    if stage.per_variant and not cfg.ablation.train_stage2:
+        log.info("ablation %s is the frozen baseline restorer: %s has nothing to train", cfg.ablation.name,
+                 stage.product)
         return None
     if cfg.stage.name == BASELINE and cfg.experiment.baseline_steps == 0:
         # Paper scale: variant A is GSFixer's pretrained restorer, loaded where it is used; the sweep's first
@@ -31,8 +33,8 @@ def train(cfg: DictConfig) -> Path | None:
         log.info("experiment %s: variant A is the pretrained restorer %s; nothing to train", cfg.experiment.name,
                  cfg.backbone.transformer.pretrained_path)
         return None
-    locate_artifacts(cfg, STAGES.stage_inputs(cfg.stage.name))
-    product = Path(cfg.run_dir) / STAGES.stage(cfg.stage.name).folder
+    locate_artifacts(cfg, stage_table().stage_inputs(stage.product))
+    product = Path(cfg.run_dir) / stage.folder
     with product_lock(cfg.run_dir, "run_dir"):
         if reuse_finished(cfg, cfg.stage.name, cfg.run_dir, product):
             return product

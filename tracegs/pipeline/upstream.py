@@ -11,7 +11,7 @@ declares:
   looked up at its option's values; an evaluation's describe the student it loads (its default stage).
 - **its variant.** A and the Stage-1 adapter are shared by every Table 3 variant: they are looked up with the
   default variant's sections. A student or evaluation of another variant takes that variant's sections
-  (``ablation``, ``teacher``, ``policy``, ``loss``: the variant's declaration, tracegs.pipeline.variants).
+  (the stage table's ``variant_sections``, tracegs.stages; the variant's declaration, tracegs.pipeline.variants).
 - **its data.** A product of this run's dataset shares its data section. The restorers trained on another one
   (``training_data``, when this run evaluates another dataset or restores a capture of the user's own) and an
   evaluation of another dataset (Table 3's out-of-domain columns) are found by the run records beside the
@@ -34,9 +34,9 @@ from tracegs.config.identity import scoped_values
 from tracegs.config.schema import AUTO, Task
 from tracegs.config.tree import ConfigTree
 from tracegs.errors import ConfigError
-from tracegs.pipeline.records import RUN_RECORD
-from tracegs.pipeline.variants import VARIANT_SECTIONS, variant_sections
-from tracegs.stages import STAGES
+from tracegs.pipeline.records import CONTENT, RUN_RECORD
+from tracegs.pipeline.variants import variant_sections
+from tracegs.stages import stage_table
 
 log = logging.getLogger("tracegs")
 
@@ -44,15 +44,6 @@ log = logging.getLogger("tracegs")
 def section(node: DictConfig) -> Any:
     """The dataclass instance behind a structured config node (interpolations resolved)."""
     return OmegaConf.to_object(node)
-
-
-# The products a training stage makes: they are looked up on the training data (``training_data``).
-TRAINED = STAGES.names()
-# The sections a training stage's own settings live in; the stage group's options also set these keys elsewhere.
-STAGE_SECTIONS = ("stage", "optimizer")
-# What A and Stage 1 read of a variant is the default variant's (every variant clones their products); its loss
-# differs between variants only in what Stage 2 reads, and stays the command's own.
-SHARED_BY_VARIANTS = ("ablation", "teacher", "policy")
 
 
 def _set_sections(cfg: DictConfig, source: DictConfig, names: Iterable[str]) -> None:
@@ -64,7 +55,7 @@ def as_variant(cfg: DictConfig, variant: str) -> DictConfig:
     """A copy of ``cfg`` run for Table 3 variant ``variant``: its sections in place of this config's."""
     projected = copy.deepcopy(cfg)
     if variant != cfg.ablation.name:
-        _set_sections(projected, variant_sections(variant, ConfigTree.of(cfg)), VARIANT_SECTIONS)
+        _set_sections(projected, variant_sections(variant, ConfigTree.of(cfg)), stage_table().variant_sections)
     return projected
 
 
@@ -72,15 +63,17 @@ def upstream_config(cfg: DictConfig, kind: str, variant: str | None = None) -> D
     """The config of the earlier ``kind`` run (a trained stage or "evaluate"; a stage trained per variant and an
     evaluation of ``variant``, default this config's) whose product ``cfg`` needs, on this config's dataset: a projection of
     ``cfg`` (see the module docstring). ``cfg``'s own folders and artifacts must not be pinned yet."""
-    if kind in TRAINED and not STAGES.stage(kind).per_variant:
+    table = stage_table()
+    trained = kind in table.names()
+    if trained and not table.stage(kind).per_variant:
         projected = copy.deepcopy(cfg)
-        _set_sections(projected, variant_sections(None, ConfigTree.of(cfg)), SHARED_BY_VARIANTS)
+        _set_sections(projected, variant_sections(None, ConfigTree.of(cfg)), table.shared_by_variants)
     else:
         projected = as_variant(cfg, variant or cfg.ablation.name)
-    if kind in TRAINED:
+    if trained:
         option = ConfigTree.of(cfg).option("stage", kind)  # conf/stage/<kind>.yaml as written
         if cfg.stage.name != kind:  # another stage's overrides of the stage sections are that stage's own
-            _set_sections(projected, OmegaConf.structured(OmegaConf.get_type(cfg)), STAGE_SECTIONS)
+            _set_sections(projected, OmegaConf.structured(OmegaConf.get_type(cfg)), table.stage_sections)
             projected.merge_with(option)
         projected.run_dir = option["run_dir"]
     return projected
@@ -90,22 +83,20 @@ def product_folder(cfg: DictConfig, kind: str, variant: str | None = None, data:
     """The folder of the earlier ``kind`` run whose product ``cfg`` needs (:func:`upstream_config`), on dataset
     ``data``: default the training data (``training_data``) for a trained product, this run's for an evaluation.
     On another dataset than this run's, the run record there that matches (:func:`recorded_folder`)."""
-    data = data or (cfg.training_data if kind in TRAINED else cfg.data.name)
+    trained = kind in stage_table().names()  # looked up on the training data
+    data = data or (cfg.training_data if trained else cfg.data.name)
     projected = upstream_config(cfg, kind, variant)
-    folder = Path(str(projected.run_dir if kind in TRAINED else projected.evaluation.out_dir))
+    folder = Path(str(projected.run_dir if trained else projected.evaluation.out_dir))
     # tracegs-restore's data section describes the user's capture, whatever data option it starts from.
-    if data == cfg.data.name and not (kind in TRAINED and cfg.task == Task.restore):
+    if data == cfg.data.name and not (trained and cfg.task == Task.restore):
         return folder
     return recorded_folder(projected, kind, data, folder.parent)
 
 
-# Record keys a product on another dataset is not compared by: that dataset's own section, the earlier products'
-# paths (their contents are recorded apart) and those contents.
-_NOT_COMPARED = ("data.", "artifacts.", "content.")
-
-
 def _compared(values: dict[str, Any]) -> dict[str, Any]:
-    return {key: value for key, value in values.items() if not key.startswith(_NOT_COMPARED)}
+    """The record keys a product on another dataset is compared by: not that dataset's own section, nor the earlier
+    products' paths (their contents are recorded apart), nor those contents."""
+    return {key: value for key, value in values.items() if not key.startswith(("data.", "artifacts.", CONTENT))}
 
 
 def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -> Path:
@@ -123,7 +114,8 @@ def recorded_folder(projected: DictConfig, kind: str, data: str, parent: Path) -
         if values.get("data.name") == data and _compared(values) == expected:
             matches.append(record.parent)
     if len(matches) > 1:
-        field = f"artifacts.{STAGES.stage(kind).artifact}" if kind in TRAINED else "data"
+        table = stage_table()
+        field = f"artifacts.{table.stage(kind).artifact}" if kind in table.names() else "data"
         raise ConfigError(field, f"{len(matches)} {kind} runs on {data} match this run's settings "
                                  f"({', '.join(m.name for m in matches)} under {parent}); name the one to use")
     return matches[0] if matches else parent / f"none-on-{data}-with-these-settings"
@@ -136,8 +128,8 @@ def locate_artifacts(cfg: DictConfig, needed: Sequence[str]) -> None:
 
     Every product is found from the configuration as given, and the run's own folders are resolved and kept
     before any artifact is filled in, so they stay named by it too."""
-    stages = {artifact: STAGES.producer(artifact) for artifact in needed if cfg.artifacts[artifact] == AUTO}
-    found = {artifact: product_folder(cfg, stage.product) / stage.folder for artifact, stage in stages.items()}
+    producers = {artifact: stage_table().producer(artifact) for artifact in needed if cfg.artifacts[artifact] == AUTO}
+    found = {artifact: product_folder(cfg, stage.product) / stage.folder for artifact, stage in producers.items()}
     for key in ("run_dir", "evaluation.out_dir"):
         OmegaConf.update(cfg, key, str(OmegaConf.select(cfg, key)))
     for artifact, path in found.items():

@@ -22,10 +22,9 @@ from tracegs.data.config import fits_variant_teacher, with_variant_teacher
 from tracegs.errors import ConfigError
 from tracegs.eval.conclusions import PER_STEP_PAIRS
 from tracegs.location import CONF_DIR
+from tracegs.stages import stage_table
 
 GROUP = "ablation"
-# The sections a variant sets: its conf/ablation/<name>.yaml and the teacher, policy and loss options it selects.
-VARIANT_SECTIONS = ("ablation", "teacher", "policy", "loss")
 # conf/ablation/default.yaml: which variant a command runs unless given ``ablation=<name>``, not a variant itself.
 DEFAULT_CHOICE = "default"
 
@@ -38,10 +37,11 @@ def table3_names(tree: ConfigTree) -> list[str]:
 
 @lru_cache(maxsize=32)
 def variant_sections(variant: str | None, tree: ConfigTree) -> DictConfig:
-    """The sections Table 3 variant ``variant`` sets (None: the default variant's), read from its declaration alone
-    (composed with no command line, once per process and config tree)."""
+    """The sections Table 3 variant ``variant`` sets (None: the default variant's; the stage table's
+    ``variant_sections``, tracegs.stages), read from its declaration alone (composed with no command line, once
+    per process and config tree)."""
     overrides = [] if variant is None else [f"{GROUP}={variant}"]
-    return OmegaConf.masked_copy(tree.compose("train", overrides), list(VARIANT_SECTIONS))
+    return OmegaConf.masked_copy(tree.compose("train", overrides), list(stage_table().variant_sections))
 
 
 def table3_configs(tree: ConfigTree, names: Iterable[str] | None = None) -> list[DictConfig]:

@@ -12,9 +12,12 @@ adapter, so before Stage 1 the model equals variant A exactly (supplement A.3, "
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from torch import Tensor, nn
 
-from tracegs.training.config import OptimizerConfig
+from tracegs.io import atomic_directory
+from tracegs.training.config import OptimizerConfig, TrainConfig
 from tracegs.training.losses import flow_matching_loss
 from tracegs.training.module import RestorerTrainingModule
 
@@ -22,9 +25,26 @@ from tracegs.training.module import RestorerTrainingModule
 class BaselineRestorerModule(RestorerTrainingModule):
     """Trains every transformer weight with L_fm on the student-conditioned (sparse) rendering."""
 
+    # The whole transformer, on R_s and its target only: its own pretraining scenes fit no teacher.
+    trains_adapters = False
+    reads_teacher = False
+
     def __init__(self, transformer: nn.Module, schedule, optimizer: OptimizerConfig, seed: int = 0) -> None:
         super().__init__(transformer, schedule, optimizer, seed)
         self.transformer.requires_grad_(True)
+
+    @classmethod
+    def of(cls, cfg: TrainConfig, backbone) -> BaselineRestorerModule:
+        return cls(backbone.transformer, backbone.schedule, cfg.optimizer, seed=cfg.stage.seed)
+
+    def export(self, path: Path, lora_state: dict | None = None) -> None:
+        """A diffusers directory of the whole transformer: several files, so the directory is the atomic unit."""
+        with atomic_directory(path) as staging:
+            self.transformer.save_pretrained(staging)
+
+    @property
+    def deployed_adapter(self) -> None:
+        return None
 
     def trainable_parameters(self) -> list[nn.Parameter]:
         return list(self.transformer.parameters())

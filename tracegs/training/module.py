@@ -17,7 +17,7 @@ import math
 import time
 from abc import abstractmethod
 from enum import Enum
-from pathlib import PurePath
+from pathlib import Path, PurePath
 
 import lightning as L
 import torch
@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from tracegs.errors import ConfigMismatchError, NonFiniteError
 from tracegs.restorer.config import LossWeighting
-from tracegs.training.config import OptimizerConfig
+from tracegs.training.config import OptimizerConfig, TrainConfig
 from tracegs.training.strategy import ShardedRestorerStrategy
 
 # Checkpoint entry holding the restorer's diffusers config, compared on resume.
@@ -70,10 +70,17 @@ class RestorerTrainingModule(L.LightningModule):
     """Base class: owns the transformer and schedule, the optimiser step and the logging.
 
     Subclasses implement ``trainable_parameters`` and ``compute_and_backward`` (which must call
-    ``self.manual_backward`` on its losses and return the detached terms to log).
+    ``self.manual_backward`` on its losses and return the detached terms to log), and for the runner
+    (tracegs.training.run, which finds a stage's subclass in the stage table, tracegs.stages) ``of``, ``export``
+    and ``deployed_adapter``, and the class attributes ``trains_adapters`` and ``reads_teacher``.
     Checkpoints contain only the trainable parameters (at paper scale the frozen 5B backbone would
     otherwise be copied into every checkpoint); everything frozen is rebuilt from the configuration.
     """
+
+    # Whether the stage trains adapters on frozen base weights (``stage.base_weights``; FSDP shards adapter
+    # training only), and whether its clips carry the privileged teacher conditions (``teacher.views``).
+    trains_adapters: bool = True
+    reads_teacher: bool = True
 
     def __init__(self, transformer: nn.Module, schedule, optimizer: OptimizerConfig, seed: int) -> None:
         super().__init__()
@@ -132,6 +139,21 @@ class RestorerTrainingModule(L.LightningModule):
     @abstractmethod
     def compute_and_backward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
         """Compute this stage's losses for ``batch``, back-propagate them, return detached terms to log."""
+
+    @classmethod
+    @abstractmethod
+    def of(cls, cfg: TrainConfig, backbone) -> RestorerTrainingModule:
+        """The module of a ``cfg.stage.name`` run around the backbone's transformer and schedule."""
+
+    @abstractmethod
+    def export(self, path: Path, lora_state: dict | None = None) -> None:
+        """Write the stage's product to ``path`` atomically (``lora_state``: the adapters' whole weights when the
+        transformer is sharded)."""
+
+    @property
+    @abstractmethod
+    def deployed_adapter(self) -> str | None:
+        """The adapter the stage's restorer deploys with (None: the transformer alone)."""
 
     # ----------------------------------------------------------------- helpers for subclasses
     def predict(self, noisy: Tensor, cond: Tensor, timestep: Tensor, batch: dict, return_retrieval: bool = False):

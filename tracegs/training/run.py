@@ -1,7 +1,8 @@
 """``train_stage(cfg)``: build backbone, data, stage module and a ``lightning.Trainer``, train, export.
 
 Outputs under ``cfg.output_dir``: ``checkpoints/`` (resumable Lightning checkpoints, trainable weights
-only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard/`` logs, and the stage's product:
+only), ``csv/version_<k>/metrics.csv`` (one version per start) and ``tensorboard/`` logs, and the stage's product
+in the folder the stage table names (tracegs.stages), written by the stage's LightningModule (``export``):
 - baseline: ``baseline_transformer/`` -- a diffusers directory with the full tiny transformer, to be set as
   ``backbone.transformer.pretrained_path`` for Stage 1, Stage 2 and deployment (variant A);
 - stage1: ``stage1_adapter/`` (the aligned adapter phi, a peft adapter folder);
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import signal
+from importlib import import_module
 from pathlib import Path
 
 import lightning as L
@@ -28,12 +30,9 @@ from tracegs.data.datamodule import MANIFEST, NO_TEACHER, PairedClipDataModule
 from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
-from tracegs.io import atomic_directory
 from tracegs.processes import sigterm_at_its_default
-from tracegs.products import BASELINE, STAGE1, STAGE2
 from tracegs.restorer.build import build_backbone
-from tracegs.stages import STAGES
-from tracegs.training.baseline import BaselineRestorerModule
+from tracegs.stages import stage_table
 from tracegs.training.checkpoints import (
     CheckpointOnSignal,
     ConfirmedCheckpoint,
@@ -47,51 +46,19 @@ from tracegs.training.checkpoints import (
 from tracegs.training.config import StageConfig, TrainConfig
 from tracegs.training.module import RestorerTrainingModule
 from tracegs.training.progress import PlainTrainingProgress
-from tracegs.training.stage1 import Stage1AlignmentModule
-from tracegs.training.stage2 import STUDENT, Stage2DistillationModule
 from tracegs.training.strategy import build_strategy, full_lora_state, one_job_of_processes
 
-# Each stage's product, by its name inside the run folder (the product graph's, tracegs.stages).
-PRODUCTS = {stage.product: stage.folder for stage in STAGES.stages}
+
+def stage_module(name: str) -> type[RestorerTrainingModule]:
+    """The LightningModule class that trains the stage ``name``: its row of the stage table names it
+    (tracegs.stages), imported here, where it is trained."""
+    module, _, cls = stage_table().stage(name).module.partition(":")
+    return getattr(import_module(module), cls)
 
 
 def build_module(cfg: TrainConfig, backbone) -> RestorerTrainingModule:
     """The LightningModule of ``cfg.stage.name`` around the backbone's transformer and schedule."""
-    stage = cfg.stage
-    if stage.name == BASELINE:
-        return BaselineRestorerModule(backbone.transformer, backbone.schedule, cfg.optimizer, seed=stage.seed)
-    if stage.name == STAGE1:
-        return Stage1AlignmentModule(
-            backbone.transformer,
-            backbone.schedule,
-            cfg.backbone.lora,
-            cfg.optimizer,
-            lambda_align=cfg.loss.lambda_align,
-            adapter_name=stage.adapter_name,
-            seed=stage.seed,
-        )
-    if stage.init_adapter is None:
-        raise ValueError("stage.init_adapter must name the Stage-1 adapter for stage2")
-    if not Path(stage.init_adapter).exists():
-        raise FileNotFoundError(f"stage.init_adapter: no such file {stage.init_adapter}")
-    return Stage2DistillationModule(
-        backbone.transformer,
-        backbone.schedule,
-        stage.init_adapter,
-        cfg.optimizer,
-        rollout_steps=stage.rollout_steps,
-        deploy_steps=cfg.backbone.schedule.deploy_steps,
-        lambda_ret=cfg.loss.lambda_ret,
-        retrieval_eps=cfg.loss.retrieval_eps,
-        trajectory_space=cfg.loss.trajectory_space,
-        trajectory_target=cfg.loss.trajectory_target,
-        on_policy=cfg.policy.on_policy,
-        memory_mode=stage.memory_mode,
-        seed=stage.seed,
-        lora=cfg.backbone.lora,
-        guidance_scale=stage.guidance_scale,
-        temperature=cfg.backbone.sampler.temperature,
-    )
+    return stage_module(cfg.stage.name).of(cfg, backbone)
 
 
 def build_loggers(cfg: TrainConfig, output_dir: Path) -> list[Logger]:
@@ -121,30 +88,25 @@ def weight_average(stage: StageConfig) -> list[Callback]:
     return [EMAWeightAveraging(decay=stage.ema_decay)]
 
 
-def deployed_adapter(stage: StageConfig) -> str | None:
-    """The adapter a stage's restorer deploys with: none for A, the aligned adapter, the Stage-2 student."""
-    return {BASELINE: None, STAGE1: stage.adapter_name, STAGE2: STUDENT}[stage.name]
-
-
-def deployment_eval(cfg: TrainConfig, backbone) -> list[Callback]:
+def deployment_eval(cfg: TrainConfig, backbone, module: RestorerTrainingModule) -> list[Callback]:
     """The deployment-refinement callback when ``stage.deployment_eval`` names validation scenes."""
     settings = cfg.stage.deployment_eval
     if not settings.scenes:
         return []
-    factory = ModuleRestorerFactory(backbone, deployed_adapter(cfg.stage), cfg.deploy.clip_batch, cfg.deploy.steps)
+    factory = ModuleRestorerFactory(backbone, module.deployed_adapter, cfg.deploy.clip_batch, cfg.deploy.steps)
     return [DeploymentRefinement(settings.scenes, cfg.source, factory, cfg.deploy, cfg.fit, views=settings.views,
                                  every_n_steps=settings.every_n_steps, lpips=settings.lpips)]
 
 
-def held_out_eval(cfg: TrainConfig, backbone, output_dir: Path) -> list[Callback]:
+def held_out_eval(cfg: TrainConfig, backbone, module: RestorerTrainingModule, output_dir: Path) -> list[Callback]:
     """The held-out learning-curve callback when ``stage.held_out_eval.cache`` names a prepared cache."""
     settings = cfg.stage.held_out_eval
     if settings.cache is None:
         return []
-    adapter = deployed_adapter(cfg.stage)
+    adapter = module.deployed_adapter
     if adapter is None:
-        raise ValueError("stage.held_out_eval: scores a trained adapter (stage=stage1 or stage=stage2); "
-                         "set it to null for stage=baseline")
+        raise ValueError(f"stage.held_out_eval: scores a trained adapter, and stage={cfg.stage.name} trains none; "
+                         f"set it to null for stage={cfg.stage.name}")
     if not (Path(settings.cache) / MANIFEST).is_file():
         raise ConfigError("stage.held_out_eval.cache", f"no prepared cache at {settings.cache} (tracegs-prepare "
                                                        "data.prepare.split=val prints the folder it writes)")
@@ -214,17 +176,10 @@ def resume_checkpoint(cfg: TrainConfig, output_dir: Path) -> str | None:
 
 def export_product(module: RestorerTrainingModule, stage: str, output_dir: Path,
                    lora_state: dict | None = None) -> Path:
-    """Write the stage's product atomically and return its path (``lora_state``: the adapters' whole weights
-    when the transformer is sharded)."""
-    product = output_dir / PRODUCTS[stage]
-    if stage == BASELINE:
-        # A diffusers directory is several files: the directory is the atomic unit.
-        with atomic_directory(product) as staging:
-            module.transformer.save_pretrained(staging)
-    elif stage == STAGE1:
-        module.save_adapter(product, lora_state)
-    else:
-        module.save_student(product, lora_state)
+    """Write the stage's product atomically into its folder (the stage table's) and return its path
+    (``lora_state``: the adapters' whole weights when the transformer is sharded)."""
+    product = output_dir / stage_table().stage(stage).folder
+    module.export(product, lora_state)
     return product
 
 
@@ -244,14 +199,15 @@ def train_stage(cfg) -> Path:
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work
-    if cfg.trainer.strategy == "fsdp" and cfg.stage.name == BASELINE:
-        raise ValueError("trainer.strategy: fsdp shards adapter training (stage1, stage2); train stage=baseline "
-                         "with trainer=ddp")
+    trains = stage_module(cfg.stage.name)
+    if cfg.trainer.strategy == "fsdp" and not trains.trains_adapters:
+        raise ValueError(f"trainer.strategy: fsdp shards adapter training, and stage={cfg.stage.name} trains the "
+                         f"whole transformer; train stage={cfg.stage.name} with trainer=ddp")
     if cfg.trainer.strategy == "fsdp" and cfg.stage.deployment_eval.scenes:
         raise ValueError("stage.deployment_eval: rank 0 deploys alone, which a sharded transformer cannot do "
                          "(train with trainer=ddp, or set stage.deployment_eval.scenes to [])")
     L.seed_everything(cfg.stage.seed, workers=True, verbose=False)  # the seed is in the run's config
-    if cfg.stage.name != BASELINE and cfg.stage.base_weights is not None:
+    if trains.trains_adapters and cfg.stage.base_weights is not None:
         if not Path(cfg.stage.base_weights).is_dir():
             raise FileNotFoundError(
                 f"stage.base_weights: no baseline restorer directory {cfg.stage.base_weights} "
@@ -262,14 +218,14 @@ def train_stage(cfg) -> Path:
         cfg.data.batch_size = cfg.stage.batch_size
     backbone = build_backbone(cfg.backbone, encoders=False)  # the cache holds every encoder's output
     module = build_module(cfg, backbone)
-    # A reads R_s and its target only: its own pretraining scenes fit no teacher.
-    teacher = NO_TEACHER if cfg.stage.name == BASELINE else cfg.teacher.views
+    teacher = cfg.teacher.views if module.reads_teacher else NO_TEACHER
     datamodule = PairedClipDataModule(cfg.data, teacher_views=teacher)
     if cfg.trainer.strategy == "fsdp" and cfg.trainer.fsdp.activation_checkpointing:
         backbone.transformer.disable_gradient_checkpointing()  # FSDP checkpoints the blocks instead
     with one_job_of_processes():  # trainer.cpu_threads is set for every command (tracegs.cli.app.run_task)
         trainer = build_trainer(cfg, output_dir, module,
-                                [*deployment_eval(cfg, backbone), *held_out_eval(cfg, backbone, output_dir)])
+                                [*deployment_eval(cfg, backbone, module),
+                                 *held_out_eval(cfg, backbone, module, output_dir)])
         finished = finished_checkpoint_state(resume, cfg.stage.max_steps) if resume else None
         if finished is not None:
             # Killed after its last checkpoint and before its export: export what that checkpoint holds.
@@ -281,7 +237,7 @@ def train_stage(cfg) -> Path:
                     trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
             except SIGTERMException:
                 raise stopped_by_signal(output_dir / "checkpoints" / "last.ckpt", trainer.global_step) from None
-        product = output_dir / PRODUCTS[cfg.stage.name]
+        product = output_dir / stage_table().stage(cfg.stage.name).folder
         lora_state = full_lora_state(module.transformer)  # sharded adapters gathered on every rank (a collective)
         if trainer.is_global_zero:
             export_product(module, cfg.stage.name, output_dir, lora_state)

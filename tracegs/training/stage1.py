@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torch import Tensor, nn
 
 from tracegs.products import STAGE1
 from tracegs.restorer.adapters import activate, adapter_parameters, add_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
-from tracegs.training.config import OptimizerConfig
+from tracegs.training.config import OptimizerConfig, TrainConfig
 from tracegs.training.losses import warm_loss
 from tracegs.training.module import RestorerTrainingModule, typed
 
@@ -59,6 +61,15 @@ class Stage1AlignmentModule(RestorerTrainingModule):
         self.manual_backward(terms["loss"])
         return {name: value.detach() for name, value in terms.items()}
 
-    def save_adapter(self, path, state_dict: dict | None = None) -> None:
+    @classmethod
+    def of(cls, cfg: TrainConfig, backbone) -> Stage1AlignmentModule:
+        return cls(backbone.transformer, backbone.schedule, cfg.backbone.lora, cfg.optimizer,
+                   lambda_align=cfg.loss.lambda_align, adapter_name=cfg.stage.adapter_name, seed=cfg.stage.seed)
+
+    def export(self, path: Path, lora_state: dict | None = None) -> None:
         """Write the aligned adapter phi (safetensors) that Stage 2 clones into teacher and student."""
-        save_adapter(self.transformer, self.adapter_name, path, state_dict, stage=STAGE1.value)
+        save_adapter(self.transformer, self.adapter_name, path, lora_state, stage=STAGE1.value)
+
+    @property
+    def deployed_adapter(self) -> str:
+        return self.adapter_name

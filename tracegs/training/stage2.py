@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 
 import torch
 from lightning.pytorch.strategies import ParallelStrategy
@@ -12,7 +13,13 @@ from tracegs.products import STAGE1, STAGE2
 from tracegs.restorer.adapters import activate, adapter_parameters, clone_adapter, load_adapter, save_adapter
 from tracegs.restorer.config import LoraConfig
 from tracegs.restorer.sampler import first_state, guided_prediction, initial_noise, solve
-from tracegs.training.config import MemoryMode, OptimizerConfig, TrajectorySpace, TrajectoryTarget
+from tracegs.training.config import (
+    MemoryMode,
+    OptimizerConfig,
+    TrainConfig,
+    TrajectorySpace,
+    TrajectoryTarget,
+)
 from tracegs.training.losses import distillation_state_loss
 from tracegs.training.module import RestorerTrainingModule, typed
 
@@ -179,6 +186,36 @@ class Stage2DistillationModule(RestorerTrainingModule):
             return contextlib.nullcontext()
         return strategy.block_backward_sync()
 
-    def save_student(self, path, state_dict: dict | None = None) -> None:
+    @classmethod
+    def of(cls, cfg: TrainConfig, backbone) -> Stage2DistillationModule:
+        stage = cfg.stage
+        if stage.init_adapter is None:
+            raise ValueError("stage.init_adapter must name the Stage-1 adapter for stage2")
+        if not Path(stage.init_adapter).exists():
+            raise FileNotFoundError(f"stage.init_adapter: no such file {stage.init_adapter}")
+        return cls(
+            backbone.transformer,
+            backbone.schedule,
+            stage.init_adapter,
+            cfg.optimizer,
+            rollout_steps=stage.rollout_steps,
+            deploy_steps=cfg.backbone.schedule.deploy_steps,
+            lambda_ret=cfg.loss.lambda_ret,
+            retrieval_eps=cfg.loss.retrieval_eps,
+            trajectory_space=cfg.loss.trajectory_space,
+            trajectory_target=cfg.loss.trajectory_target,
+            on_policy=cfg.policy.on_policy,
+            memory_mode=stage.memory_mode,
+            seed=stage.seed,
+            lora=cfg.backbone.lora,
+            guidance_scale=stage.guidance_scale,
+            temperature=cfg.backbone.sampler.temperature,
+        )
+
+    def export(self, path: Path, lora_state: dict | None = None) -> None:
         """Write the distilled student adapter phi_S (the only thing deployment needs)."""
-        save_adapter(self.transformer, STUDENT, path, state_dict, stage=STAGE2.value)
+        save_adapter(self.transformer, STUDENT, path, lora_state, stage=STAGE2.value)
+
+    @property
+    def deployed_adapter(self) -> str:
+        return STUDENT

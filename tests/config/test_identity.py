@@ -16,7 +16,7 @@ from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import ConfigError, validate
 from tracegs.location import CONF_DIR
 from tracegs.pipeline.records import RUN_RECORD, check_run_record, migrate_older_folders, write_run_record
-from tracegs.pipeline.reports import ablation_inputs, swept_method_evaluations
+from tracegs.pipeline.report import ablation_inputs, swept_method_evaluations
 from tracegs.pipeline.upstream import locate_artifacts
 from tracegs.pipeline.variants import table3_variants
 

@@ -19,7 +19,7 @@ from tracegs.config.tree import ConfigTree
 from tracegs.config.validate import validate
 from tracegs.errors import ConfigError
 from tracegs.location import CONF_DIR
-from tracegs.pipeline.reports import ablation_inputs, ablation_report
+from tracegs.pipeline.report import ablation_inputs, ablation_report
 from tracegs.pipeline.variants import per_step_variants, table3_variants
 
 # A variant Table 3 does not have: TRACE-GS with twice the retrieval-alignment weight.

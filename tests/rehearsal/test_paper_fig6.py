@@ -18,7 +18,7 @@ from tracegs.data.config import SceneSourceConfig
 from tracegs.data.images import read_rgb, resize, to_uint8
 from tracegs.eval.clips import held_out_clips, load_clip
 from tracegs.pipeline.prepare import prepare
-from tracegs.pipeline.reports import report
+from tracegs.pipeline.report import report
 from tracegs.pipeline.train import train
 
 # The held-out cache Fig. 6 needs: the student conditions R_s of K = 3, 6, 9 and the captured ground truth

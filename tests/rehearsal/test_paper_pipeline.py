@@ -40,7 +40,7 @@ from tracegs.cli.app import CONF_DIR
 from tracegs.data.datamodule import clip_record, read_conditioning
 from tracegs.pipeline.evaluate import deploy, evaluate
 from tracegs.pipeline.prepare import prepare
-from tracegs.pipeline.reports import report
+from tracegs.pipeline.report import report
 from tracegs.pipeline.runner import Step
 from tracegs.pipeline.steps import out_of_domain_steps, restorer_steps
 from tracegs.pipeline.train import train

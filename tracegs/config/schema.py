@@ -56,7 +56,7 @@ class Task(Mode):
 
 
 class ReportKind(Mode):
-    """What ``tracegs-report`` merges (tracegs.pipeline.reports)."""
+    """What ``tracegs-report`` merges (tracegs.pipeline.report)."""
 
     main = "main"  # evaluation shards -> results.json (Tables 1/2)
     ablation = "ablation"  # an ablation sweep -> Table 3

@@ -53,8 +53,8 @@ def diagnostics_report(cfg: DictConfig) -> Path:
     # The students' inputs (A and the Stage-1 teacher); A alone needs A's weights only: a restorer design is judged
     # on its trajectory before any adapter exists.
     table = stage_table()
-    student = table.per_variant()
-    locate_artifacts(cfg, table.stage_inputs(student.product) if distilled else table.artifacts([Product.baseline]))
+    students = table.per_variant()
+    locate_artifacts(cfg, table.stage_inputs(students.product) if distilled else table.artifacts([Product.baseline]))
     files: dict[str, AdapterFile | None] = {TEACHER: None}
     if distilled:
         if not Path(cfg.artifacts.stage1_adapter).exists():
@@ -67,7 +67,7 @@ def diagnostics_report(cfg: DictConfig) -> Path:
         if not variant.ablation.train_stage2:
             roles[name] = VariantRoles(student=None)
             continue
-        locate_artifacts(variant, [student.artifact])
+        locate_artifacts(variant, [students.artifact])
         student = Path(variant.artifacts.student_adapter)
         if not student.exists():
             raise FileNotFoundError(f"artifacts.student_adapter: no student adapter at {student} (run "

@@ -108,8 +108,8 @@ def privileged_report(cfg: DictConfig) -> Path:
     paper's data protocol), the Stage-2 student (this config's variant) and, with ``report.stage1_row``, the
     Stage-1 adapter restore the held-out clips from R_d and from R_s; ``privileged_gap.md`` and ``.json``."""
     require_held_out_cache(cfg)
-    student = stage_table().per_variant()  # and the products it is made from
-    locate_artifacts(cfg, stage_table().artifacts([*student.reads, student.product]))
+    students = stage_table().per_variant()  # and the products they are made from
+    locate_artifacts(cfg, stage_table().artifacts([*students.reads, students.product]))
     if not Path(cfg.artifacts.stage1_adapter).exists():
         raise FileNotFoundError(f"artifacts.stage1_adapter: no Stage-1 adapter at {cfg.artifacts.stage1_adapter} "
                                 "(run tracegs-train stage=stage1 with the same settings)")

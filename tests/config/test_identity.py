@@ -133,8 +133,8 @@ def test_settings_a_stage_reads_still_rename_it():
     assert run_dir(["stage=stage1", "experiment.baseline_lr=1e-4"]) != run_dir(["stage=stage1"])
     assert run_dir(["stage=stage1", "backbone.lora.rank=2"]) != run_dir(["stage=stage1"])
     assert run_dir(["stage=baseline", "backbone.lora.rank=2"]) == run_dir(["stage=baseline"])
-    assert run_dir(["stage=stage1", "experiment.stage1_lr=1e-4"]) != run_dir(["stage=stage1"])
-    assert run_dir(["stage=baseline", "experiment.stage1_lr=1e-4"]) == run_dir(["stage=baseline"])
+    assert run_dir(["stage=stage1", "experiment.stage1_lr=3e-4"]) != run_dir(["stage=stage1"])
+    assert run_dir(["stage=baseline", "experiment.stage1_lr=3e-4"]) == run_dir(["stage=baseline"])
 
 
 def test_evaluation_finds_the_student_its_variant_trained(entry_config):

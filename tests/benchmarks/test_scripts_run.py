@@ -18,7 +18,8 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 # stage2_memory.py runs in test_stage2_memory.py, gpu_check.py in tests/rehearsal/test_gpu_check.py (on a machine
 # without a GPU it says so instead of printing figures); prepare_data.py prepares the whole demo cache (4 min),
 # which the prepare tests cover; clean_clone.py runs `make test` and `make demo` on a clone (12 min), which CI and
-# the demo tests cover.
+# the demo tests cover; pseudo_target_strength.py reads a trained A and a held-out cache, which only a demo or a
+# validation run makes.
 RUNS = {
     "rasterizer.py": [],
     "restorer.py": [],

@@ -71,8 +71,8 @@ class UnitSeconds:
     # guidance on (100 clip forwards, VAE decoding included): at most 1.8 s per clip forward; GSFixer's
     # cross-attention adds little.
     transformer_forward: float = 1.8
-    # A forward with gradient plus its backward (twice a forward), plus the recomputation of gradient checkpointing
-    # (backbone.transformer.gradient_checkpointing at paper scale): four forwards.
+    # A forward with gradient plus its backward (twice a forward), plus the recomputation of activation checkpointing
+    # (backbone.transformer.activation_checkpointing: 1 at paper scale): four forwards.
     training_forward_factor: float = 4.0
     vae_encode: float = 3.0  # assumed: CogVideoX's 3D VAE, one 49-frame clip
     vae_decode: float = 6.0  # assumed: decoding is tiled and the slower direction

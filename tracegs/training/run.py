@@ -33,6 +33,7 @@ from tracegs.processes import sigterm_at_its_default
 from tracegs.products import BASELINE, STAGE1, STAGE2
 from tracegs.restorer.build import build_backbone
 from tracegs.stages import STAGES
+from tracegs.training.attention import AttentionKernelCheck
 from tracegs.training.baseline import BaselineRestorerModule
 from tracegs.training.checkpoints import (
     CheckpointOnSignal,
@@ -177,7 +178,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints, on_signal, PlainTrainingProgress(), *weight_average(cfg.stage), *extra_callbacks],
+        callbacks=[checkpoints, on_signal, PlainTrainingProgress(), *weight_average(cfg.stage),
+                   AttentionKernelCheck(cfg.backbone.transformer.require_fused_attention), *extra_callbacks],
         enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,

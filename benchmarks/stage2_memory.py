@@ -80,10 +80,9 @@ def random_base_transformer(backbone, device: str):
 
 def stage2_module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
     from tracegs.restorer.schedules import build_schedule
+    from tracegs.restorer.speed import apply_switches
     from tracegs.training.config import OptimizerConfig
     from tracegs.training.stage2 import Stage2DistillationModule
-
-    from tracegs.restorer.speed import apply_switches
 
     transformer = random_base_transformer(backbone, device)
     apply_switches(transformer, backbone)

@@ -72,8 +72,10 @@ def test_compiled_blocks_give_the_same_outputs_and_gradients(student):
 
     torch._dynamo.reset()
     speed.compile_blocks(model, counting_eager)
-    assert_same(run(), plain)
+    with speed.AttentionKernels() as recorder:  # the first training step's kernel check, around compiled blocks
+        assert_same(run(), plain)
     assert graphs  # dynamo traced the blocks; the backend ran what it traced
+    assert recorder.counts["flash"] == 2 * len(model.transformer_blocks)
     speed.checkpoint_blocks(model, 1.0)  # compiled blocks under checkpointing: still the same
     assert_same(run(), plain)
 

@@ -77,6 +77,7 @@ def compile_blocks(transformer: ReferenceGuidedTransformer, backend: str) -> Non
         block.compile(backend=backend)
 
 
+@torch.compiler.disable  # asked outside a compiled block's graph: dynamo cannot build guards around the call
 def sdpa_kernel(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, attn_mask=None, dropout_p: float = 0.0,
                 is_causal: bool = False, scale: float | None = None, enable_gqa: bool = False) -> str:
     """The kernel ``F.scaled_dot_product_attention`` picks for these arguments (PyTorch's own choice function).
@@ -93,7 +94,9 @@ def sdpa_kernel(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, att
 
 class AttentionKernels(TorchFunctionMode):
     """Within ``with``: count the kernel of every SDPA call (``counts``); with ``require_fused``, refuse the first
-    call that would run on the math fallback, in one line naming ``require_fused_attention``, before it runs."""
+    call that would run on the math fallback, in one line naming ``require_fused_attention``, before it runs.
+    A checkpointed block's recomputation in backward (inside the autograd engine) is not seen: it repeats a forward
+    call that was."""
 
     def __init__(self, require_fused: bool = False):
         super().__init__()

@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.console import interactive, quiet_library_notices
 from tracegs.data.datamodule import MANIFEST, NO_TEACHER, PairedClipDataModule
+from tracegs.devices import require_trainer_device
 from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
@@ -243,6 +244,7 @@ def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
     quiet_library_notices()  # the entry point of every stage, from the command line or from Python
     cfg = copy.deepcopy(as_train_config(cfg))
+    require_trainer_device(cfg.trainer.accelerator)
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work

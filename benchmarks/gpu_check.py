@@ -27,7 +27,8 @@ minutes on a GPU are few, one failure must not cost the rest):
   (``SPEED_SETTINGS``: fewer blocks checkpointed, compiled blocks, bf16 LoRA products, all of them) and as
   configured, each under its own key with its seconds and peak memory, or its one-line error (out of memory, a
   compiler that fails) while the others still run; ``attention_kernels``: the SDPA kernels of the configured run's
-  first iteration; ``best``: the fastest setting;
+  first iteration; ``best``: the fastest setting. About 10 minutes at the paper's shapes by estimate (six fresh 5B
+  bases, two iterations each): run it alone (``--sections speed``);
 - ``demo``: the embedded demo end to end (``tracegs-demo``, the framework's single-GPU debug run) on the device,
   ``trainer=gpu`` with gsplat fitting and rendering (``demo_overrides``), in a child process: seconds, exit code,
   each step's seconds from its ``run.json``, or its one-line error. Last: tens of minutes on a CPU.
@@ -189,16 +190,29 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
     yield "speedup", fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]
 
 
-def restorer_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
-    """Time and memory of the restorer's forwards at ``cfg``'s shapes, random weights, each figure yielded as soon
-    as it is measured (the Stage-2 iteration is its own section: minutes at 5B)."""
+def random_backbone(cfg):
+    """``cfg``'s backbone settings with no weights to read: every section times random weights."""
     from omegaconf import OmegaConf
-
-    from tracegs.restorer.adapters import add_adapter
-    from tracegs.restorer.sampler import guided_prediction
 
     backbone = OmegaConf.to_object(cfg.backbone)
     backbone.transformer.pretrained_path = None
+    return backbone
+
+
+def stage2_batch(cfg, backbone, device: torch.device) -> dict:
+    """A random Stage-2 batch at ``cfg``'s batch size and shapes, on ``device``."""
+    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
+    return {key: value.to(device)
+            for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+
+
+def restorer_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
+    """Time and memory of the restorer's forwards at ``cfg``'s shapes, random weights, each figure yielded as soon
+    as it is measured (the Stage-2 iteration is its own section: minutes at 5B)."""
+    from tracegs.restorer.adapters import add_adapter
+    from tracegs.restorer.sampler import guided_prediction
+
+    backbone = random_backbone(cfg)
     kind = device.type
     yield "deploy_guidance_scale", backbone.sampler.guidance_scale
     frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
@@ -227,14 +241,10 @@ def stage2_section(cfg, device: torch.device, work_dir: Path, publish: Callable[
     """Set-up seconds and the first two Stage-2 training iterations at ``cfg``'s shapes (minutes each at 5B), each
     figure published as soon as it is measured: ``iteration`` is the last one finished (the second, once the
     first has allocated AdamW's state), ``iterations`` all of them."""
-    from omegaconf import OmegaConf
-
-    backbone = OmegaConf.to_object(cfg.backbone)
-    backbone.transformer.pretrained_path = None
+    backbone = random_backbone(cfg)
     publish("batch_size", cfg.experiment.batch_size)
     publish("rollout_steps", cfg.stage.rollout_steps)
-    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
-    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+    batch = stage2_batch(cfg, backbone, device)
     start = time.perf_counter()
     adapter = work_dir / "stage1_adapter"
     make_random_adapter(backbone, adapter, device.type)
@@ -270,23 +280,18 @@ def speed_section(scale: str, overrides: tuple[str, ...], device: torch.device, 
     """One Stage-2 iteration (the second of two: the first allocates AdamW's state and compiles) at ``rollout``
     visited states under each of ``SPEED_SETTINGS``, each published as soon as it is measured, a failing one as its
     one-line error; then the fastest (``best``)."""
-    from omegaconf import OmegaConf
-
     from tracegs.training.attention import AttentionKernelCheck
 
     cfg = compose(scale, overrides)
-    backbone = OmegaConf.to_object(cfg.backbone)
-    backbone.transformer.pretrained_path = None
+    backbone = random_backbone(cfg)
     publish("batch_size", cfg.experiment.batch_size)
     publish("rollout_steps", rollout)
-    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
-    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+    batch = stage2_batch(cfg, backbone, device)
     adapter = work_dir / "speed_adapter"
     make_random_adapter(backbone, adapter, device.type)  # one base (seed 0) and adapter for every setting
     timed: dict[str, float] = {}
     for name, setting in SPEED_SETTINGS.items():
-        switched = OmegaConf.to_object(compose(scale, (*overrides, *setting)).backbone)
-        switched.transformer.pretrained_path = None
+        switched = random_backbone(compose(scale, (*overrides, *setting)))
         iterations: list[dict] = []
         kernels = AttentionKernelCheck(require_fused=False)
         try:

@@ -37,8 +37,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FIELD = "backbone.transformer.activation_checkpointing"
 FUSED_FIELD = "backbone.transformer.require_fused_attention"
+BACKEND_FIELD = "backbone.transformer.compile_backend"
 # The names a log line and the GPU check give PyTorch's SDPA backends (torch.nn.attention.SDPBackend).
 KERNEL_NAMES = {SDPBackend.FLASH_ATTENTION: "flash", SDPBackend.EFFICIENT_ATTENTION: "efficient",
                 SDPBackend.CUDNN_ATTENTION: "cudnn", SDPBackend.MATH: "math",
@@ -63,7 +63,7 @@ def checkpoint_blocks(transformer: ReferenceGuidedTransformer, share: float) -> 
             return checkpoint(block.__call__, *args, use_reentrant=False)
         return block(*args)
 
-    # diffusers calls this for every block whenever gradients are enabled and the model is in train mode.
+    # diffusers' block loop calls this for every block whenever gradients are enabled.
     transformer.enable_gradient_checkpointing(run_block)
     return count
 
@@ -71,8 +71,12 @@ def checkpoint_blocks(transformer: ReferenceGuidedTransformer, share: float) -> 
 def compile_blocks(transformer: ReferenceGuidedTransformer, backend: str) -> None:
     """``torch.compile`` each block in place (``nn.Module.compile``: parameter names, state dicts and the adapters
     peft injects later stay as they are; compilation happens at the first call). Dynamo guards on parameters
-    rather than on the module, so the blocks share their graphs (PyTorch's "regional compilation" recipe); the
-    adapter in use and whether gradients are on are guarded, so Stage 2's student and teacher get a graph each."""
+    rather than on the module, so the blocks share their graphs (PyTorch's "regional compilation" recipe); whether
+    gradients are on, and whether the retrieval response is read, are guarded: Stage 2's student and teacher calls
+    get a few graphs, all traced in the first iteration (measured on the rehearsal: no recompilation after it)."""
+    if isinstance(backend, str) and backend not in torch.compiler.list_backends(exclude_tags=()):
+        raise ConfigError(BACKEND_FIELD, f"{backend!r} is not a torch.compile backend here (have "
+                                         f"{', '.join(torch.compiler.list_backends())})")
     for block in transformer.transformer_blocks:
         block.compile(backend=backend)
 

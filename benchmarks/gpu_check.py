@@ -42,7 +42,8 @@ already there from the same scale (a rerun of one section replaces that section'
 Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log`` (and ``rasterizer_build.log`` on a GPU); ``benchmarks/paper_gpu_hours.py --measured
 <out>/gpu_check.json`` replaces its assumed seconds with these. Without a CUDA device (``--scale auto``) it prints
 "no GPU: nothing measured" and exits 0; ``--scale rehearsal`` runs every section on the CPU at the rehearsal's
-tiny shapes (``experiment=rehearsal``: what the test suite does). The last printed line is the JSON object.
+tiny shapes (``experiment=rehearsal``: what the test suite does, the demo's section aside: it composes that one's
+command line; the whole demo takes tens of minutes on two cores). The last printed line is the JSON object.
 """
 
 from __future__ import annotations

@@ -236,3 +236,25 @@ def test_the_demo_on_a_gpu_is_refused_in_one_line_where_there_is_none(entry_poin
                            f"this machine has none (torch {torch.__version__}, ")
     assert line.endswith("; run with trainer=cpu here")
     assert not root.exists() or not list(root.rglob("*.safetensors"))  # refused before any work
+
+
+def test_a_required_fused_kernel_stops_the_first_training_step_and_leaves_no_recording(tmp_path):
+    """The training callback (tracegs.training.attention) in the Stage-2 step the check times, on a machine whose
+    only attention kernel is the math fallback."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    from tracegs.errors import ConfigError
+    from tracegs.training.attention import AttentionKernelCheck
+
+    cfg = gpu_check.compose("rehearsal", (f"paths.root_dir={tmp_path}",))
+    backbone = gpu_check.random_backbone(cfg)
+    gpu_check.make_random_adapter(backbone, tmp_path / "adapter", "cpu")
+    module = gpu_check.stage2_module(backbone, cfg.stage.memory_mode, 1, tmp_path / "adapter", "cpu",
+                                     cfg.stage.guidance_scale)
+    check, finished = AttentionKernelCheck(require_fused=True), []
+    with sdpa_kernel(SDPBackend.MATH), pytest.raises(ConfigError, match="require_fused_attention': attention would "
+                                                                         "run on PyTorch's math kernel on cpu"):
+        gpu_check.train_two_iterations(module, gpu_check.stage2_batch(cfg, backbone, torch.device("cpu")),
+                                       cfg.trainer.precision, torch.device("cpu"), finished.append, [check])
+    assert finished == [] and check.kernels == {"math": 1}  # stopped in the first step, at its first call
+    assert torch._C._len_torch_function_stack() == 0  # the recording ended with the step

@@ -141,3 +141,10 @@ def test_build_backbone_applies_the_configured_switches():
     assert all(block._compiled_call_impl is not None for block in model.transformer_blocks)
     adapters.add_adapter(model, "aligned", cfg.lora)
     assert {type(m) for n, m in model.named_modules() if ".lora_B.aligned" in n} == {adapters.Bf16Factor}
+
+
+def test_an_unknown_compile_backend_is_refused_in_one_line(backbone):
+    with pytest.raises(ConfigError, match=r"^config field 'backbone.transformer.compile_backend': 'nonesuch' is not a "
+                                          r"torch.compile backend here \(have .*inductor"):
+        speed.compile_blocks(backbone.transformer, "nonesuch")
+    assert all(block._compiled_call_impl is None for block in backbone.transformer.transformer_blocks)

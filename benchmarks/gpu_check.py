@@ -1,7 +1,7 @@
 """The first minutes on a GPU: one unattended check that times and loads the paper scale (10-15 min on one H200).
 
 Usage: ``launch/gpu_check.sh [--out DIR] [--scale auto|paper|rehearsal] [--fit-iterations 1000]
-[--sections restorer,vae,...]``
+[--speed-rollout 2] [--sections restorer,vae,...]``
 
 Sections, each measured on its own (a section that fails records its one-line error and the others still run: the
 minutes on a GPU are few, one failure must not cost the rest):
@@ -21,7 +21,17 @@ minutes on a GPU are few, one failure must not cost the rest):
   PSNR of each fit on the scene's held-out views (the two should agree within 0.2 dB);
 - ``stage2``: two Stage-2 training iterations at the paper's batch (N student forwards with gradient and gradient
   checkpointing as configured, N teacher forwards without, the optimiser step), each timed as it ends: the
-  second is the figure (the first allocates AdamW's state). Minutes each at 5B, so it runs last.
+  second is the figure (the first allocates AdamW's state). Minutes each at 5B;
+- ``speed``: the same Stage-2 iteration (the same code, at ``--speed-rollout`` visited states: the seconds per
+  visited state are what the estimate reads) under each of the transformer's execution switches
+  (``SPEED_SETTINGS``: fewer blocks checkpointed, compiled blocks, bf16 LoRA products, all of them) and as
+  configured, each under its own key with its seconds and peak memory, or its one-line error (out of memory, a
+  compiler that fails) while the others still run; ``attention_kernels``: the SDPA kernels of the configured run's
+  first iteration; ``best``: the fastest setting. About 10 minutes at the paper's shapes by estimate (six fresh 5B
+  bases, two iterations each): run it alone (``--sections speed``);
+- ``demo``: the embedded demo end to end (``tracegs-demo``, the framework's single-GPU debug run) on the device,
+  ``trainer=gpu`` with gsplat fitting and rendering (``demo_overrides``), in a child process: seconds, exit code,
+  each step's seconds from its ``run.json``, or its one-line error. Last: tens of minutes on a CPU.
 
 Sections run in the order above. On a fresh GPU machine gsplat compiles its CUDA kernels at first use (minutes): a
 child process builds them on the CPU from the start while the transformer is timed on the GPU, and the rasterizer
@@ -32,12 +42,14 @@ already there from the same scale (a rerun of one section replaces that section'
 Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.log`` (and ``rasterizer_build.log`` on a GPU); ``benchmarks/paper_gpu_hours.py --measured
 <out>/gpu_check.json`` replaces its assumed seconds with these. Without a CUDA device (``--scale auto``) it prints
 "no GPU: nothing measured" and exits 0; ``--scale rehearsal`` runs every section on the CPU at the rehearsal's
-tiny shapes (``experiment=rehearsal``: what the test suite does). The last printed line is the JSON object.
+tiny shapes (``experiment=rehearsal``: what the test suite does, the demo's section aside: it composes that one's
+command line; the whole demo takes tens of minutes on two cores). The last printed line is the JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import statistics
@@ -65,7 +77,7 @@ from tracegs.data.colmap import load_scene, test_indices_for  # noqa: E402
 from tracegs.data.config import SceneSourceConfig, SyntheticConfig  # noqa: E402
 from tracegs.data.splits import every_nth_test  # noqa: E402
 from tracegs.data.synthetic import generate_scene, scene_name  # noqa: E402
-from tracegs.errors import TraceGSError  # noqa: E402
+from tracegs.errors import TraceGSError, one_line  # noqa: E402
 from tracegs.eval.clips import mean_psnr  # noqa: E402
 from tracegs.splat.config import GaussianFitConfig  # noqa: E402
 from tracegs.splat.fit import View, fit_gaussians  # noqa: E402
@@ -179,16 +191,29 @@ def rasterizer_section(fit: GaussianFitConfig, backends: tuple[str, str], iterat
     yield "speedup", fits[0]["iterations_per_s"] / fits[1]["iterations_per_s"]
 
 
-def restorer_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
-    """Time and memory of the restorer's forwards at ``cfg``'s shapes, random weights, each figure yielded as soon
-    as it is measured (the Stage-2 iteration is its own section: minutes at 5B)."""
+def random_backbone(cfg):
+    """``cfg``'s backbone settings with no weights to read: every section times random weights."""
     from omegaconf import OmegaConf
-
-    from tracegs.restorer.adapters import add_adapter
-    from tracegs.restorer.sampler import guided_prediction
 
     backbone = OmegaConf.to_object(cfg.backbone)
     backbone.transformer.pretrained_path = None
+    return backbone
+
+
+def stage2_batch(cfg, backbone, device: torch.device) -> dict:
+    """A random Stage-2 batch at ``cfg``'s batch size and shapes, on ``device``."""
+    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
+    return {key: value.to(device)
+            for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+
+
+def restorer_section(cfg, device: torch.device, clock: Clock) -> Iterator[tuple[str, object]]:
+    """Time and memory of the restorer's forwards at ``cfg``'s shapes, random weights, each figure yielded as soon
+    as it is measured (the Stage-2 iteration is its own section: minutes at 5B)."""
+    from tracegs.restorer.adapters import add_adapter
+    from tracegs.restorer.sampler import guided_prediction
+
+    backbone = random_backbone(cfg)
     kind = device.type
     yield "deploy_guidance_scale", backbone.sampler.guidance_scale
     frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
@@ -217,14 +242,10 @@ def stage2_section(cfg, device: torch.device, work_dir: Path, publish: Callable[
     """Set-up seconds and the first two Stage-2 training iterations at ``cfg``'s shapes (minutes each at 5B), each
     figure published as soon as it is measured: ``iteration`` is the last one finished (the second, once the
     first has allocated AdamW's state), ``iterations`` all of them."""
-    from omegaconf import OmegaConf
-
-    backbone = OmegaConf.to_object(cfg.backbone)
-    backbone.transformer.pretrained_path = None
+    backbone = random_backbone(cfg)
     publish("batch_size", cfg.experiment.batch_size)
     publish("rollout_steps", cfg.stage.rollout_steps)
-    frame_size = (cfg.experiment.frame_height, cfg.experiment.frame_width)
-    batch = {key: value.to(device) for key, value in paper_shaped_batch(backbone, cfg.experiment.batch_size, frame_size).items()}
+    batch = stage2_batch(cfg, backbone, device)
     start = time.perf_counter()
     adapter = work_dir / "stage1_adapter"
     make_random_adapter(backbone, adapter, device.type)
@@ -242,10 +263,62 @@ def stage2_section(cfg, device: torch.device, work_dir: Path, publish: Callable[
     return {}
 
 
+# The speed section's settings: the overrides of the composed config each one times, under its key in the JSON.
+# The paper scale checkpoints every block (36 of the H200's 141 GiB): the first two keep more activations.
+SPEED_SETTINGS: dict[str, tuple[str, ...]] = {
+    "as_configured": (),
+    "activation_checkpointing_0.5": ("backbone.transformer.activation_checkpointing=0.5",),
+    "activation_checkpointing_0": ("backbone.transformer.activation_checkpointing=0",),
+    "compile_blocks": ("backbone.transformer.compile_blocks=true",),
+    "lora_compute_bf16": ("backbone.lora.compute_bf16=true",),
+    "all": ("backbone.transformer.activation_checkpointing=0.5", "backbone.transformer.compile_blocks=true",
+            "backbone.lora.compute_bf16=true"),
+}
+
+
+def speed_section(scale: str, overrides: tuple[str, ...], device: torch.device, work_dir: Path, rollout: int,
+                  publish: Callable[[str, object], None]) -> dict:
+    """One Stage-2 iteration (the second of two: the first allocates AdamW's state and compiles) at ``rollout``
+    visited states under each of ``SPEED_SETTINGS``, each published as soon as it is measured, a failing one as its
+    one-line error; then the fastest (``best``)."""
+    from tracegs.training.attention import AttentionKernelCheck
+
+    cfg = compose(scale, overrides)
+    backbone = random_backbone(cfg)
+    publish("batch_size", cfg.experiment.batch_size)
+    publish("rollout_steps", rollout)
+    batch = stage2_batch(cfg, backbone, device)
+    adapter = work_dir / "speed_adapter"
+    make_random_adapter(backbone, adapter, device.type)  # one base (seed 0) and adapter for every setting
+    timed: dict[str, float] = {}
+    for name, setting in SPEED_SETTINGS.items():
+        switched = random_backbone(compose(scale, (*overrides, *setting)))
+        iterations: list[dict] = []
+        kernels = AttentionKernelCheck(require_fused=False)
+        try:
+            module = stage2_module(switched, cfg.stage.memory_mode, rollout, adapter, device.type,
+                                   cfg.stage.guidance_scale)
+            train_two_iterations(module, batch, cfg.trainer.precision, device, iterations.append, [kernels])
+            figures = {**iterations[-1], "first_seconds": iterations[0]["seconds"]}
+            timed[name] = figures["seconds"]
+        except Exception as error:  # noqa: BLE001 (out of memory or a compiler failure: the other settings still run)
+            log.error("speed %s failed: %s", name, traceback.format_exc())
+            figures = {"error": one_line(f"{type(error).__name__}: {error}")}
+        finally:
+            module = None  # the next setting measures its own peak: Lightning's trainer and module hold each other
+            gc.collect()
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+        publish(name, figures)
+        if name == "as_configured" and kernels.kernels is not None:
+            publish("attention_kernels", kernels.kernels)
+    return {"best": min(timed, key=timed.get) if timed else None}
+
+
 def train_two_iterations(module, batch: dict, precision: str, device: torch.device,
-                         finished: Callable[[dict], None]) -> None:
+                         finished: Callable[[dict], None], callbacks: Iterable = ()) -> None:
     """Two Lightning training iterations on ``batch``; ``finished`` gets the seconds and peak memory of each as it
-    ends."""
+    ends. ``callbacks`` join the timing one."""
     import lightning as L
     from torch.utils.data import DataLoader
 
@@ -265,7 +338,7 @@ def train_two_iterations(module, batch: dict, precision: str, device: torch.devi
 
     trainer = L.Trainer(accelerator="gpu" if device.type == "cuda" else "cpu", devices=1, precision=precision,
                         max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[Probe()])
+                        enable_model_summary=False, callbacks=[Probe(), *callbacks])
     trainer.fit(module, train_dataloaders=DataLoader([batch], batch_size=None))
 
 
@@ -352,7 +425,33 @@ def section(name: str, work: Callable[[Callable[[str, object], None]], dict | It
     log.info("%s: %s", name, json.dumps(figures, default=str))
 
 
-SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer", "stage2")
+def demo_overrides(device: torch.device, root: Path) -> list[str]:
+    """The ``tracegs-demo`` command line of the demo section: the embedded default on one GPU (``trainer=gpu``) with
+    gsplat's rasterizer (the embedded fit's ``auto`` would take it too; named, a machine without it is refused
+    before any work), or on the CPU as the demo runs by default."""
+    on_gpu = ["trainer=gpu", "data.prepare.fit.backend=gsplat"] if device.type == "cuda" else ["trainer=cpu"]
+    return [*on_gpu, f"paths.root_dir={root}"]
+
+
+def demo_section(device: torch.device, work_dir: Path, publish: Callable[[str, object], None]) -> dict:
+    """The embedded demo end to end on ``device`` in a child process (its own CUDA context and Hydra run), timed."""
+    root = work_dir / "demo"
+    root.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, "-m", "tracegs.cli.demo", *demo_overrides(device, root)]
+    publish("command", " ".join(["tracegs-demo", *command[3:]]))
+    start = time.perf_counter()
+    with open(work_dir / "demo.log", "w") as output:
+        done = subprocess.run(command, cwd=root, stdout=output, stderr=subprocess.PIPE, text=True)
+    figures: dict = {"seconds": time.perf_counter() - start, "exit_code": done.returncode}
+    if done.returncode != 0:
+        figures["error"] = one_line(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "no message")
+    records = sorted(root.rglob("run.json"))
+    if records:  # the demo's own record: each step's seconds, the machine, the commit
+        figures["run"] = json.loads(records[0].read_text())
+    return figures
+
+
+SECTIONS = ("device", "restorer", "vae", "weights", "rasterizer", "stage2", "speed", "demo")
 
 
 def previous_record(target: Path, scale: str) -> dict:
@@ -387,7 +486,7 @@ def build_rasterizers_aside(out: Path) -> subprocess.Popen:
 
 
 def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, ...] = (),
-              sections: tuple[str, ...] = SECTIONS) -> dict:
+              sections: tuple[str, ...] = SECTIONS, speed_rollout: int = 2) -> dict:
     """``sections`` at ``scale`` on CUDA (paper) or the CPU (rehearsal), merged into ``out``/gpu_check.json, which
     is rewritten after each section."""
     from omegaconf import OmegaConf
@@ -411,7 +510,10 @@ def run_check(scale: str, out: Path, fit_iterations: int, overrides: tuple[str, 
                     "vae": lambda publish: vae_section(cfg, device, clock),
                     "weights": lambda publish: weights_section(cfg, device, clock),
                     "rasterizer": lambda publish: rasterizer_section(fit, backends, fit_iterations, Path(scratch)),
-                    "stage2": lambda publish: stage2_section(cfg, device, Path(scratch), publish)}
+                    "stage2": lambda publish: stage2_section(cfg, device, Path(scratch), publish),
+                    "speed": lambda publish: speed_section(scale, overrides, device, Path(scratch), speed_rollout,
+                                                           publish),
+                    "demo": lambda publish: demo_section(device, Path(scratch), publish)}
             compiling = build_rasterizers_aside(out) if device.type == "cuda" and "rasterizer" in sections else None
             for name in SECTIONS:
                 if name == "rasterizer" and compiling is not None:
@@ -431,6 +533,9 @@ def main(argv: list[str] | None = None) -> dict | None:
     parser.add_argument("--scale", choices=("auto", "paper", "rehearsal"), default="auto")
     parser.add_argument("--fit-iterations", type=int, default=1000,
                         help="the paper's 30k-iteration fit, every schedule scaled to this many iterations")
+    parser.add_argument("--speed-rollout", type=int, default=2,
+                        help="visited states per Stage-2 iteration of the speed section (the paper's N = 10 in the "
+                             "stage2 section)")
     parser.add_argument("--sections", default=",".join(SECTIONS),
                         help=f"comma-separated, of {', '.join(SECTIONS)} (device always runs)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the composed config (e.g. paths.root_dir=...)")
@@ -439,6 +544,8 @@ def main(argv: list[str] | None = None) -> dict | None:
     unknown = sorted(set(sections) - set(SECTIONS))
     if unknown:
         parser.error(f"--sections: unknown {', '.join(unknown)} (known: {', '.join(SECTIONS)})")
+    if args.speed_rollout < 1:
+        parser.error(f"--speed-rollout: {args.speed_rollout} visited states, at least 1 needed")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.scale == "auto" and not torch.cuda.is_available():
         print("no GPU: nothing measured")
@@ -446,7 +553,7 @@ def main(argv: list[str] | None = None) -> dict | None:
     scale = "paper" if args.scale == "auto" else args.scale
     if scale == "paper" and not torch.cuda.is_available():
         sys.exit("--scale paper needs a CUDA device (--scale rehearsal runs the same sections on the CPU)")
-    record = run_check(scale, Path(args.out), args.fit_iterations, tuple(args.overrides), sections)
+    record = run_check(scale, Path(args.out), args.fit_iterations, tuple(args.overrides), sections, args.speed_rollout)
     print(json.dumps(record, default=str))
     return record
 

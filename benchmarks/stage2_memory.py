@@ -80,12 +80,12 @@ def random_base_transformer(backbone, device: str):
 
 def stage2_module(backbone, mode: str, rollout: int, adapter: Path, device: str, guidance: float):
     from tracegs.restorer.schedules import build_schedule
+    from tracegs.restorer.speed import apply_switches
     from tracegs.training.config import OptimizerConfig
     from tracegs.training.stage2 import Stage2DistillationModule
 
     transformer = random_base_transformer(backbone, device)
-    if backbone.transformer.gradient_checkpointing:
-        transformer.enable_gradient_checkpointing()
+    apply_switches(transformer, backbone)
     return Stage2DistillationModule(
         transformer, build_schedule(backbone.schedule), adapter, OptimizerConfig(lr=1e-5),
         rollout_steps=rollout, deploy_steps=backbone.schedule.deploy_steps, memory_mode=mode,

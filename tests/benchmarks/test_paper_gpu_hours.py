@@ -102,4 +102,4 @@ def test_measured_units_replace_the_estimates_and_name_their_source():
     # One iteration timed is the first, which allocates AdamW's state: the source says so.
     assert "first iteration only" in sources["training_forward_factor"]
     record["stage2"]["iterations"].append({"seconds": 99.0})
-    assert gpu.UnitSeconds.measured(record)[1]["training_forward_factor"] == "measured on GPU X"
+    assert gpu.UnitSeconds.measured(record)[1]["training_forward_factor"] == "measured on GPU X (Stage 2 as configured)"

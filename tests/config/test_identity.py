@@ -372,7 +372,7 @@ def test_settings_that_do_not_change_a_restoration_keep_a_restorer_made_cache(ex
     def cache(*overrides: str) -> str:
         return str(compose(config_name="train", overrides=[*base, *overrides]).data.datamodule.cache_dir)
 
-    for setting in ("backbone.lora.rank=4", "backbone.transformer.gradient_checkpointing=true",
+    for setting in ("backbone.lora.rank=4", "backbone.transformer.activation_checkpointing=0.5",
                     "backbone.offload_encoders=true", "backbone.sampler.guidance_scale=3",
                     "backbone.schedule.train_time_power=2", "backbone.sampler.seed=5"):
         assert cache(setting) == cache(), setting

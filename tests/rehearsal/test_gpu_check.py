@@ -24,8 +24,21 @@ def checked(tmp_path_factory, rehearsal_root) -> tuple[dict, Path]:
 
         install_vggt_double(monkeypatch)
         out = tmp_path_factory.mktemp("gpu_check")
+        # the speed section has its own fixture; the demo section runs the whole demo (tens of minutes here)
+        others = [name for name in gpu_check.SECTIONS if name not in ("speed", "demo")]
         record = gpu_check.main(["--scale", "rehearsal", "--fit-iterations", "20", "--out", str(out),
-                                 f"paths.root_dir={rehearsal_root}"])
+                                 "--sections", ",".join(others), f"paths.root_dir={rehearsal_root}"])
+    return record, out
+
+
+@pytest.fixture(scope="module")
+def sped(tmp_path_factory) -> tuple[dict, Path]:
+    """The restorer and speed sections at rehearsal shapes; compiled blocks on torch.compile's "eager" backend (the
+    CPU's inductor builds C++ for minutes; it runs here, 72 s for the embedded forward alone)."""
+    out = tmp_path_factory.mktemp("speed")
+    record = gpu_check.main(["--scale", "rehearsal", "--sections", "restorer,speed", "--out", str(out),
+                             f"paths.root_dir={tmp_path_factory.mktemp('root')}",
+                             "backbone.transformer.compile_backend=eager"])
     return record, out
 
 
@@ -136,3 +149,112 @@ def test_an_unreadable_measurement_is_refused_in_one_line(tmp_path):
     broken.write_text("{not json")
     with pytest.raises(SystemExit, match="--measured .*gpu_check.json: not a readable gpu_check.json"):
         paper_gpu_hours.main(["--measured", str(broken)])
+
+
+def test_the_speed_section_times_a_stage2_iteration_under_each_switch(sped):
+    record, out = sped
+    assert json.loads((out / "gpu_check.json").read_text()) == json.loads(json.dumps(record, default=str))
+    speed = record["speed"]
+    assert "error" not in speed and speed["batch_size"] == 2 and speed["rollout_steps"] == 2
+    for name in gpu_check.SPEED_SETTINGS:
+        assert set(speed[name]) == {"seconds", "peak_mib", "first_seconds"}, name
+        assert speed[name]["seconds"] > 0 and speed[name]["peak_mib"] is None  # no allocator statistics on a CPU
+    # two attentions in each of the rehearsal's two blocks per forward; a student and a teacher forward per visited
+    # state (the batch in one call); a checkpointed block's recomputation in backward runs outside the recording
+    assert speed["attention_kernels"] == {"flash": 2 * 2 * 2 * speed["rollout_steps"]}
+    assert speed["best"] == min(gpu_check.SPEED_SETTINGS, key=lambda name: speed[name]["seconds"])
+
+
+def test_a_failing_setting_records_its_error_and_the_others_are_timed(tmp_path, monkeypatch):
+    monkeypatch.setattr(gpu_check, "SPEED_SETTINGS", {
+        "as_configured": (),
+        "compile_blocks": ("backbone.transformer.compile_blocks=true", "backbone.transformer.compile_backend=nonesuch")})
+    figures = {}
+    best = gpu_check.speed_section("rehearsal", (f"paths.root_dir={tmp_path}",), torch.device("cpu"), tmp_path, 1,
+                                   figures.__setitem__)
+    assert figures["compile_blocks"]["error"].startswith(
+        "ConfigError: config field 'backbone.transformer.compile_backend': 'nonesuch' is not a torch.compile backend")
+    assert "\n" not in figures["compile_blocks"]["error"]
+    assert figures["as_configured"]["seconds"] > 0 and best == {"best": "as_configured"}
+
+
+def test_the_estimate_takes_the_fastest_measured_stage2_setting(sped, tmp_path, capsys):
+    record, out = sped
+    measured = paper_gpu_hours.main(["--measured", str(out / "gpu_check.json")])
+    speed, forward = record["speed"], record["restorer"]["rollout_step"]["seconds"]
+    per_state = speed[speed["best"]]["seconds"] / (speed["batch_size"] * speed["rollout_steps"])
+    assert measured["unit_seconds"]["training_forward_factor"] == max(per_state - forward, forward) / forward
+    assert measured["unit_sources"]["training_forward_factor"] == (
+        f"measured on cpu (Stage 2 with speed setting {speed['best']})")
+    assert measured["paper_gpu_hours"] == 480
+    printed = capsys.readouterr().out
+    scope = f"{measured['gpu_hours_paper_scope']:10.1f}  that preparation + Stage 1 + one student, against the paper's 480"
+    assert scope in printed and f"Stage 2 with speed setting {speed['best']}" in printed
+    # a faster setting is the one taken; a stage2 section's iteration at the paper's N competes as configured
+    slow = {**record, "speed": {**speed, "compile_blocks": {"seconds": 1e-3, "peak_mib": None, "first_seconds": 1.0}},
+            "stage2": {"batch_size": 2, "rollout_steps": 10, "iteration": {"seconds": 1e-6, "peak_mib": None},
+                       "iterations": [{"seconds": 1.0}, {"seconds": 1e-6}]}}
+    (tmp_path / "gpu_check.json").write_text(json.dumps(slow))
+    fastest = paper_gpu_hours.main(["--measured", str(tmp_path / "gpu_check.json")])
+    assert fastest["unit_sources"]["training_forward_factor"] == "measured on cpu (Stage 2 as configured)"
+    del slow["stage2"]
+    (tmp_path / "gpu_check.json").write_text(json.dumps(slow))
+    faster = paper_gpu_hours.main(["--measured", str(tmp_path / "gpu_check.json")])
+    assert faster["unit_sources"]["training_forward_factor"].endswith("with speed setting compile_blocks)")
+    # a student state costs at least one forward: the factor's floor
+    assert faster["unit_seconds"]["training_forward_factor"] == 1.0 <= measured["unit_seconds"]["training_forward_factor"]
+
+
+@pytest.mark.parametrize("device", ["cuda", "cpu"])
+def test_the_demo_sections_command_composes_and_validates_on_any_machine(device, tmp_path):
+    """The demo section's ``tracegs-demo`` command line is a valid configuration here, without a GPU: it is refused
+    only by the device check when it runs (below)."""
+    from hydra import compose, initialize_config_dir
+
+    from tracegs.config.schema import register_configs
+    from tracegs.config.validate import validate
+    from tracegs.location import CONF_DIR
+
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="demo", overrides=gpu_check.demo_overrides(torch.device(device), tmp_path))
+    validate(cfg)
+    on_gpu = device == "cuda"
+    assert cfg.trainer.accelerator == ("gpu" if on_gpu else "cpu") and int(cfg.trainer.devices) == 1
+    assert cfg.data.prepare.fit.backend == ("gsplat" if on_gpu else "auto")
+    assert cfg.trainer.precision == ("bf16-mixed" if on_gpu else "32-true")
+
+
+def test_the_demo_on_a_gpu_is_refused_in_one_line_where_there_is_none(entry_point, tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    root = tmp_path / "root"
+    run = entry_point("demo", gpu_check.demo_overrides(torch.device("cuda"), root), tmp_path)
+    assert run.returncode == 2
+    (line,) = run.stderr_lines()
+    assert line.startswith("tracegs-demo: error: config field 'trainer.accelerator': 'gpu' needs a CUDA device and "
+                           f"this machine has none (torch {torch.__version__}, ")
+    assert line.endswith("; run with trainer=cpu here")
+    assert not root.exists() or not list(root.rglob("*.safetensors"))  # refused before any work
+
+
+def test_a_required_fused_kernel_stops_the_first_training_step_and_leaves_no_recording(tmp_path):
+    """The training callback (tracegs.training.attention) in the Stage-2 step the check times, on a machine whose
+    only attention kernel is the math fallback."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    from tracegs.errors import ConfigError
+    from tracegs.training.attention import AttentionKernelCheck
+
+    cfg = gpu_check.compose("rehearsal", (f"paths.root_dir={tmp_path}",))
+    backbone = gpu_check.random_backbone(cfg)
+    gpu_check.make_random_adapter(backbone, tmp_path / "adapter", "cpu")
+    module = gpu_check.stage2_module(backbone, cfg.stage.memory_mode, 1, tmp_path / "adapter", "cpu",
+                                     cfg.stage.guidance_scale)
+    check, finished = AttentionKernelCheck(require_fused=True), []
+    with sdpa_kernel(SDPBackend.MATH), pytest.raises(ConfigError, match="require_fused_attention': attention would "
+                                                                         "run on PyTorch's math kernel on cpu"):
+        gpu_check.train_two_iterations(module, gpu_check.stage2_batch(cfg, backbone, torch.device("cpu")),
+                                       cfg.trainer.precision, torch.device("cpu"), finished.append, [check])
+    assert finished == [] and check.kernels == {"math": 1}  # stopped in the first step, at its first call
+    assert torch._C._len_torch_function_stack() == 0  # the recording ended with the step

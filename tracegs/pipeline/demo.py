@@ -12,6 +12,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from tracegs.console import LogBookmark, show
+from tracegs.devices import require_trainer_device
 from tracegs.eval.html_report import write_report_page
 from tracegs.eval.seeds import per_step_points
 from tracegs.eval.tables_and_figures import results_table_markdown
@@ -59,6 +60,7 @@ def demo(cfg: DictConfig) -> Path:
     refined PLYs); the demo adds ``run.json`` (commit, seed, machine, timings), ``tables.md`` and the page showing
     them all (``report.html``, tracegs.eval.html_report).
     """
+    require_trainer_device(cfg.trainer.accelerator)  # its training steps come after minutes of preparation
     start = time.perf_counter()
     bookmark = LogBookmark()
     out_dir = Path(cfg.run_dir)

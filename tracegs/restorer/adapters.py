@@ -10,6 +10,9 @@ dtype of the layer they adapt, so on the paper's bf16 base they (and AdamW's sta
 1e-5 step, far below bf16's ~4e-3 relative resolution, would mostly round away. Saved adapters therefore
 hold float32 and say so in their metadata. An adapter this project wrote is refused in another dtype; a file
 from elsewhere is copied into float32 factors (a bf16 file is upcast exactly, nothing is downcast).
+
+Their products may still be computed in bfloat16 (``set_lora_compute``, ``backbone.lora.compute_bf16``): the float32
+factors stay the master weights the optimiser updates, and each forward multiplies by a bf16 copy.
 """
 
 from __future__ import annotations
@@ -23,8 +26,10 @@ import warnings
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from peft import LoraConfig as PeftLoraConfig
 from peft import get_peft_model_state_dict, set_peft_model_state_dict
+from peft.tuners.lora import LoraLayer
 
 from tracegs.errors import ConfigMismatchError, InputFileError
 from tracegs.io import atomic_directory, bytes_digest, read_safetensors, save_safetensors_atomic
@@ -76,6 +81,35 @@ def _inject(model: torch.nn.Module, config: PeftLoraConfig, name: str) -> None:
         if param.dtype != torch.float32:
             # ``.data`` keeps the Parameter object (peft's layers and any optimiser hold references to it).
             param.data = param.data.float()
+    set_lora_compute(model, getattr(model, "_lora_compute_bf16", False))
+
+
+class Bf16Factor(torch.nn.Linear):
+    """A LoRA factor (peft's ``lora_A`` / ``lora_B`` Linear) whose float32 weight is the master copy and whose
+    product is computed in bfloat16: the gradient reaches the float32 weight through the cast."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        bias = None if self.bias is None else self.bias.to(torch.bfloat16)
+        return F.linear(x.to(torch.bfloat16), self.weight.to(torch.bfloat16), bias)
+
+
+def set_lora_compute(model: torch.nn.Module, bf16: bool) -> None:
+    """Compute every adapter's products on ``model`` in bfloat16 (``bf16``) or in its factors' float32, the adapters
+    added later included (``backbone.lora.compute_bf16``).
+
+    peft's LoRA layer casts its input to the factors' dtype before multiplying (a float32 copy of every adapted
+    activation on a bf16 base); with bf16 products that cast is turned off, and each factor's class is swapped
+    for ``Bf16Factor``: the module, its Parameters (which peft's ModuleDicts and the optimiser hold) and its
+    state-dict names stay the same, only its forward changes."""
+    model._lora_compute_bf16 = bf16
+    factor_class = Bf16Factor if bf16 else torch.nn.Linear
+    for layer in model.modules():
+        if isinstance(layer, LoraLayer):
+            layer.cast_input_dtype_enabled = not bf16
+            for factors in (layer.lora_A, layer.lora_B):
+                for factor in factors.values():
+                    if type(factor) in (torch.nn.Linear, Bf16Factor):
+                        factor.__class__ = factor_class
 
 
 def _trainable_flags(model: torch.nn.Module) -> dict[str, bool]:

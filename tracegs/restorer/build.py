@@ -21,6 +21,7 @@ from tracegs.restorer.config import BackboneConfig, TransformerConfig
 from tracegs.restorer.encoders import TextEncoder, build_reference_encoder, build_text_encoder
 from tracegs.restorer.loading import require_local_dir, torch_dtype
 from tracegs.restorer.schedules import NoiseSchedule, build_schedule
+from tracegs.restorer.speed import apply_switches
 from tracegs.restorer.transformer import ReferenceGuidedTransformer
 
 log = logging.getLogger(__name__)
@@ -35,7 +36,7 @@ class CheckpointMismatchError(ValueError):
 
 def transformer_kwargs(cfg: TransformerConfig) -> dict:
     """diffusers config keys of ``ReferenceGuidedTransformer`` for a ``TransformerConfig`` (not its loading
-    settings: ``pretrained_path``, ``skip_stored_keys``, ``dtype``, ``gradient_checkpointing``)."""
+    settings: ``pretrained_path``, ``skip_stored_keys``, ``dtype`` and the execution switches of tracegs.restorer.speed)."""
     return dict(
         num_layers=cfg.num_layers,
         num_attention_heads=cfg.num_attention_heads,
@@ -389,8 +390,7 @@ def build_backbone(cfg: BackboneConfig, device: torch.device | str = "cpu", enco
         if dtype != torch.float32:  # (diffusers warns on any .to(dtype), even a no-op one)
             transformer.to(dtype)
     transformer.requires_grad_(False).eval()
-    if cfg.transformer.gradient_checkpointing:
-        transformer.enable_gradient_checkpointing()
+    apply_switches(transformer, cfg)
     return Backbone(
         transformer=transformer,
         codec=codec,

@@ -117,8 +117,18 @@ class TransformerConfig:
     skip_stored_keys: list[str] = execution(factory=list)
     # Frozen base weights; paper scale "bfloat16" (LoRA factors stay float32: adapters.py)
     dtype: str = reads(PREPARE, BASELINE, default="float32")
-    # Recompute block activations in backward (paper-scale memory): the same restorations, so no cache reads it.
-    gradient_checkpointing: bool = reads(BASELINE, default=False)
+    # Execution switches (tracegs.restorer.speed): each computes the same function (tests/restorer/test_speed.py:
+    # equal outputs and gradients), so none changes a product, and tuning them to a card keeps every product
+    # already made. The share of blocks whose activations are recomputed in backward instead of kept (0: none,
+    # 1: every block, which fits a 5B student on any card; the H200 ran Stage 2 at 36 of its 141 GiB so).
+    activation_checkpointing: float = execution(default=0.0, range=within(0, 1))
+    # torch.compile of each block (regional compilation); compile_backend: torch.compile's backend ("inductor"
+    # generates kernels; "eager" only traces, the CPU tests' exact check).
+    compile_blocks: bool = execution(default=False)
+    compile_backend: str = execution(default="inductor")
+    # Refuse, at the first training step's first attention call, to run attention on PyTorch's unfused math
+    # kernel (it materialises every attention matrix); off: the kernel in use is logged either way.
+    require_fused_attention: bool = execution(default=False)
 
 
 @dataclass
@@ -130,6 +140,11 @@ class LoraConfig:
     dropout: float = reads(STAGE1, default=0.0, range=within(0, 1, high_open=True))
     target_modules: list[str] = reads(STAGE1, factory=lambda: ["to_q", "to_k", "to_v", "to_out.0"])
     attention_modules: list[str] = reads(STAGE1, factory=lambda: ["attn1", "attn_cross"])
+    # Compute the adapters' products in bfloat16 while their factors (and AdamW's state) stay float32 masters
+    # (tracegs.restorer.adapters.set_lora_compute): under bf16 autocast (trainer.precision=bf16-mixed, the
+    # sampler's autocast_bf16) the same numbers without peft's float32 copy of every adapted input; elsewhere
+    # bf16's rounding, which changes the products (hence read by Stage 1 and everything after it).
+    compute_bf16: bool = reads(STAGE1, default=False)
 
 
 @dataclass

@@ -27,12 +27,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from tracegs.console import interactive, quiet_library_notices
 from tracegs.data.datamodule import MANIFEST, NO_TEACHER, PairedClipDataModule
+from tracegs.devices import require_trainer_device
 from tracegs.errors import ConfigError, require_writable_dir
 from tracegs.eval.callback import DeploymentRefinement, ModuleRestorerFactory
 from tracegs.eval.held_out_curve import HeldOutClipQuality
 from tracegs.processes import sigterm_at_its_default
 from tracegs.restorer.build import build_backbone
 from tracegs.stages import stage_table
+from tracegs.training.attention import AttentionKernelCheck
 from tracegs.training.checkpoints import (
     CheckpointOnSignal,
     ConfirmedCheckpoint,
@@ -139,7 +141,8 @@ def build_trainer(cfg: TrainConfig, output_dir: Path, module: RestorerTrainingMo
         num_sanity_val_steps=0,
         log_every_n_steps=cfg.trainer.log_every_n_steps,
         logger=build_loggers(cfg, output_dir),
-        callbacks=[checkpoints, on_signal, PlainTrainingProgress(), *weight_average(cfg.stage), *extra_callbacks],
+        callbacks=[checkpoints, on_signal, PlainTrainingProgress(), *weight_average(cfg.stage),
+                   AttentionKernelCheck(cfg.backbone.transformer.require_fused_attention), *extra_callbacks],
         enable_progress_bar=cfg.trainer.enable_progress_bar and interactive(),  # else plain progress lines
         deterministic=cfg.trainer.deterministic,
         fast_dev_run=cfg.trainer.fast_dev_run,
@@ -196,6 +199,7 @@ def train_stage(cfg) -> Path:
     """Train the stage named by ``cfg.stage.name`` (resuming if a checkpoint exists); return its product."""
     quiet_library_notices()  # the entry point of every stage, from the command line or from Python
     cfg = copy.deepcopy(as_train_config(cfg))
+    require_trainer_device(cfg.trainer.accelerator)
     output_dir = Path(cfg.output_dir)
     require_writable_dir(output_dir / "checkpoints", "output_dir (run_dir)")
     resume = resume_checkpoint(cfg, output_dir)  # checked before any work

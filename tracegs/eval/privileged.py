@@ -22,7 +22,7 @@ from tracegs.data import cache_keys
 from tracegs.data.cache_keys import condition_key
 from tracegs.eval.clips import held_out_clips, load_clip, mean_psnr, restore_clip, trajectory_frames
 from tracegs.eval.intervals import Interval, mean_interval, paired_interval
-from tracegs.eval.labels import RESTORER_LABELS
+from tracegs.eval.labels import RESTORER_LABELS, STAGE1
 from tracegs.restorer.sampler import RestorationPipeline
 
 TEACHER, STUDENT = "R_d", "R_s"
@@ -84,12 +84,14 @@ def privileged_gap(pipelines: Mapping[str, RestorationPipeline], cache_dir: str 
 
 
 BASELINE = "baseline"
+STUDENT_ROW = "tracegs"  # the Stage-2 student's row (tracegs.eval.labels)
 
 
 def privileged_figures(gap: Mapping) -> dict[str, Interval]:
     """With variant A among the restorers: A from R_s - input R_s, the privileged gap A from R_d - A from R_s, and
-    each other restorer from R_s - A from R_s and - A from R_d (paired by scene, against ground truth, 95% bootstrap
-    intervals over scenes); empty without A. Keys name the differences."""
+    each other restorer from R_s - A from R_s and - A from R_d, and with both students the Stage-2 student from R_s -
+    the Stage-1 adapter from R_s (paired by scene, against ground truth, 95% bootstrap intervals over scenes); empty
+    without A. Keys name the differences."""
     per_scene = gap["per_scene"]
     if f"{BASELINE} | {STUDENT}" not in gap["rows"]:
         return {}
@@ -106,6 +108,11 @@ def privileged_figures(gap: Mapping) -> dict[str, Interval]:
             name = RESTORER_LABELS.get(label, label)
             figures[f"{name} from R_s - A from R_s"] = paired_interval(truth(row), a_sparse)
             figures[f"{name} from R_s - A from R_d"] = paired_interval(truth(row), a_dense)
+    # Whether Stage 2 leaves the student above or below where Stage 1 started it (a collapse shows here first).
+    student, start = f"{STUDENT_ROW} | {STUDENT}", f"{STAGE1} | {STUDENT}"
+    if student in gap["rows"] and start in gap["rows"]:
+        figures[f"{RESTORER_LABELS[STUDENT_ROW]} from R_s - {RESTORER_LABELS[STAGE1]} from R_s"] = paired_interval(
+            truth(student), truth(start))
     return figures
 
 

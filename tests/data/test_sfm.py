@@ -328,7 +328,7 @@ SMALLEST = ["ablation=A", "artifacts.baseline_weights=null", "experiment.frame_h
             "data.prepare.fit.densification.enabled=false", "deploy.total_iters=40", "deploy.repair_iters=[10,25]",
             "deploy.steps=2", "deploy.max_clips_per_round=1", "deploy.trajectory.ellipse_frames=24",
             "evaluation.video_frames=6", "evaluation.grid_views=2", "evaluation.progress=false",
-            "capture.sfm.threads=1", "capture.views=3"]
+            "capture.sfm.threads=1", "capture.views=3", "capture.size=32"]
 
 
 def assert_restored(result, root: Path, scene: str) -> dict:

@@ -425,3 +425,29 @@ def test_a_renamed_capture_restores_to_the_same_bytes(model, tmp_path, entry_poi
     assert units[0]["methods"] == units[1]["methods"]
     assert all((run / units[0]["models"][m]).read_bytes() == (run / units[1]["models"][m]).read_bytes()
                for m in units[0]["models"])
+
+
+@pytest.mark.slow  # structure-from-motion of 12 photos at 720x480, then a restore at 360 px in tiles: ~2 min
+def test_a_capture_of_portrait_and_landscape_photos_restores_at_360_px_with_each_aspect(model, tmp_path, entry_point):
+    """720x480 photos with three of them portrait (the same lens held upright): one scene of two cameras, fitted,
+    restored (the restorer's 48x72 frames in tiles) and scored at 360 px on the longer side, each view at its own
+    orientation, none squashed."""
+    capture = tmp_path / "inputs" / "room"
+    portrait = {3, 6, 8}  # 8 is held out (every 8th view): a portrait view is scored
+    write_photos(capture, model, [camera.reframed(480, 720) if index in portrait else camera
+                                  for index, camera in enumerate(orbit(12, 720, 480, arc_deg=140.0))])
+    at_size = [override for override in SMALLEST if not override.startswith(("capture.size", "experiment.frame"))]
+    result = entry_point("restore", [*at_size, f"capture.path={capture}", f"paths.root_dir={tmp_path}",
+                                     "deploy.trajectory.frames_per_clip=5"], tmp_path)
+    unit = assert_restored(result, tmp_path, "room")
+    (scene,) = (tmp_path / "data" / "captures").glob("*/room")
+    assert json.loads((scene / RECORD).read_text())["cameras"] == [[480, 720], [720, 480]]
+    sizes = {unit["names"][view]: tuple(camera["size"]) for view, camera in unit["cameras"].items()}
+    assert any(unit["names"][str(view)] == "photo_008.png" for view in unit["test"])
+    for name, size in sizes.items():  # [height, width]: each view at 360 px on its longer side, its own way up
+        assert size == ((360, 240) if int(name[6:9]) in portrait else (240, 360)), name
+    (run,) = (tmp_path / "outputs" / "embedded" / "restore" / "A").iterdir()
+    for view, camera in unit["cameras"].items():
+        assert iio.imread(run / camera["image"]).shape[:2] == tuple(camera["size"])
+    held_out = unit["methods"]["baseline"]["per_view"]
+    assert len(held_out) == len(unit["test"]) and all(5.0 < row["psnr"] < 60.0 for row in held_out)

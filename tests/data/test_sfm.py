@@ -447,7 +447,7 @@ def test_a_capture_of_portrait_and_landscape_photos_restores_at_360_px_with_each
     for name, size in sizes.items():  # [height, width]: each view at 360 px on its longer side, its own way up
         assert size == ((360, 240) if int(name[6:9]) in portrait else (240, 360)), name
     (run,) = (tmp_path / "outputs" / "embedded" / "restore" / "A").iterdir()
-    for view, camera in unit["cameras"].items():
+    for camera in unit["cameras"].values():
         assert iio.imread(run / camera["image"]).shape[:2] == tuple(camera["size"])
     held_out = unit["methods"]["baseline"]["per_view"]
     assert len(held_out) == len(unit["test"]) and all(5.0 < row["psnr"] < 60.0 for row in held_out)

@@ -79,7 +79,7 @@ def test_clips_reach_the_restorer_at_its_size_and_the_fit_stays_at_the_protocols
     source = deployment_source(_source(scene_root), refine_cfg)
     unit = load_unit(load_scene(source, scene_name(SEED)), 3, source)
     assert all(tuple(v.image.shape[-2:]) == fitted for v in unit.captured)
-    assert tuple(unit.test_images.shape[-2:]) == fitted  # scored at this size
+    assert all(tuple(image.shape[-2:]) == fitted for image in unit.test_images)  # scored at this size
     cold = cold_start(unit.captured, initial_model(unit.scene, unit.captured_ids, unit.captured, fit_cfg),
                       refine_cfg, fit_cfg)
     echo = _Echo()
@@ -104,7 +104,7 @@ def test_a_pseudo_view_at_the_clips_size_is_compared_with_its_render_resized_bil
     camera = unit.test_cameras[0]
     with torch.no_grad():
         full = fitter._render(View(image=unit.test_images[0], camera=camera), 0)[0]
-        rendered = fitter._render(View(image=_bilinear(unit.test_images[:1])[0], camera=camera), 0)[0]
+        rendered = fitter._render(View(image=_bilinear(unit.test_images[0][None])[0], camera=camera), 0)[0]
     assert tuple(rendered.shape[-2:]) == CLIP
     assert torch.allclose(rendered, _bilinear(full[None])[0], atol=1e-6)
 

@@ -23,7 +23,7 @@ TINY_PREPARE = ["data=custom", "data.source.height=32", "data.source.width=48",
 # tracegs-restore at the smallest sizes, plain 3DGS only (no restorer weights needed).
 TINY_RESTORE = ["evaluation.methods=[3dgs]", "experiment.frame_height=32", "experiment.frame_width=48",
                 "data.prepare.fit.iterations=40", "data.prepare.fit.snapshot_iters=[10,20,40]",
-                "deploy.total_iters=40", "deploy.repair_iters=[10,25]", "evaluation.progress=false"]
+                "deploy.total_iters=40", "deploy.repair_iters=[10,25]", "evaluation.progress=false", "capture.size=48"]
 
 
 def tiny_backbone_config():

@@ -281,6 +281,16 @@ def camera_for_image(camera: Camera, path: Path, sparse: Path) -> Camera:
     return camera.rescaled(width, height)
 
 
+def frame_size(cfg: SceneSourceConfig, width: int, height: int) -> tuple[int, int]:
+    """The (width, height) an image of ``width`` x ``height`` is loaded at: downsized to ``cfg.long_side`` on its
+    longer side with its aspect ratio kept (never enlarged: that adds no detail), else ``cfg.width`` x
+    ``cfg.height`` (each None = as stored)."""
+    if cfg.long_side is not None:
+        scale = min(1.0, cfg.long_side / max(width, height))
+        return max(1, round(width * scale)), max(1, round(height * scale))
+    return cfg.width or width, cfg.height or height
+
+
 def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
     """Load scene ``name`` under ``cfg.root``; every listed image must exist in the image folder."""
     # lazily, after PIL and torch (bundled zlib, see module docstring)
@@ -312,7 +322,7 @@ def load_scene(cfg: SceneSourceConfig, name: str) -> Scene:
         camera = camera_for_image(calibrated, path, sparse)
         if camera is not calibrated:
             scaled.add(((calibrated.width, calibrated.height), (camera.width, camera.height)))
-        width, height = cfg.width or camera.width, cfg.height or camera.height  # the configured frame size
+        width, height = frame_size(cfg, camera.width, camera.height)
         if (width, height) != (camera.width, camera.height):
             camera = camera.rescaled(width, height)
         cameras.append(camera)

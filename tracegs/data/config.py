@@ -141,6 +141,9 @@ class SceneSourceConfig:
     # Resize images (and intrinsics) to this size; None = as stored
     height: int | None = reads(PREPARE, BASELINE, default=None, range=at_least(1))
     width: int | None = reads(PREPARE, BASELINE, default=None, range=at_least(1))  # paper scale: 480 x 720
+    # Downsize each image (and its intrinsics) so that its longer side is at most this, its aspect ratio kept,
+    # instead of to height x width: a capture of portrait and landscape photos keeps both (capture.size).
+    long_side: int | None = reads(PREPARE, BASELINE, default=None, range=at_least(1))
     # Centre the cameras and scale them into the unit ball (3DGS convention)
     normalize: bool = reads(PREPARE, BASELINE, default=True)
     test_every: int = reads(PREPARE, BASELINE, default=8, range=at_least(2))

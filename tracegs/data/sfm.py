@@ -66,10 +66,14 @@ PROGRESS_EVERY = 10  # registered images between two progress lines of the mappe
 # reproject worse than this is fitted wrongly (COLMAP's mapper filters observations at 4 px).
 MAX_CAMERA_REPROJECTION_PX = 2.0
 # A view whose rotation, relative to the views it was matched with, differs from each pair's own two-view
-# estimate by more than this (median over its pairs) is misplaced. A pair's estimate uses the guessed focal length
-# of photos without EXIF, which biases it by a few degrees; a camera with a wrong focal length puts its views tens
-# of degrees off (views about 55 degrees off were seen with photos of two sizes).
+# estimate by more than this (median over its strongest pairs) is misplaced. A pair's estimate uses the guessed
+# focal length of photos without EXIF, which biases it by a few degrees; a camera with a wrong focal length puts its
+# views tens of degrees off (views about 55 degrees off were seen with photos of two sizes).
 MAX_ROTATION_DISAGREEMENT_DEG = 10.0
+# The pairs a view is judged by: its this many pairs with the most inlier matches. A weak pair's own estimate is
+# often wrong: photos 50-100 degrees apart with 15-60 inliers gave two-view rotations of about 1 degree, 50-130
+# degrees off a model whose every camera was within 1.1 degrees of the truth, and outvoted the view's good pairs.
+STRONGEST_PAIRS = 3
 
 
 def _names(paths: list[str]) -> str:
@@ -335,6 +339,13 @@ def _rotation_angle_deg(rotation: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+def strongest_pair_medians(pairs: dict[str, list[tuple[int, float]]]) -> dict[str, float]:
+    """Per view, the median rotation disagreement (degrees) over its :data:`STRONGEST_PAIRS` pairs with the most
+    inlier matches; ``pairs[view]`` lists (inlier matches, disagreement) of each of its pairs."""
+    return {name: float(np.median([angle for _, angle in sorted(found, key=lambda pair: -pair[0])[:STRONGEST_PAIRS]]))
+            for name, found in pairs.items()}
+
+
 def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], capture: Path) -> dict:
     """Check a reconstruction of photos of several sizes (one camera each), and return what was measured.
 
@@ -343,8 +354,8 @@ def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], cap
     fails: each camera's mean reprojection error (at most :data:`MAX_CAMERA_REPROJECTION_PX`), and rotation
     consistency: the relative rotation the model gives each verified pair of registered views against the one
     the pair's own essential matrix gives (two-view geometry, independent of the mapper); a view whose median
-    disagreement over its pairs exceeds :data:`MAX_ROTATION_DISAGREEMENT_DEG` is misplaced. Either failure is
-    refused in one line naming the sizes."""
+    disagreement over its strongest pairs (``misplaced_views``) exceeds :data:`MAX_ROTATION_DISAGREEMENT_DEG` is
+    misplaced. Either failure is refused in one line naming the sizes."""
     pycolmap = import_keeping_sigterm("pycolmap")
 
     # Pairs whose relative pose comes from an essential matrix (a homography's decomposition is ambiguous).
@@ -359,7 +370,7 @@ def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], cap
     placed = {image_id: image for image_id, image in model.images.items() if image.has_pose}
     with pycolmap.Database.open(database) as db:
         pairs, geometries = db.read_two_view_geometries()
-    disagreement: dict[str, list[float]] = {}
+    disagreement: dict[str, list[tuple[int, float]]] = {}
     for pair, geometry in zip(pairs, geometries):
         first, second = pycolmap.pair_id_to_image_pair(pair)
         if first not in placed or second not in placed or geometry.cam2_from_cam1 is None or (
@@ -369,8 +380,8 @@ def _require_consistent(model, database: Path, sizes: list[tuple[int, int]], cap
                           @ placed[first].cam_from_world().rotation.matrix().T)
         angle = _rotation_angle_deg(geometry.cam2_from_cam1.rotation.matrix() @ model_relative.T)
         for image_id in (first, second):
-            disagreement.setdefault(placed[image_id].name, []).append(angle)
-    medians = {name: float(np.median(angles)) for name, angles in disagreement.items()}
+            disagreement.setdefault(placed[image_id].name, []).append((len(geometry.inlier_matches), angle))
+    medians = strongest_pair_medians(disagreement)
     misplaced = sorted(name for name, median in medians.items() if median > MAX_ROTATION_DISAGREEMENT_DEG)
     shown = ", ".join(f"{w}x{h}" for w, h in sizes)
     advice = "resize the photos to one size, or keep those of one size only"

@@ -14,7 +14,7 @@ from tracegs.data.config import CaptionConfig, SfmConfig, ViewRule
 from tracegs.errors import ConfigError
 from tracegs.modes import Mode
 from tracegs.products import DEPLOYMENT, RESTORE, execution, reads
-from tracegs.ranges import SEED, at_least, check_ranges, each
+from tracegs.ranges import SEED, at_least, check_ranges, each, within
 from tracegs.splat.config import TrajectoryConfig
 
 METHODS = ("3dgs", "baseline", "tracegs")
@@ -55,6 +55,18 @@ class Resolution(Mode):
     frame = "frame"
 
 
+class Upscale(Mode):
+    """How a clip larger than the restorer's frames is restored (tracegs.deploy.tiles; docs/your_capture.md
+    measures both)."""
+
+    # Overlapping tiles of the restorer's frame size, each restored, blended with linear feathering: every pixel
+    # is restored at its own resolution.
+    tiles = "tiles"
+    # The clip resized to the restorer's frame and restored, its correction (restored - input) upsampled and
+    # added to the rendering: the rendering's finer detail kept, one restoration per clip.
+    residual = "residual"
+
+
 @dataclass
 class RefinementConfig:
     """The restore-refine loop (Algorithm 1 bottom, Eq. supp-refinement-objective, Eq. supp-pseudo-weight)."""
@@ -80,6 +92,13 @@ class RefinementConfig:
     # [height, width] each clip's frames and reference images are resized to (bilinearly) before the restorer sees
     # them, where they differ (``resolution=dataset``); None = as rendered.
     clip_size: list[int] | None = reads(DEPLOYMENT, default=None, range=each(at_least(1)))
+    # [height, width] of the frames the restorer works on, where the fitted views are larger (a capture fitted at
+    # capture.size): each clip is rendered at this aspect ratio with the captured views' longer side and restored
+    # by ``upscale`` at this size; None = clips restored as rendered (the benchmarks: the views are its frames).
+    restorer_frame: list[int] | None = reads(DEPLOYMENT, default=None, range=each(at_least(1)))
+    upscale: Upscale = reads(DEPLOYMENT, default=Upscale.tiles)
+    # share of a tile's side its neighbour overlaps (``upscale=tiles``): the width of the feathered seams
+    tile_overlap: float = reads(DEPLOYMENT, default=0.25, range=within(0, 0.9))
     # The sparse-view rule of the scenes deployment fits and scores, where no split file lists a K-view set; None =
     # data.source.view_rule. GSFixer's release picks DL3DV's as every other dataset's (its one loader,
     # datasets/colmap_debug.py l. 402-422: np.linspace over the every-8th split's training views), where the DL3DV
@@ -96,8 +115,13 @@ class RefinementConfig:
         if self.resolution == Resolution.dataset and self.clip_size is None:
             raise ConfigError("clip_size", "resolution=dataset fits at the dataset's own image size, so the "
                                            "restorer's clips need a size: set [height, width]")
-        if self.clip_size is not None and len(self.clip_size) != 2:
-            raise ConfigError("clip_size", f"must be [height, width] or null, got {list(self.clip_size)}")
+        for name in ("clip_size", "restorer_frame"):
+            size = getattr(self, name)
+            if size is not None and len(size) != 2:
+                raise ConfigError(name, f"must be [height, width] or null, got {list(size)}")
+        if self.clip_size is not None and self.restorer_frame is not None:
+            raise ConfigError("restorer_frame", "clip_size already resizes every clip to the restorer's frames: "
+                                                "set one of them")
         try:
             self.trajectory.validate()
         except ConfigError as error:
@@ -160,4 +184,8 @@ class CaptureConfig:
     frames: int = reads(RESTORE, default=60, range=at_least(1))
     # K captured views the 3DGS is fitted from (the view-selection rule)
     views: int = reads(RESTORE, default=6, range=CAPTURED_VIEWS)
+    # Longer side, in pixels, each view is fitted, restored and scored at (at most: smaller images are not
+    # enlarged), its aspect ratio kept, so portrait views stay portrait: data.source.long_side; the photos'
+    # undistorted images are kept at it (capture.sfm.scene_size).
+    size: int = reads(RESTORE, default=360, range=at_least(1))
     sfm: SfmConfig = reads(RESTORE, factory=SfmConfig)

@@ -22,6 +22,8 @@ import torch
 from tracegs.data.captions import clip_caption, release_captioner
 from tracegs.deploy.config import KeptFrames, RefinementConfig
 from tracegs.deploy.restorers import Clip, ClipRestorer
+from tracegs.deploy.tiles import restore_at_frame
+from tracegs.splat.cameras import Camera, reframe_image
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, camera_extent
 from tracegs.splat.gaussians import GaussianModel
@@ -61,18 +63,32 @@ def to_clip_size(images: torch.Tensor, size: Sequence[int] | None) -> torch.Tens
     return torch.nn.functional.interpolate(images, size=tuple(size), mode="bilinear", align_corners=False)
 
 
+def clip_frame(cameras: Sequence[Camera], restorer_frame: Sequence[int] | None) -> tuple[int, int]:
+    """(width, height) every clip is rendered at: the restorer's frame's aspect ratio with the cameras' longest
+    side, or the first camera's size without ``restorer_frame``. One size for every clip and frame, whatever the
+    captured views' orientations: a portrait view is a clip's end as its ``Camera.reframed`` landscape frame."""
+    if restorer_frame is None:
+        return cameras[0].width, cameras[0].height
+    height, width = restorer_frame
+    scale = max(max(c.width, c.height) for c in cameras) / max(height, width)
+    return round(width * scale), round(height * scale)
+
+
 def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_index: int, cfg: RefinementConfig,
                        fit_cfg: GaussianFitConfig, caption: str, generator: torch.Generator) -> list[Clip]:
     """Resample the round's trajectory P^(r) and render G^(r) along it (Eq. supp-round-rendering), as clips
     whose two ends are observed reference views (their captured images become the clip's references), both at
+    ``clip_frame`` (the captured cameras and images reframed to it, unchanged where they have its size), then at
     the restorer's ``cfg.clip_size`` (``to_clip_size``).
     Frames come from ``render_clip`` and captions from ``clip_caption`` on each clip's first frame, as in
     prepare; ``caption`` is the scene's own caption (its caption.txt, "" when it has none)."""
+    width, height = clip_frame([v.camera for v in captured], cfg.restorer_frame)
     clips = []
-    for (a, b), cams in round_clips([v.camera for v in captured], round_index, cfg.trajectory,
-                                    cfg.max_clips_per_round, generator):
+    for (a, b), cams in round_clips([v.camera.reframed(width, height) for v in captured], round_index,
+                                    cfg.trajectory, cfg.max_clips_per_round, generator):
         frames = to_clip_size(render_clip(fitter.model, cams, fit_cfg, fitter.iteration), cfg.clip_size)
-        references = to_clip_size(torch.stack([captured[a].image, captured[b].image]), cfg.clip_size)
+        references = to_clip_size(torch.stack([reframe_image(captured[i].image, width, height) for i in (a, b)]),
+                                  cfg.clip_size)
         if cfg.trajectory.captured_ends:
             frames = with_captured_ends(frames, references)
         clips.append(Clip(frames=frames, cameras=list(cams), references=references,
@@ -84,14 +100,15 @@ def render_round_clips(fitter: GaussianFitter, captured: Sequence[View], round_i
 def repair_round(fitter: GaussianFitter, captured: Sequence[View], restorer: ClipRestorer, round_index: int,
                  cfg: RefinementConfig, fit_cfg: GaussianFitConfig, caption: str,
                  generator: torch.Generator) -> RepairRound:
-    """One repair call: render the round's clips, restore every clip, pool the restored target frames into
+    """One repair call: render the round's clips, restore every clip (at the restorer's frame size where
+    ``cfg.restorer_frame`` sets one: ``restore_at_frame``), pool the restored target frames into
     the new pseudo-set (Eq. supp-round-pseudo-set): every frame (``kept_frames=every``, GSFixer's release), or
     only those between the two clip ends, which are the reference views themselves, already supervised by
     L_sparse (``between_ends``)."""
     clips = render_round_clips(fitter, captured, round_index, cfg, fit_cfg, caption, generator)
     seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
     with torch.no_grad():
-        restored = restorer.restore(clips, seed=seed)
+        restored = restore_at_frame(restorer, clips, seed, cfg.restorer_frame, cfg.upscale, cfg.tile_overlap)
     if len(restored) != len(clips):
         raise RuntimeError(f"restorer returned {len(restored)} clips for {len(clips)}")
     kept = slice(None) if cfg.kept_frames == KeptFrames.every else slice(1, -1)

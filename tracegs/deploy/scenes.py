@@ -12,7 +12,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import torch
 from rich.progress import Progress
 from torch import Tensor
 
@@ -31,7 +30,7 @@ from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter, View, random_initial_model
 from tracegs.splat.gaussians import GaussianModel
 from tracegs.splat.ply import save_ply
-from tracegs.splat.render import require_available
+from tracegs.splat.render import render_each, require_available
 
 
 def evaluation_units(scenes: Sequence[str], views: Sequence[int], shard_index: int = 0,
@@ -48,7 +47,7 @@ def deployment_source(source: SceneSourceConfig, cfg: RefinementConfig) -> Scene
     ``render_round_clips`` resizes to the restorer's ``clip_size``; their K-view sets by ``cfg.view_rule`` where
     it names one."""
     if cfg.resolution == Resolution.dataset:
-        source = replace(source, height=None, width=None)
+        source = replace(source, height=None, width=None, long_side=None)
     return source if cfg.view_rule is None else replace(source, view_rule=cfg.view_rule)
 
 
@@ -71,11 +70,15 @@ class SceneUnit:
     captured: list[View]
     test_ids: list[int]
     test_cameras: list[Camera]
-    test_images: Tensor  # [T,3,H,W] ground truth of the held-out test views
+    test_images: list[Tensor]  # [3,H,W] ground truth of each held-out test view, at its camera's size
 
     def cold_start(self, refine_cfg: RefinementConfig, fit_cfg: GaussianFitConfig) -> GaussianFitter:
         init = initial_model(self.scene, self.captured_ids, self.captured, fit_cfg)
         return cold_start(self.captured, init, refine_cfg, fit_cfg)
+
+    def render_tests(self, model: GaussianModel, background: Tensor) -> list[Tensor]:
+        """``model`` rendered at each test camera (its own size: portrait views stay portrait), on the CPU."""
+        return [image.cpu() for image in render_each(model, self.test_cameras, background, None)]
 
 
 def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
@@ -93,7 +96,7 @@ def load_unit(scene: Scene, views: int, source: SceneSourceConfig) -> SceneUnit:
         captured=[View(image=scene.load_image(i), camera=scene.cameras[i]) for i in captured_ids],
         test_ids=list(split.test),
         test_cameras=[scene.cameras[i] for i in split.test],
-        test_images=torch.stack([scene.load_image(i) for i in split.test]),
+        test_images=[scene.load_image(i) for i in split.test],
     )
 
 def save_model(model: GaussianModel, path: Path) -> Path:

@@ -30,7 +30,6 @@ from tracegs.restorer.build import with_encoders
 from tracegs.restorer.sampler import RestorationPipeline
 from tracegs.splat.config import GaussianFitConfig
 from tracegs.splat.fit import GaussianFitter
-from tracegs.splat.render import render_views
 
 RestorerFactory = Callable[[L.LightningModule], ClipRestorer]
 
@@ -116,7 +115,7 @@ class DeploymentRefinement(L.Callback):
         for unit, cold in self._prepared_units():
             model = refine(cold, unit.captured, restorer, self.refine_cfg, self.fit_cfg,
                            caption=unit.scene.caption or "")
-            renders = render_views(model, unit.test_cameras, background, None).cpu()
+            renders = unit.render_tests(model, background)
             per_k[unit.views].append(mean_metrics(self._metrics.per_view(renders, unit.test_images)))
         return per_k
 

@@ -172,15 +172,18 @@ class ImageMetrics:
         return ssim_label(self.ssim_convention)
 
     @torch.no_grad()
-    def per_view(self, pred: Tensor, target: Tensor) -> list[dict[str, float | None]]:
-        """Metrics of each image in the batch (``[3,H,W]`` or ``[B,3,H,W]``), one dict per view."""
-        pred, target = _as_batch(pred, "pred"), _as_batch(target, "target")
-        if pred.shape != target.shape:
-            raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
-        pred = pred.clamp(0.0, 1.0)
-        target = target.clamp(0.0, 1.0)
+    def per_view(self, pred: Tensor | Sequence[Tensor], target: Tensor | Sequence[Tensor]) -> list[dict[str, float | None]]:
+        """Metrics of each image of the batch (``[3,H,W]``, ``[B,3,H,W]`` or a list of ``[3,H,W]`` views, which
+        may differ in size from view to view), one dict per view."""
+        if isinstance(pred, Tensor) and isinstance(target, Tensor):
+            pred, target = _as_batch(pred, "pred").split(1), _as_batch(target, "target").split(1)
+        if len(pred) != len(target):
+            raise ValueError(f"{len(pred)} predicted views for {len(target)} targets")
         results = []
-        for p, t in zip(pred.split(1), target.split(1)):
+        for p, t in zip(pred, target):
+            p, t = _as_batch(p, "pred").clamp(0.0, 1.0), _as_batch(t, "target").clamp(0.0, 1.0)
+            if p.shape != t.shape:
+                raise ValueError(f"pred {tuple(p.shape)} and target {tuple(t.shape)} differ in shape")
             psnr = peak_signal_noise_ratio(p, t, data_range=1.0).item()
             ssim = {"torchmetrics": structural_similarity_index_measure(p, t, data_range=1.0).item(),
                     "gsfixer": gsfixer_ssim(png_bytes(p[0]), png_bytes(t[0])).item()}

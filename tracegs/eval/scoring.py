@@ -65,7 +65,9 @@ log = logging.getLogger("tracegs")
 
 
 def test_trajectory(cameras: Sequence[Camera], frames: int) -> list[Camera]:
-    """A smooth path through the test cameras (bridges between consecutive ones) for the videos."""
+    """A smooth path through the test cameras (bridges between consecutive ones) for the videos, every frame at
+    the first camera's size (the others ``Camera.reframed`` to it: a video has one frame size)."""
+    cameras = [camera.reframed(cameras[0].width, cameras[0].height) for camera in cameras]
     if len(cameras) < 2:
         return list(cameras) * max(frames, 1)
     per_leg = max(2, frames // (len(cameras) - 1))
@@ -94,7 +96,7 @@ class MethodResult:
     """One method deployed on one unit: metrics on the test views, the renders they score, the final 3DGS."""
 
     scores: dict
-    renders: Tensor
+    renders: list[Tensor]
     model: GaussianModel
 
 
@@ -104,7 +106,7 @@ def deploy_method(unit: SceneUnit, cold: GaussianFitter, restorer: ClipRestorer 
     background = torch.tensor(fit_cfg.background, dtype=torch.float32)
     model = refine(cold, unit.captured, restorer, refine_cfg, fit_cfg, caption=unit.scene.caption or "",
                    seed=refine_cfg.seed)
-    renders = render_views(model, unit.test_cameras, background, None).cpu()
+    renders = unit.render_tests(model, background)
     per_view = metrics.per_view(renders, unit.test_images)
     require_finite_metrics(per_view, f"scene {unit.scene.name}, {unit.views} views, method {method}")
     return MethodResult({"per_view": per_view, "mean": mean_metrics(per_view)}, renders, model)

@@ -283,8 +283,14 @@ def _label_strip(labels: Sequence[str], cell_width: int, height: int = 28) -> np
     return np.ascontiguousarray(strip[:height, : cell_width * len(labels)])
 
 
-def _row(images: Sequence[Tensor], factor: int) -> np.ndarray:
-    return np.concatenate([_upscale(image_array(img), factor) for img in images], axis=1)
+def _row(images: Sequence[Tensor], factor: int, cell_width: int | None = None) -> np.ndarray:
+    """The images side by side, upscaled by ``factor``; each centred on white in a cell ``cell_width`` wide where
+    given (a grid whose rows differ in width: portrait and landscape views)."""
+    cells = [_upscale(image_array(img), factor) for img in images]
+    if cell_width is not None:
+        cells = [np.pad(cell, ((0, 0), ((cell_width - cell.shape[1]) // 2, (cell_width - cell.shape[1] + 1) // 2),
+                               (0, 0)), constant_values=255) for cell in cells]
+    return np.concatenate(cells, axis=1)
 
 
 def _upscale_factor(height: int, min_height: int) -> int:
@@ -309,10 +315,11 @@ def qualitative_grid(columns: Mapping[str, Sequence[Tensor]], min_cell_height: i
     counts = {len(v) for v in columns.values()}
     if len(counts) != 1 or 0 in counts:
         raise ValueError(f"every grid column needs the same non-zero number of views, got {sorted(counts)}")
-    first = next(iter(columns.values()))[0]
-    factor = _upscale_factor(first.shape[-2], min_cell_height)
-    rows = [_row([columns[label][i] for label in labels], factor) for i in range(counts.pop())]
-    return np.concatenate([_label_strip(labels, first.shape[-1] * factor), *rows], axis=0)
+    images = [image for column in columns.values() for image in column]
+    factor = _upscale_factor(min(image.shape[-2] for image in images), min_cell_height)
+    cell_width = max(image.shape[-1] for image in images) * factor
+    rows = [_row([columns[label][i] for label in labels], factor, cell_width) for i in range(counts.pop())]
+    return np.concatenate([_label_strip(labels, cell_width), *rows], axis=0)
 
 
 def save_frames(frames: Tensor, directory: str | Path) -> Path:

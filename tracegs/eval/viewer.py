@@ -134,6 +134,21 @@ def world_up(cameras: list[Camera]) -> np.ndarray:
     return mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 1e-6 else np.array([0.0, 0.0, 1.0])
 
 
+def initial_view(unit: UnitView) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Where the viewer's camera starts for ``unit`` (which has cameras): (position, look-at point, up, vertical
+    field of view in radians). A little behind its first held-out camera with a wider view: the splats as that
+    camera saw them, its frustum and its neighbours in sight."""
+    cameras = list(unit.cameras.values())
+    held_out = [unit.cameras[v] for v in unit.record["test"] if v in unit.cameras] or cameras
+    pose = frustum_pose(held_out[0])
+    forward = held_out[0].camera_to_world[:3, 2].double().numpy()
+    centres = np.stack([c.center.double().numpy() for c in cameras])
+    # Where the held-out camera's axis passes closest to the middle of the cameras: what they look at.
+    depth = max(float((centres.mean(axis=0) - pose["position"]) @ forward), 1e-3)
+    return (pose["position"] - 0.25 * depth * forward, pose["position"] + depth * forward, world_up(cameras),
+            min(1.4 * pose["fov"], math.radians(90.0)))
+
+
 class Viewer:
     """A viser server showing ``units`` (see the module docstring); ``url`` is where to open it."""
 
@@ -214,20 +229,12 @@ class Viewer:
         unit = self.unit
         self.method_choice.options = self._method_labels(unit)
         self.view_choice.options = self._view_labels(unit) or ("none",)
-        cameras = list(unit.cameras.values())
-        if cameras:
-            held_out = [unit.cameras[v] for v in unit.record["test"] if v in unit.cameras] or cameras
-            pose = frustum_pose(held_out[0])
-            forward = held_out[0].camera_to_world[:3, 2].double().numpy()
-            centres = np.stack([c.center.double().numpy() for c in cameras])
-            # Where the held-out camera's axis passes closest to the middle of the cameras: what they look at.
-            depth = max(float((centres.mean(axis=0) - pose["position"]) @ forward), 1e-3)
-            self.server.scene.set_up_direction(tuple(world_up(cameras)))
-            # A little behind the held-out camera with a wider view: the splats as that camera saw them, its
-            # frustum and its neighbours in sight.
-            self.server.initial_camera.position = tuple(pose["position"] - 0.25 * depth * forward)
-            self.server.initial_camera.look_at = tuple(pose["position"] + depth * forward)
-            self.server.initial_camera.fov = min(1.4 * pose["fov"], math.radians(90.0))
+        if unit.cameras:
+            position, look_at, up, fov = initial_view(unit)
+            self.server.scene.set_up_direction(tuple(up))
+            self.server.initial_camera.position = tuple(position)
+            self.server.initial_camera.look_at = tuple(look_at)
+            self.server.initial_camera.fov = fov
         self.show()
 
     def show(self) -> None:

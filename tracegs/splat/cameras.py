@@ -77,6 +77,18 @@ class Camera:
                              device=self.K.device)
         return Camera(self.K * scale[:, None], self.world_to_camera.clone(), width, height)
 
+    def reframed(self, width: int, height: int) -> Camera:
+        """The same camera with an image plane of another size about the same centre: the focal lengths kept
+        (no stretch), the principal point moved by half the change (whole pixels), so a portrait view becomes a
+        landscape frame that crops its top and bottom and extends its sides (``reframe_image`` moves the pixels
+        alike)."""
+        if (width, height) == (self.width, self.height):
+            return self
+        K = self.K.clone()
+        K[0, 2] += (width - self.width) // 2
+        K[1, 2] += (height - self.height) // 2
+        return Camera(K, self.world_to_camera.clone(), width, height)
+
     def as_record(self) -> dict:
         """The camera as JSON values (the names of a prepared scene's scene.json), for a record beside a product."""
         return {"intrinsics": self.K.tolist(), "world_to_camera": self.world_to_camera.tolist(),
@@ -107,3 +119,15 @@ class Camera:
         rotation = look_at_rotation(eye, target, torch.as_tensor(up, dtype=torch.float32))
         intrinsics = intrinsics_from_fov(fov_x_deg, width, height) if K is None else K.to(torch.float32)
         return Camera.from_pose(intrinsics, rotation, eye, width, height)
+
+
+def reframe_image(image: Tensor, width: int, height: int, fill: float = 0.0) -> Tensor:
+    """``image`` [..., H, W] on the image plane of ``Camera.reframed(width, height)``: cropped or padded with
+    ``fill`` by the same half-change on each side, so each pixel keeps its ray."""
+    rows, cols = image.shape[-2:]
+    top, left = (height - rows) // 2, (width - cols) // 2
+    out = image.new_full((*image.shape[:-2], height, width), fill)
+    kept_rows, kept_cols = min(rows, height), min(cols, width)
+    out[..., max(0, top):max(0, top) + kept_rows, max(0, left):max(0, left) + kept_cols] = \
+        image[..., max(0, -top):max(0, -top) + kept_rows, max(0, -left):max(0, -left) + kept_cols]
+    return out

@@ -88,12 +88,17 @@ def fit_device(cfg: GaussianFitConfig) -> torch.device:
 
 
 @torch.no_grad()
+def render_each(model: GaussianModel, cameras: Sequence[Camera], background: Sequence[float] | Tensor,
+                sh_degree: int | None, backend: str = "auto") -> list[Tensor]:
+    """Renders [3,H,W] in [0,1] of ``model`` at ``cameras``, each at its camera's size, on the model's device."""
+    background = torch.as_tensor(background, dtype=torch.float32)
+    return [render(model, camera, background, sh_degree, backend).image.clamp(0, 1) for camera in cameras]
+
+
 def render_views(model: GaussianModel, cameras: Sequence[Camera], background: Sequence[float] | Tensor,
                  sh_degree: int | None, backend: str = "auto") -> Tensor:
-    """Renders [F,3,H,W] in [0,1] of ``model`` at ``cameras``, on the model's device."""
-    background = torch.as_tensor(background, dtype=torch.float32)
-    return torch.stack([render(model, camera, background, sh_degree, backend).image for camera in cameras]
-                       ).clamp(0, 1)
+    """Renders [F,3,H,W] in [0,1] of ``model`` at ``cameras`` of one size, on the model's device."""
+    return torch.stack(render_each(model, cameras, background, sh_degree, backend))
 
 
 def render_clip(model: GaussianModel, cameras: Sequence[Camera], fit: GaussianFitConfig, iteration: int) -> Tensor:

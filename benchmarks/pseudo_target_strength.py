@@ -17,8 +17,6 @@ import argparse
 import json
 from collections import defaultdict
 
-import torch
-
 from tracegs.config.schema import register_configs
 from tracegs.config.tree import ConfigTree
 from tracegs.data import cache_keys

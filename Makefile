@@ -28,8 +28,9 @@ replicate: setup
 
 # The suite runs on every core (pytest-xdist, work stealing): each test is single-threaded (tests/conftest.py),
 # so two workers on two cores roughly halve the wall time; `pytest FILE` alone still runs in one process.
+# The twenty slowest tests close the log: where to look when the suite outgrows its budget.
 test: setup
-	@$(BIN)/python -m pytest -q -n auto --dist worksteal; status=$$?; \
+	@$(BIN)/python -m pytest -q -n auto --dist worksteal --durations=20; status=$$?; \
 	if [ $$status -eq 5 ]; then echo "make test: pytest collected no tests - the set-up is broken" >&2; fi; \
 	exit $$status
 
